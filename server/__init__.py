@@ -1,0 +1,12 @@
+"""AR drone simulator server: RGB-D registration, map fusion and a virtual drone.
+
+Layout (one folder per stage; the numerical core imports nothing from the transport):
+- ``geometry``      camera model and SE(3) helpers shared by every stage
+- ``registration``  the paper's RGB-D odometry (FAST + LK + Gauss-Newton, dense refinement)
+- ``mapping``       fusing registered frames into a map
+- ``evaluation``    trajectory files and metrics (ATE, RPE)
+- ``datasets``      one loader per RGB-D format behind one interface, plus the demo sequence
+- ``transport``     web server and wire protocol (filled in by the server issue)
+"""
+
+__version__ = "0.1.0"

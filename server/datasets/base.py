@@ -1,0 +1,64 @@
+"""The one interface every RGB-D sequence loader implements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from server.geometry import Intrinsics
+
+
+@dataclass
+class RGBDFrame:
+    """One registered RGB-D capture.
+
+    colour: (H, W, 3) uint8, RGB channel order.
+    depth:  (H, W) float32, metres along the optical axis, 0 where there is no measurement.
+    timestamp: seconds.
+    """
+
+    index: int
+    timestamp: float
+    colour: np.ndarray
+    depth: np.ndarray
+
+
+@dataclass
+class Trajectory:
+    """Timestamped poses: ``timestamps`` (N,) seconds, ``poses`` (N, 4, 4) T_world_camera, metres."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+
+class RGBDDataset:
+    """A sequence of RGB-D frames with intrinsics and, when known, ground truth.
+
+    Subclasses fill ``name``, ``path``, ``intrinsics``, ``depth_scale`` and ``ground_truth`` and
+    implement ``__len__`` and ``__getitem__``.
+    """
+
+    name: str
+    path: Path
+    intrinsics: Intrinsics
+    depth_scale: float
+    ground_truth: Trajectory | None = None
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def __getitem__(self, index: int) -> RGBDFrame:
+        raise NotImplementedError
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        raise NotImplementedError

@@ -1,0 +1,24 @@
+from server.geometry.camera import Intrinsics, backproject, backproject_pixels, project
+from server.geometry.se3 import (
+    exp_se3,
+    hat,
+    invert,
+    orthonormalize,
+    pose_from_quaternion,
+    quaternion_from_pose,
+    rotation_angle_deg,
+)
+
+__all__ = [
+    "Intrinsics",
+    "backproject",
+    "backproject_pixels",
+    "project",
+    "exp_se3",
+    "hat",
+    "invert",
+    "orthonormalize",
+    "pose_from_quaternion",
+    "quaternion_from_pose",
+    "rotation_angle_deg",
+]

@@ -78,7 +78,9 @@ class StateConfig:
 
     ok_inliers: int = 40
     lost_inliers: int = 12
-    ok_rmse: float = 1.5  # Mahalanobis RMSE of inliers above which the frame is weak
+    # Mahalanobis RMSE of the inliers above which the frame is weak; a 3D residual that fits
+    # its noise model has an RMSE of sqrt(3) = 1.73.
+    ok_rmse: float = 3.0
     min_condition: float = 1e-4  # smallest / largest eigenvalue of the scaled J^T J
 
 

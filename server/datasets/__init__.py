@@ -1,0 +1,57 @@
+"""RGB-D sequence loaders behind one interface, chosen by name or by sniffing the folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from server.datasets.base import RGBDDataset, RGBDFrame, Trajectory
+from server.datasets.redwood import RedwoodDataset
+from server.datasets.tum import TUMDataset
+from server.errors import DatasetError
+
+# Format name -> loader class; each takes the folder path plus its own keyword arguments.
+DATASETS: dict[str, type[RGBDDataset]] = {
+    "tum": TUMDataset,
+    "redwood": RedwoodDataset,
+}
+
+
+def sniff_format(path: Path) -> str | None:
+    """The format name a folder's layout suggests, or None when it matches none."""
+    if (path / "rgb.txt").is_file():
+        return "tum"
+    if ((path / "color").is_dir() or (path / "image").is_dir()) and (path / "depth").is_dir():
+        return "redwood"
+    return None
+
+
+def open_dataset(path: str | Path, fmt: str | None = None, **kwargs) -> RGBDDataset:
+    """Open the RGB-D sequence in ``path`` with the loader named ``fmt``, or the one its layout
+    suggests; ``kwargs`` go to the loader (e.g. ``intrinsics``). Raises DatasetError otherwise."""
+    path = Path(path)
+    known = ", ".join(sorted(DATASETS))
+    if fmt is None:
+        if not path.exists():
+            raise DatasetError(f"dataset folder {path} does not exist")
+        fmt = sniff_format(path)
+        if fmt is None:
+            raise DatasetError(
+                f"cannot tell the format of {path} (tum: rgb.txt; redwood: color/ or image/ and "
+                f"depth/); pass one of: {known}"
+            )
+    loader = DATASETS.get(fmt.lower())
+    if loader is None:
+        raise DatasetError(f"unknown dataset format {fmt!r}; known formats: {known}")
+    return loader(path, **kwargs)
+
+
+__all__ = [
+    "DATASETS",
+    "RGBDDataset",
+    "RGBDFrame",
+    "RedwoodDataset",
+    "TUMDataset",
+    "Trajectory",
+    "open_dataset",
+    "sniff_format",
+]

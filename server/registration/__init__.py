@@ -1,0 +1,6 @@
+"""The paper's RGB-D registration: FAST + pyramidal LK correspondences, Gauss-Newton on SE(3),
+dense point-to-plane refinement, keyframes."""
+
+from server.registration.tracker import Tracker, TrackingState, TrackResult
+
+__all__ = ["Tracker", "TrackingState", "TrackResult"]

@@ -1,0 +1,98 @@
+"""TUM trajectory files: one read/write pair.
+
+Format: one pose per line, ``timestamp tx ty tz qx qy qz qw`` (seconds, metres, unit quaternion),
+``#`` starts a comment line. Poses are T_world_camera.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from server.datasets.base import Trajectory
+from server.errors import TrajectoryError
+from server.geometry import pose_from_quaternion, quaternion_from_pose
+
+logger = logging.getLogger(__name__)
+
+TUM_FORMAT = "'timestamp tx ty tz qx qy qz qw' (8 numbers per line, '#' for comments)"
+
+
+def _parse_row(path: Path, line_no: int, line: str) -> tuple[float, np.ndarray]:
+    """One TUM row -> (timestamp s, T_world_camera 4x4); TrajectoryError naming file and line."""
+    fields = line.replace(",", " ").split()
+    if len(fields) != 8:
+        raise TrajectoryError(
+            f"{path}:{line_no}: expected 8 columns {TUM_FORMAT}, got {len(fields)}: {line!r}"
+        )
+    try:
+        values = np.array([float(f) for f in fields])
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}:{line_no}: not a number in {line!r} ({exc})") from exc
+    if not np.all(np.isfinite(values)):
+        raise TrajectoryError(f"{path}:{line_no}: non-finite value in {line!r}")
+    q = values[4:8]
+    if np.linalg.norm(q) < 1e-6:
+        raise TrajectoryError(f"{path}:{line_no}: zero quaternion in {line!r}")
+    return float(values[0]), pose_from_quaternion(values[1:4], q)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file into a Trajectory (timestamps s, poses T_world_camera, metres).
+
+    Raises TrajectoryError if the file is missing, empty, or has a malformed row (the message names
+    the file and the line number).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TrajectoryError(f"cannot read trajectory file {path}: {exc.strerror}") from exc
+    stamps, poses = [], []
+    for line_no, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        stamp, pose = _parse_row(path, line_no, line)
+        stamps.append(stamp)
+        poses.append(pose)
+    if not stamps:
+        raise TrajectoryError(f"{path}: no poses found; expected rows {TUM_FORMAT}")
+    timestamps = np.array(stamps)
+    if np.any(np.diff(timestamps) < 0):
+        logger.warning("%s: timestamps are not sorted", path)
+    logger.debug("read %d poses from %s", len(stamps), path)
+    return Trajectory(timestamps=timestamps, poses=np.stack(poses))
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> None:
+    """Write ``traj`` as a TUM trajectory file, atomically (temp file in the same folder + rename).
+
+    Timestamps get 6 decimals (microseconds), translations 9 (nanometres), quaternions have w >= 0.
+    """
+    path = Path(path)
+    timestamps = np.asarray(traj.timestamps, dtype=np.float64)
+    poses = np.asarray(traj.poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(timestamps):
+        raise TrajectoryError(
+            f"cannot write {path}: need N timestamps and (N, 4, 4) poses, "
+            f"got {timestamps.shape} and {poses.shape}"
+        )
+    lines = ["# timestamp tx ty tz qx qy qz qw (T_world_camera, metres)"]
+    for stamp, T in zip(timestamps, poses, strict=True):
+        numbers = [*T[:3, 3], *quaternion_from_pose(T)]
+        lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in numbers))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write("\n".join(lines) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    logger.debug("wrote %d poses to %s", len(timestamps), path)

@@ -1,0 +1,128 @@
+"""Dense refinement: projective point-to-plane ICP against the keyframe's depth (section III-B).
+
+Correspondences come from projecting current points into the keyframe image, not from a nearest
+neighbour search; the sparse term rides along, so that geometry which constrains only some
+directions (a floor, one wall) cannot slide the pose along the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from server.config import DepthConfig, SolverConfig
+from server.geometry import Intrinsics, backproject, exp_se3, orthonormalize
+from server.registration.preprocess import axial_sigma
+from server.registration.sparse import NormalEquations
+
+
+@dataclass
+class DenseModel:
+    """A keyframe's surface at half resolution: vertices and normals in its camera frame."""
+
+    vertices: np.ndarray  # (h, w, 3) metres, NaN where unknown
+    normals: np.ndarray  # (h, w, 3) unit, NaN where unknown
+    intrinsics: Intrinsics  # of the half-resolution maps
+
+
+def build_dense_model(depth: np.ndarray, K: Intrinsics, normal_step_px: int = 2) -> DenseModel:
+    """Vertex and normal maps from a depth image (metres) at half resolution.
+
+    Raw depth noise biases point-to-plane ICP, so the depth is first averaged over 2x2 blocks
+    and median-filtered, and normals are taken over a baseline of ``normal_step_px`` half-res
+    pixels on each side.
+    """
+    h, w = depth.shape
+    valid = (depth > 0).astype(np.float32)
+    summed = cv2.resize(depth * valid, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    count = cv2.resize(valid, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    small = np.where(count > 0.99, summed / np.maximum(count, 1e-6), 0.0).astype(np.float32)
+    smoothed = cv2.medianBlur(small, 5)
+    small = np.where((small > 0) & (smoothed > 0), smoothed, small)
+    Kh = K.scaled(0.5)
+    hh, ww = small.shape
+    u, v = np.meshgrid(np.arange(ww), np.arange(hh))
+    z = np.where(small > 0, small, np.nan)
+    V = np.stack([(u - Kh.cx) * z / Kh.fx, (v - Kh.cy) * z / Kh.fy, z], axis=-1)
+    s = normal_step_px
+    N = np.full_like(V, np.nan)
+    du = V[s:-s, 2 * s :] - V[s:-s, : -2 * s]
+    dv = V[2 * s :, s:-s] - V[: -2 * s, s:-s]
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    # Across a depth edge the 'normal' is meaningless: require short, similar baselines.
+    span = np.maximum(np.linalg.norm(du, axis=-1), np.linalg.norm(dv, axis=-1))
+    ok = (norm[..., 0] > 0) & (span < 0.1 * z[s:-s, s:-s] * s)
+    n = np.where(ok[..., None], n / np.maximum(norm, 1e-12), np.nan)
+    # Orient normals towards the camera.
+    flip = np.sum(n * V[s:-s, s:-s], axis=-1) > 0
+    n[flip] *= -1
+    N[s:-s, s:-s] = n
+    return DenseModel(V.astype(np.float64), N.astype(np.float64), Kh)
+
+
+def sample_dense_points(depth: np.ndarray, K: Intrinsics, stride: int) -> np.ndarray:
+    """Every ``stride``-th valid pixel of the current depth, back-projected: (N, 3) metres."""
+    points, _ = backproject(depth, K, stride)
+    return points
+
+
+def dense_equations(
+    model: DenseModel, Q: np.ndarray, T: np.ndarray, max_distance: float, weight: float,
+    depth_cfg: DepthConfig, huber_k: float,
+) -> tuple[NormalEquations, int]:
+    """Point-to-plane normal equations of current points Q (N, 3) moved by T_keyframe_current,
+    matched by projection into the keyframe. Returns the equations and the match count."""
+    y = Q @ T[:3, :3].T + T[:3, 3]
+    K = model.intrinsics
+    h, w = model.vertices.shape[:2]
+    z = y[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(y[:, 0] * K.fx / z + K.cx)
+        v = np.rint(y[:, 1] * K.fy / z + K.cy)
+    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    y, u, v = y[inside], u[inside].astype(np.int64), v[inside].astype(np.int64)
+    p, n = model.vertices[v, u], model.normals[v, u]
+    e = np.einsum("ni,ni->n", n, y - p)
+    close = np.isfinite(e) & (np.abs(e) < max_distance)
+    close &= np.linalg.norm(y - p, axis=1) < 3 * max_distance
+    y, n, e = y[close], n[close], e[close]
+    if len(e) == 0:
+        return NormalEquations(np.zeros((6, 6)), np.zeros(6)), 0
+    sigma = axial_sigma(y[:, 2], depth_cfg) * np.sqrt(2.0)  # both surfaces are noisy
+    m = np.abs(e) / sigma
+    wts = weight * np.where(m <= huber_k, 1.0, huber_k / m) / sigma**2
+    # d e / d xi for T <- exp(xi) T: [ y x n , n ].
+    J = np.concatenate([np.cross(y, n), n], axis=1)
+    H = (J * wts[:, None]).T @ J
+    g = (J * wts[:, None]).T @ e
+    return NormalEquations(H, g), len(e)
+
+
+def refine_dense(
+    T_init: np.ndarray,
+    model: DenseModel,
+    Q: np.ndarray,
+    sparse_terms,
+    cfg: SolverConfig,
+    depth_cfg: DepthConfig,
+) -> tuple[np.ndarray, int]:
+    """Refine T_keyframe_current with point-to-plane terms plus the sparse term.
+
+    ``sparse_terms(T) -> NormalEquations`` evaluates the sparse cost at a pose.
+    Returns the refined pose and the number of dense matches in the last iteration.
+    """
+    T = T_init.copy()
+    matches = 0
+    for _ in range(cfg.dense_iterations):
+        dense_eq, matches = dense_equations(
+            model, Q, T, cfg.dense_max_distance_m, cfg.dense_weight, depth_cfg, cfg.huber_k
+        )
+        eq = dense_eq + sparse_terms(T)
+        xi = np.linalg.lstsq(eq.H, -eq.g, rcond=None)[0]
+        T = orthonormalize(exp_se3(xi) @ T)
+        if np.linalg.norm(xi) < 1e-6:
+            break
+    return T, matches

@@ -1,0 +1,59 @@
+"""Keyframes: the reference images the current frame is tracked against."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from server.config import RegistrationConfig
+from server.geometry import Intrinsics, backproject_pixels
+from server.registration.dense import DenseModel, build_dense_model
+from server.registration.features import detect_features
+from server.registration.preprocess import sample_stable_depth
+from server.registration.sparse import point_information
+
+
+@dataclass
+class Keyframe:
+    """A frame whose corners are tracked by the following frames.
+
+    points: (M, 3) corners back-projected in this keyframe's camera frame, metres.
+    covariances: (M, 3, 3) their noise, m^2.
+    """
+
+    id: int
+    frame_index: int
+    T_world_keyframe: np.ndarray
+    grey: np.ndarray
+    uv: np.ndarray  # (M, 2) corner pixels
+    points: np.ndarray
+    covariances: np.ndarray
+    dense: DenseModel | None
+
+
+def make_keyframe(
+    kf_id: int,
+    frame_index: int,
+    T_world_camera: np.ndarray,
+    grey: np.ndarray,
+    depth: np.ndarray,
+    K: Intrinsics,
+    cfg: RegistrationConfig,
+) -> Keyframe:
+    """Detect corners with trusted depth in a frame and make it a keyframe."""
+    uv = detect_features(grey, cfg.features, mask=depth > 0)
+    z = sample_stable_depth(depth, uv, cfg.depth)
+    uv = uv[z > 0]
+    points = backproject_pixels(uv.astype(np.float64), z[z > 0], K)
+    dense = build_dense_model(depth, K) if cfg.solver.dense else None
+    return Keyframe(
+        id=kf_id,
+        frame_index=frame_index,
+        T_world_keyframe=T_world_camera.copy(),
+        grey=grey,
+        uv=uv,
+        points=points,
+        covariances=point_information(points, K, cfg.depth),
+        dense=dense,
+    )

@@ -1,0 +1,47 @@
+"""Frame preprocessing: grey image, cleaned depth, and trusted depth at keypoints."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from server.config import DepthConfig
+
+
+def to_grey(colour: np.ndarray) -> np.ndarray:
+    """(H, W, 3) RGB uint8 -> (H, W) uint8 intensity; a grey image passes through."""
+    if colour.ndim == 2:
+        return colour
+    return cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY)
+
+
+def clean_depth(depth: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+    """Depth in metres with NaN, inf and out-of-range values set to 0 (= no measurement)."""
+    d = np.asarray(depth, dtype=np.float32)
+    keep = np.isfinite(d) & (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
+    return np.where(keep, d, np.float32(0.0))
+
+
+def axial_sigma(z: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+    """Standard deviation of a depth measurement along the optical axis, metres."""
+    return cfg.axial_noise_a_m + cfg.axial_noise_b_per_m * (z - 0.4) ** 2
+
+
+def sample_stable_depth(depth: np.ndarray, uv: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+    """Depth (N,) in metres at pixels ``uv`` (N, 2), or 0 where it cannot be trusted.
+
+    A depth is trusted when the whole 3x3 neighbourhood is measured and its spread is small:
+    near depth edges a sub-pixel keypoint error (or colour/depth misregistration) would pick
+    the wrong surface.
+    """
+    h, w = depth.shape
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
+    u, v = np.where(inside, u, 1), np.where(inside, v, 1)
+    patch = np.stack([depth[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+    lo, hi = patch.min(axis=1), patch.max(axis=1)
+    centre = patch[:, 4]
+    stable = inside & (lo > 0) & (hi - lo <= cfg.max_local_depth_spread * centre)
+    # The median of the neighbourhood is less noisy than the centre pixel alone.
+    return np.where(stable, np.median(patch, axis=1), 0.0)

@@ -1,0 +1,260 @@
+"""The per-frame registration pipeline: track corners, solve the pose, refine, manage keyframes.
+
+Read ``Tracker.track`` top to bottom: it follows the paper's section III with the additions that
+make it hold up on real hand-held data (keyframes, robust weights, a tracking state, recovery).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from server.config import RegistrationConfig
+from server.geometry import (
+    Intrinsics,
+    backproject_pixels,
+    invert,
+    orthonormalize,
+    project,
+    rotation_angle_deg,
+)
+from server.registration.dense import refine_dense, sample_dense_points
+from server.registration.flow import track_points
+from server.registration.keyframe import Keyframe, make_keyframe
+from server.registration.preprocess import clean_depth, sample_stable_depth, to_grey
+from server.registration.sparse import (
+    SparseSolution,
+    point_information,
+    robust_weights,
+    solve_sparse,
+    sparse_equations,
+)
+
+log = logging.getLogger(__name__)
+
+
+class TrackingState(str, Enum):
+    """How far a frame's pose can be trusted."""
+
+    OK = "ok"
+    WEAK = "weak"  # pose estimated from few or poorly fitting correspondences
+    LOST = "lost"  # no pose: the last good one is held
+
+
+@dataclass
+class TrackResult:
+    """The outcome of registering one frame."""
+
+    index: int
+    T_world_camera: np.ndarray  # 4x4, metres; the last good pose when state is LOST
+    state: TrackingState
+    inliers: int
+    rmse: float  # Mahalanobis RMSE of the sparse inliers
+    condition: float  # scaled conditioning of J^T W J, 0 = degenerate
+    keyframe_id: int
+    new_keyframe: bool
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Tracks:
+    """Corners of the current keyframe still followed, and where they were last seen."""
+
+    ids: np.ndarray  # indices into the keyframe's corners
+    uv: np.ndarray  # (N, 2) pixels in the previous frame
+
+
+class Tracker:
+    """Frame-to-keyframe RGB-D odometry (FAST + pyramidal LK + Gauss-Newton on SE(3)).
+
+    Feed frames in order to :meth:`track`; poses are T_world_camera with the first frame at
+    ``T_world_first`` (identity by default).
+    """
+
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        config: RegistrationConfig | None = None,
+        T_world_first: np.ndarray | None = None,
+    ) -> None:
+        self.K = intrinsics
+        self.cfg = config or RegistrationConfig()
+        self.T_world_first = np.eye(4) if T_world_first is None else T_world_first.copy()
+        self.keyframe: Keyframe | None = None
+        self.recent: deque[Keyframe] = deque(maxlen=self.cfg.keyframes.recent_keyframes)
+        self.tracks: _Tracks | None = None
+        self.prev_grey: np.ndarray | None = None
+        self.T_world_last = self.T_world_first.copy()
+        self.velocity = np.eye(4)  # T_previous_last: motion over the last frame
+        self.lost = False
+        self.frame_count = 0
+        self.keyframe_count = 0
+
+    # ------------------------------------------------------------------ per frame
+    def track(self, colour: np.ndarray, depth: np.ndarray) -> TrackResult:
+        """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none)."""
+        index = self.frame_count
+        self.frame_count += 1
+        t0 = time.perf_counter()
+        grey = to_grey(colour)
+        depth = clean_depth(depth, self.cfg.depth)
+        timings = {"preprocess": _ms(t0)}
+
+        if self.keyframe is None:
+            return self._start(index, grey, depth, timings)
+
+        # 1. Predict the pose with a constant-velocity model.
+        T_world_pred = orthonormalize(self.T_world_last @ self.velocity)
+
+        # 2-3. Track corners (from the previous frame, or from keyframes after a loss), solve.
+        t = time.perf_counter()
+        if self.lost:
+            found = self._relocalise(grey, depth, T_world_pred)
+        else:
+            found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred, chained=True)
+        timings["sparse"] = _ms(t)
+        if found is None:
+            return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
+        kf, ids, uv, solution, Q = found
+        state = self._judge(solution)
+        if state is TrackingState.LOST:
+            return self._lose(index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition)
+
+        # 4. Dense refinement from the sparse estimate.
+        T_kf_cur = solution.T
+        if self.cfg.solver.dense and kf.dense is not None:
+            t = time.perf_counter()
+            T_kf_cur = self._refine(kf, ids, solution, Q, depth)
+            timings["dense"] = _ms(t)
+
+        # 5. Accept the pose, keep the surviving tracks, and decide on a new keyframe.
+        T_world_cur = orthonormalize(kf.T_world_keyframe @ T_kf_cur)
+        self.velocity = invert(self.T_world_last) @ T_world_cur if not self.lost else np.eye(4)
+        self.T_world_last = T_world_cur
+        self.lost = False
+        self.keyframe = kf
+        keep = solution.inliers
+        self.tracks = _Tracks(ids[keep], uv[keep])
+        self.prev_grey = grey
+        new_kf = self._needs_keyframe(kf, T_kf_cur, int(keep.sum()))
+        if new_kf:
+            t = time.perf_counter()
+            self._new_keyframe(index, grey, depth, T_world_cur)
+            timings["keyframe"] = _ms(t)
+        timings["total"] = _ms(t0)
+        return TrackResult(index, T_world_cur.copy(), state, int(keep.sum()), solution.rmse,
+                           solution.condition, self.keyframe.id, new_kf, timings)
+
+    # ------------------------------------------------------------------ stages
+    def _start(self, index: int, grey: np.ndarray, depth: np.ndarray, timings: dict) -> TrackResult:
+        t = time.perf_counter()
+        self._new_keyframe(index, grey, depth, self.T_world_first)
+        timings["keyframe"] = _ms(t)
+        kf = self.keyframe
+        # A first frame without texture or depth cannot anchor tracking.
+        state = TrackingState.OK if len(kf.points) >= self.cfg.state.ok_inliers else TrackingState.LOST
+        if state is TrackingState.LOST:
+            self.keyframe, self.lost = None, True
+            self.recent.clear()
+        return TrackResult(index, self.T_world_first.copy(), state, len(kf.points), 0.0, 1.0,
+                           kf.id, state is TrackingState.OK, timings)
+
+    def _track_keyframe(self, kf: Keyframe, grey, depth, T_world_pred, chained: bool):
+        """Track the keyframe's corners into this frame and solve T_keyframe_current.
+
+        ``chained`` follows the corners from the previous frame (small steps); otherwise they are
+        tracked straight from the keyframe image (after a loss)."""
+        T_kf_pred = invert(kf.T_world_keyframe) @ T_world_pred
+        if chained and self.tracks is not None and len(self.tracks.ids) > 0:
+            ids, uv_from, grey_from = self.tracks.ids, self.tracks.uv, self.prev_grey
+        else:
+            ids, uv_from, grey_from = np.arange(len(kf.uv)), kf.uv, kf.grey
+        if len(ids) < self.cfg.state.lost_inliers:
+            return None
+        # Where the prediction puts the corners in this frame: the start of the LK search.
+        T_cur_kf = invert(T_kf_pred)
+        guess, z = project(kf.points[ids] @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3], self.K)
+        guess = np.where(np.isfinite(guess) & (z[:, None] > 0), guess, uv_from)
+        uv, ok = track_points(grey_from, grey, uv_from, self.cfg.flow, guess)
+        zc = sample_stable_depth(depth, uv, self.cfg.depth)
+        ok &= zc > 0
+        ids, uv, zc = ids[ok], uv[ok], zc[ok]
+        if len(ids) < self.cfg.state.lost_inliers:
+            return None
+        Q = backproject_pixels(uv.astype(np.float64), zc, self.K)
+        solution = solve_sparse(
+            kf.points[ids], Q, kf.covariances[ids], point_information(Q, self.K, self.cfg.depth),
+            T_kf_pred, self.cfg.solver,
+        )
+        return kf, ids, uv, solution, Q
+
+    def _relocalise(self, grey, depth, T_world_pred):
+        """After a loss: try the current keyframe, then recent ones, newest first."""
+        for kf in reversed(self.recent):
+            found = self._track_keyframe(kf, grey, depth, T_world_pred, chained=False)
+            if found is not None and self._judge(found[3]) is TrackingState.OK:
+                log.info("recovered against keyframe %d", kf.id)
+                return found
+        return None
+
+    def _refine(self, kf: Keyframe, ids, solution: SparseSolution, Q: np.ndarray, depth) -> np.ndarray:
+        """Dense refinement of T_keyframe_current, with the sparse inliers kept in the cost."""
+        inl = solution.inliers
+        P_in, Q_in = kf.points[ids][inl], Q[inl]
+        R = solution.T[:3, :3]
+        W = np.linalg.inv(kf.covariances[ids][inl] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T)
+
+        def sparse_terms(T):
+            _, m = sparse_equations(P_in, Q_in, W, T, np.ones(len(P_in)))
+            eq, _ = sparse_equations(P_in, Q_in, W, T, robust_weights(m, self.cfg.solver, True))
+            return eq
+
+        dense_points = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride)
+        T, _ = refine_dense(solution.T, kf.dense, dense_points, sparse_terms, self.cfg.solver, self.cfg.depth)
+        return T
+
+    def _judge(self, solution: SparseSolution) -> TrackingState:
+        s = self.cfg.state
+        n = int(solution.inliers.sum())
+        if n < s.lost_inliers or solution.condition < s.min_condition or not np.isfinite(solution.rmse):
+            return TrackingState.LOST
+        if n < s.ok_inliers or solution.rmse > s.ok_rmse:
+            return TrackingState.WEAK
+        return TrackingState.OK
+
+    def _lose(self, index, grey, timings, inliers, rmse, condition) -> TrackResult:
+        """Hold the last good pose; keyframes and trajectory stay as they were."""
+        if not self.lost:
+            log.info("frame %d: tracking lost (%d inliers)", index, inliers)
+        self.lost = True
+        self.velocity = np.eye(4)
+        self.tracks = None
+        timings["total"] = sum(timings.values())
+        kf_id = self.keyframe.id if self.keyframe is not None else -1
+        return TrackResult(index, self.T_world_last.copy(), TrackingState.LOST, inliers, rmse,
+                           condition, kf_id, False, timings)
+
+    def _needs_keyframe(self, kf: Keyframe, T_kf_cur: np.ndarray, tracked: int) -> bool:
+        c = self.cfg.keyframes
+        return (
+            tracked < max(c.min_tracked, c.min_tracked_ratio * len(kf.points))
+            or np.linalg.norm(T_kf_cur[:3, 3]) > c.max_translation_m
+            or rotation_angle_deg(T_kf_cur) > c.max_rotation_deg
+        )
+
+    def _new_keyframe(self, index, grey, depth, T_world_camera) -> None:
+        kf = make_keyframe(self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg)
+        self.keyframe_count += 1
+        self.keyframe = kf
+        self.recent.append(kf)
+        self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy())
+        self.prev_grey = grey
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3

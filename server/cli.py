@@ -1,0 +1,109 @@
+"""Command line: ``python -m server track|evaluate``."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from server.errors import DroneSimError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+console = Console()
+
+
+def _open(dataset: str, fx, fy, cx, cy, depth_scale):
+    from server.datasets import open_dataset
+    from server.datasets.tum import TUMDataset
+    from server.geometry import Intrinsics
+
+    if dataset == "demo":
+        from server.datasets.demo import demo_sequence_path
+
+        return TUMDataset(demo_sequence_path())
+    kwargs = {}
+    if fx is not None:
+        if None in (fy, cx, cy):
+            raise DroneSimError("--fx needs --fy, --cx and --cy too")
+        from server.datasets import open_dataset as _  # noqa: F401  (format sniffed below)
+        import cv2  # the image size comes from the first colour image
+
+        kwargs["intrinsics"] = _intrinsics_for(Path(dataset), Intrinsics, fx, fy, cx, cy, cv2)
+    if depth_scale is not None:
+        kwargs["depth_scale"] = depth_scale
+    return open_dataset(dataset, **kwargs)
+
+
+def _intrinsics_for(path, Intrinsics, fx, fy, cx, cy, cv2):
+    images = sorted(p for p in path.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if not images:
+        raise DroneSimError(f"no images under {path}")
+    h, w = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED).shape[:2]
+    return Intrinsics(fx, fy, cx, cy, w, h)
+
+
+@app.command()
+def track(
+    dataset: Annotated[str, typer.Argument(help="sequence folder (TUM or Redwood layout), or 'demo'")],
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
+    frames: Annotated[Optional[int], typer.Option(help="only the first N frames")] = None,
+    dense: Annotated[bool, typer.Option(help="dense point-to-plane refinement")] = True,
+    fx: Optional[float] = None,
+    fy: Optional[float] = None,
+    cx: Optional[float] = None,
+    cy: Optional[float] = None,
+    depth_scale: Annotated[Optional[float], typer.Option(help="depth units per metre")] = None,
+) -> None:
+    """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture and metrics."""
+    from server.config import RegistrationConfig
+    from server.evaluation.metrics import format_table
+    from server.pipeline import run_odometry, write_outputs
+
+    ds = _open(dataset, fx, fy, cx, cy, depth_scale)
+    config = RegistrationConfig().with_overrides(solver={"dense": dense})
+    run = run_odometry(ds, config, max_frames=frames)
+    paths = write_outputs(run, out, ds, config)
+    s = run.summary
+    stats = Table(title=f"{ds.name}: registration")
+    for col in ("frames", "keyframes", "ok", "weak", "lost", "median ms", "p90 ms"):
+        stats.add_column(col, justify="right")
+    st = s["states"]
+    stats.add_row(str(s["frames"]), str(s["keyframes"]), str(st.get("ok", 0)), str(st.get("weak", 0)),
+                  str(st.get("lost", 0)), f"{s['median_ms']:.1f}", f"{s['p90_ms']:.1f}")
+    console.print(stats)
+    if run.metrics is not None:
+        console.print(format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth"))
+    for name, path in paths.items():
+        console.print(f"{name:>10}: {path}")
+
+
+@app.command("evaluate")
+def evaluate_cmd(
+    groundtruth: Annotated[Path, typer.Argument(help="ground truth, TUM format")],
+    estimate: Annotated[Path, typer.Argument(help="estimate, TUM format")],
+    max_diff: Annotated[float, typer.Option(help="timestamp tolerance, seconds")] = 0.02,
+) -> None:
+    """Print ATE and RPE of an estimated trajectory against ground truth."""
+    from server.evaluation.metrics import evaluate, format_table
+    from server.evaluation.trajectory import read_tum
+
+    metrics = evaluate(read_tum(groundtruth), read_tum(estimate), max_diff=max_diff)
+    console.print(format_table({estimate.name: metrics}))
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        app()
+    except DroneSimError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

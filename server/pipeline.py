@@ -1,0 +1,116 @@
+"""Offline odometry over a dataset: register every frame, fuse the map, write the results.
+
+Shared by the ``track`` command and the tests; the server runs the same stages per session.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from server.config import RegistrationConfig
+from server.datasets import RGBDDataset, Trajectory
+from server.evaluation.metrics import evaluate
+from server.evaluation.plots import plot_top_view
+from server.evaluation.trajectory import write_tum
+from server.mapping.pointcloud import PointCloudMap
+from server.registration import Tracker, TrackResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class OdometryRun:
+    """Everything one run produced."""
+
+    trajectory: Trajectory  # one T_world_camera per input frame, lost frames included
+    results: list[TrackResult]
+    map: PointCloudMap
+    metrics: dict | None = None  # when the dataset has ground truth
+    summary: dict = field(default_factory=dict)
+
+
+def ground_truth_pose_at(dataset: RGBDDataset, timestamp: float, max_diff: float = 0.02):
+    """The ground-truth T_world_camera nearest to ``timestamp``, or None."""
+    gt = dataset.ground_truth
+    if gt is None or len(gt) == 0:
+        return None
+    i = int(np.argmin(np.abs(gt.timestamps - timestamp)))
+    return gt.poses[i] if abs(gt.timestamps[i] - timestamp) <= max_diff else None
+
+
+def run_odometry(
+    dataset: RGBDDataset,
+    config: RegistrationConfig | None = None,
+    max_frames: int | None = None,
+    fuse_every: int = 5,
+    voxel_m: float = 0.02,
+    progress: bool = True,
+) -> OdometryRun:
+    """Register the first ``max_frames`` frames of ``dataset`` and fuse every ``fuse_every``-th
+    tracked frame (and every keyframe) into a point cloud map.
+
+    The first pose is the ground truth's when the dataset has one (so that estimates and ground
+    truth share a frame for plots), else the identity.
+    """
+    n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
+    first = dataset[0]
+    tracker = Tracker(dataset.intrinsics, config, ground_truth_pose_at(dataset, first.timestamp))
+    world_map = PointCloudMap(voxel_m=voxel_m)
+    results, stamps = [], []
+    bar = tqdm(range(n), desc=f"track {dataset.name}", unit="frame", disable=not progress)
+    for i in bar:
+        frame = first if i == 0 else dataset[i]
+        result = tracker.track(frame.colour, frame.depth)
+        results.append(result)
+        stamps.append(frame.timestamp)
+        if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
+            world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, result.T_world_camera)
+        bar.set_postfix(state=result.state.value, inliers=result.inliers, kf=tracker.keyframe_count, refresh=False)
+    trajectory = Trajectory(np.array(stamps), np.array([r.T_world_camera for r in results]))
+    run = OdometryRun(trajectory, results, world_map)
+    if dataset.ground_truth is not None:
+        run.metrics = evaluate(dataset.ground_truth, trajectory)
+    times = np.array([r.timings_ms.get("total", 0.0) for r in results[1:]] or [0.0])
+    run.summary = {
+        "frames": n,
+        "keyframes": tracker.keyframe_count,
+        "states": dict(Counter(r.state.value for r in results)),
+        "median_ms": float(np.median(times)),
+        "p90_ms": float(np.percentile(times, 90)),
+    }
+    return run
+
+
+def write_outputs(run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig) -> dict:
+    """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "trajectory": out_dir / "trajectory.tum",
+        "map": out_dir / "map.ply",
+        "picture": out_dir / "trajectory.png",
+        "summary": out_dir / "summary.json",
+    }
+    write_tum(paths["trajectory"], run.trajectory)
+    run.map.write_ply(paths["map"])
+    curves = {"estimate": run.trajectory.poses}
+    gt = dataset.ground_truth
+    if gt is not None:
+        t0, t1 = run.trajectory.timestamps[0] - 0.02, run.trajectory.timestamps[-1] + 0.02
+        within = (gt.timestamps >= t0) & (gt.timestamps <= t1)
+        curves = {"ground truth": gt.poses[within], **curves}
+    plot_top_view(paths["picture"], curves, run.map.points, title=f"{dataset.name}: top view")
+    summary = {
+        "dataset": str(dataset.path),
+        **run.summary,
+        "metrics": run.metrics,
+        "config": config.to_dict(),
+    }
+    paths["summary"].write_text(json.dumps(summary, indent=2))
+    return paths

@@ -12,11 +12,14 @@ import numpy as np  # noqa: E402
 
 
 def up_direction(poses: np.ndarray) -> np.ndarray:
-    """World 'up' estimated from camera poses (N, 4, 4) T_world_camera: a hand-held camera is
-    held roughly upright, and its y axis points down in the image."""
-    up = -poses[:, :3, 1].mean(axis=0)
-    n = np.linalg.norm(up)
-    return up / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
+    """World 'up' from camera poses (N, 4, 4) T_world_camera: a hand-held camera is held roughly
+    upright with its y axis pointing down, though often pitched; world frames are usually
+    gravity-aligned (or the first camera's), so the nearest world axis is taken."""
+    mean_up = -poses[:, :3, 1].mean(axis=0)
+    axis = int(np.argmax(np.abs(mean_up)))
+    up = np.zeros(3)
+    up[axis] = np.sign(mean_up[axis]) or 1.0
+    return up
 
 
 def top_view_basis(up: np.ndarray) -> np.ndarray:

@@ -69,6 +69,29 @@ class _Tracks:
     uv: np.ndarray  # (N, 2) pixels in the previous frame
 
 
+@dataclass
+class _Registration:
+    """Corners of ``kf`` found in the current frame and the pose they give.
+
+    ids, uv: keyframe corner indices and their pixels here, for every corner LK followed.
+    with_depth: which of them have trusted depth here; ``points`` and ``solution`` cover those.
+    """
+
+    kf: Keyframe
+    ids: np.ndarray
+    uv: np.ndarray
+    with_depth: np.ndarray
+    points: np.ndarray
+    solution: SparseSolution
+
+    def surviving(self) -> np.ndarray:
+        """Corners worth following on: tracked, and not an outlier where depth was available.
+        A corner on a depth hole is kept, as the next frame may measure it."""
+        keep = ~self.with_depth
+        keep[np.flatnonzero(self.with_depth)[self.solution.inliers]] = True
+        return keep
+
+
 class Tracker:
     """Frame-to-keyframe RGB-D odometry (FAST + pyramidal LK + Gauss-Newton on SE(3)).
 
@@ -120,7 +143,7 @@ class Tracker:
         timings["sparse"] = _ms(t)
         if found is None:
             return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
-        kf, ids, uv, solution, Q = found
+        kf, solution = found.kf, found.solution
         state = self._judge(solution)
         if state is TrackingState.LOST:
             return self._lose(index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition)
@@ -129,7 +152,7 @@ class Tracker:
         T_kf_cur = solution.T
         if self.cfg.solver.dense and kf.dense is not None:
             t = time.perf_counter()
-            T_kf_cur = self._refine(kf, ids, solution, Q, depth)
+            T_kf_cur = self._refine(found, depth)
             timings["dense"] = _ms(t)
 
         # 5. Accept the pose, keep the surviving tracks, and decide on a new keyframe.
@@ -138,16 +161,19 @@ class Tracker:
         self.T_world_last = T_world_cur
         self.lost = False
         self.keyframe = kf
-        keep = solution.inliers
-        self.tracks = _Tracks(ids[keep], uv[keep])
+        keep = found.surviving()
+        self.tracks = _Tracks(found.ids[keep], found.uv[keep])
         self.prev_grey = grey
-        new_kf = self._needs_keyframe(kf, T_kf_cur, int(keep.sum()))
-        if new_kf:
+        inliers = int(solution.inliers.sum())
+        new_kf = False
+        if self._needs_keyframe(kf, T_kf_cur, len(self.tracks.ids)):
             t = time.perf_counter()
-            self._new_keyframe(index, grey, depth, T_world_cur)
+            new_kf = not self._switch_keyframe(grey, depth, T_world_cur)
+            if new_kf:
+                self._new_keyframe(index, grey, depth, T_world_cur)
             timings["keyframe"] = _ms(t)
         timings["total"] = _ms(t0)
-        return TrackResult(index, T_world_cur.copy(), state, int(keep.sum()), solution.rmse,
+        return TrackResult(index, T_world_cur.copy(), state, inliers, solution.rmse,
                            solution.condition, self.keyframe.id, new_kf, timings)
 
     # ------------------------------------------------------------------ stages
@@ -181,33 +207,36 @@ class Tracker:
         guess, z = project(kf.points[ids] @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3], self.K)
         guess = np.where(np.isfinite(guess) & (z[:, None] > 0), guess, uv_from)
         uv, ok = track_points(grey_from, grey, uv_from, self.cfg.flow, guess)
+        ids, uv = ids[ok], uv[ok]
         zc = sample_stable_depth(depth, uv, self.cfg.depth)
-        ok &= zc > 0
-        ids, uv, zc = ids[ok], uv[ok], zc[ok]
-        if len(ids) < self.cfg.state.lost_inliers:
+        with_depth = zc > 0
+        if with_depth.sum() < self.cfg.state.lost_inliers:
             return None
-        Q = backproject_pixels(uv.astype(np.float64), zc, self.K)
+        d_ids = ids[with_depth]
+        Q = backproject_pixels(uv[with_depth].astype(np.float64), zc[with_depth], self.K)
         solution = solve_sparse(
-            kf.points[ids], Q, kf.covariances[ids], point_information(Q, self.K, self.cfg.depth),
+            kf.points[d_ids], Q, kf.covariances[d_ids], point_information(Q, self.K, self.cfg.depth),
             T_kf_pred, self.cfg.solver,
         )
-        return kf, ids, uv, solution, Q
+        return _Registration(kf, ids, uv, with_depth, Q, solution)
 
     def _relocalise(self, grey, depth, T_world_pred):
         """After a loss: try the current keyframe, then recent ones, newest first."""
         for kf in reversed(self.recent):
             found = self._track_keyframe(kf, grey, depth, T_world_pred, chained=False)
-            if found is not None and self._judge(found[3]) is TrackingState.OK:
+            if found is not None and self._judge(found.solution) is TrackingState.OK:
                 log.info("recovered against keyframe %d", kf.id)
                 return found
         return None
 
-    def _refine(self, kf: Keyframe, ids, solution: SparseSolution, Q: np.ndarray, depth) -> np.ndarray:
+    def _refine(self, reg: _Registration, depth: np.ndarray) -> np.ndarray:
         """Dense refinement of T_keyframe_current, with the sparse inliers kept in the cost."""
+        kf, solution = reg.kf, reg.solution
         inl = solution.inliers
-        P_in, Q_in = kf.points[ids][inl], Q[inl]
+        d_ids = reg.ids[reg.with_depth][inl]
+        P_in, Q_in = kf.points[d_ids], reg.points[inl]
         R = solution.T[:3, :3]
-        W = np.linalg.inv(kf.covariances[ids][inl] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T)
+        W = np.linalg.inv(kf.covariances[d_ids] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T)
 
         def sparse_terms(T):
             _, m = sparse_equations(P_in, Q_in, W, T, np.ones(len(P_in)))
@@ -247,6 +276,29 @@ class Tracker:
             or rotation_angle_deg(T_kf_cur) > c.max_rotation_deg
         )
 
+    def _switch_keyframe(self, grey, depth, T_world_cur) -> bool:
+        """Go back to an earlier keyframe that sees this view well, instead of making a new one:
+        every new keyframe adds its own error to the chain, an old one adds none."""
+        c = self.cfg.keyframes
+        for kf in sorted(self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)):
+            if kf is self.keyframe:
+                continue
+            T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
+            if np.linalg.norm(T_kf_cur[:3, 3]) > 0.5 * c.max_translation_m:
+                break
+            if rotation_angle_deg(T_kf_cur) > 0.5 * c.max_rotation_deg:
+                continue
+            reg = self._track_keyframe(kf, grey, depth, T_world_cur, chained=False)
+            if reg is None or self._judge(reg.solution) is not TrackingState.OK:
+                continue
+            keep = reg.surviving()
+            if keep.sum() < max(c.min_tracked, 1.5 * c.min_tracked_ratio * len(kf.points)):
+                continue
+            self.keyframe = kf
+            self.tracks = _Tracks(reg.ids[keep], reg.uv[keep])
+            return True
+        return False
+
     def _new_keyframe(self, index, grey, depth, T_world_camera) -> None:
         kf = make_keyframe(self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg)
         self.keyframe_count += 1
@@ -254,6 +306,12 @@ class Tracker:
         self.recent.append(kf)
         self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy())
         self.prev_grey = grey
+
+
+def _pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Translation between two poses in metres plus 0.1 m per 10 degrees of rotation."""
+    T = invert(T_a) @ T_b
+    return float(np.linalg.norm(T[:3, 3]) + 0.01 * rotation_angle_deg(T))
 
 
 def _ms(t0: float) -> float:

@@ -15,31 +15,33 @@ from server.errors import DroneSimError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 console = Console()
+err_console = Console(stderr=True, soft_wrap=True)
 
 
 def _open(dataset: str, fx, fy, cx, cy, depth_scale):
+    """Open a sequence folder, or the bundled demo sequence for the name 'demo'."""
     from server.datasets import open_dataset
-    from server.datasets.tum import TUMDataset
-    from server.geometry import Intrinsics
 
     if dataset == "demo":
         from server.datasets.demo import demo_sequence_path
 
-        return TUMDataset(demo_sequence_path())
+        return open_dataset(demo_sequence_path(), "tum")
     kwargs = {}
     if fx is not None:
         if None in (fy, cx, cy):
             raise DroneSimError("--fx needs --fy, --cx and --cy too")
-        from server.datasets import open_dataset as _  # noqa: F401  (format sniffed below)
-        import cv2  # the image size comes from the first colour image
-
-        kwargs["intrinsics"] = _intrinsics_for(Path(dataset), Intrinsics, fx, fy, cx, cy, cv2)
+        kwargs["intrinsics"] = _intrinsics_for(Path(dataset), fx, fy, cx, cy)
     if depth_scale is not None:
         kwargs["depth_scale"] = depth_scale
     return open_dataset(dataset, **kwargs)
 
 
-def _intrinsics_for(path, Intrinsics, fx, fy, cx, cy, cv2):
+def _intrinsics_for(path: Path, fx: float, fy: float, cx: float, cy: float):
+    """Intrinsics from the command line; the image size is read off the first image."""
+    import cv2
+
+    from server.geometry import Intrinsics
+
     images = sorted(p for p in path.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if not images:
         raise DroneSimError(f"no images under {path}")
@@ -101,7 +103,7 @@ def main() -> None:
     try:
         app()
     except DroneSimError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        err_console.print(f"[red]error:[/red] {exc}")
         sys.exit(1)
 
 

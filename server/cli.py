@@ -98,6 +98,41 @@ def evaluate_cmd(
     console.print(format_table({estimate.name: metrics}))
 
 
+@app.command()
+def serve(
+    host: Annotated[Optional[str], typer.Option(help="address to listen on (0.0.0.0: the LAN)")] = None,
+    port: Annotated[Optional[int], typer.Option(help="TCP port")] = None,
+    data_dir: Annotated[Optional[Path], typer.Option(help="where sessions are stored")] = None,
+    tls: Annotated[Optional[bool], typer.Option("--tls/--no-tls", help="HTTPS, self-signed")] = None,
+    demo: Annotated[Optional[bool], typer.Option("--demo/--no-demo", help="replay the demo sequence")] = None,
+) -> None:
+    """Run the server (settings from DRONESIM_* environment variables, overridden by flags)."""
+    import uvicorn
+    from pydantic import ValidationError
+
+    from server.settings import Settings
+    from server.transport.app import create_app
+
+    flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo}
+    try:
+        settings = Settings(**{k: v for k, v in flags.items() if v is not None})
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise DroneSimError(f"invalid settings: {problems}") from exc
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    ssl = {}
+    if settings.tls:
+        from server.transport.tls import ensure_certificate, local_addresses
+
+        cert, key = ensure_certificate(settings.data_dir / "tls")
+        ssl = {"ssl_certfile": str(cert), "ssl_keyfile": str(key)}
+        console.print(f"HTTPS with a self-signed certificate ({cert}); from a phone on the same "
+                      f"network open https://<this machine>:{settings.port}/ (addresses: "
+                      f"{', '.join(local_addresses())}) and accept the certificate once.")
+    logging.getLogger().setLevel(logging.INFO)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info", **ssl)
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

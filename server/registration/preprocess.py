@@ -45,3 +45,11 @@ def sample_stable_depth(depth: np.ndarray, uv: np.ndarray, cfg: DepthConfig) -> 
     stable = inside & (lo > 0) & (hi - lo <= cfg.max_local_depth_spread * centre)
     # The median of the neighbourhood is less noisy than the centre pixel alone.
     return np.where(stable, np.median(patch, axis=1), 0.0)
+
+
+def resample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Depth (h, w) resized to (height, width) by nearest neighbour: phone depth is often much
+    smaller than colour, and interpolating across an edge would invent surfaces in mid-air."""
+    if depth.shape == (height, width):
+        return depth
+    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)

@@ -1,0 +1,352 @@
+"""A per-session TSDF map fused from registered RGB-D frames (Open3D tensor VoxelBlockGrid, CPU).
+
+"World" is the frame of the poses given to ``integrate`` (``T_world_camera``, 4x4, metres; camera
+x right, y down, z forward); everything returned is in the world frame, in metres. Per voxel the
+grid holds a TSDF value (signed distance / truncation, -1..1), a weight (observations) and an RGB
+colour (0..1), all float32. Open3D allocates blocks only near surfaces; ``carve_free_space`` also
+allocates the blocks sparse camera rays cross, so the space seen empty (TSDF +1) is recorded too,
+which ``occupancy`` needs to tell free space from unknown space.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import tempfile
+import threading
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from server.errors import ConfigError, DroneSimError
+from server.geometry import Intrinsics
+
+log = logging.getLogger(__name__)
+
+_CARVE_STRIDE_PX = 16  # one free-space ray per 16 x 16 depth pixels
+_BYTES_PER_VOXEL = 4 * (1 + 1 + 3)  # float32 tsdf, weight, RGB
+_KEY_BIAS = 1 << 20  # integer keys packed in one int64: 21 bits per axis
+
+
+class MapError(DroneSimError):
+    """A frame or a file given to the TSDF map is malformed."""
+
+
+@dataclass(frozen=True)
+class TSDFConfig:
+    """voxel_m: voxel edge (m). block_resolution: voxels per block edge. block_count: blocks
+    allocated up front (the hash map doubles when full; each block costs block_resolution^3 * 20
+    bytes, 80 KiB at 16). trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond
+    this is ignored. min_weight: observations a voxel needs before it shows in extracted surfaces.
+    carve_free_space: also allocate the blocks a ray crosses before the surface (see module doc).
+    integrate_every: a hint to the caller (fuse every n-th tracked frame); not used here."""
+
+    voxel_m: float = 0.02
+    block_resolution: int = 16
+    block_count: int = 4000
+    trunc_voxels: float = 4.0
+    depth_max_m: float = 4.0
+    min_weight: float = 3.0
+    carve_free_space: bool = True
+    integrate_every: int = 1
+    device: str = "CPU:0"
+
+    def __post_init__(self) -> None:
+        if not (self.voxel_m > 0 and self.trunc_voxels > 0 and self.depth_max_m > 0):
+            raise ConfigError(f"TSDF voxel, truncation and depth range must be positive: {self}")
+        if self.block_resolution < 2 or self.block_count < 1 or self.integrate_every < 1:
+            raise ConfigError(f"TSDF block resolution, block count or integrate_every < 1: {self}")
+
+    @property
+    def trunc_m(self) -> float:
+        return self.trunc_voxels * self.voxel_m
+
+    @property
+    def block_m(self) -> float:
+        return self.block_resolution * self.voxel_m
+
+
+def _pack(ijk: np.ndarray) -> np.ndarray:
+    """Integer 3D keys (N, 3) (each within +-2^20) -> one sortable int64 each."""
+    k = np.asarray(ijk, dtype=np.int64) + _KEY_BIAS
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << 21) - 1
+    return np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1) - _KEY_BIAS
+
+
+def _atomic_write(path: str | Path, suffix: str, write) -> None:
+    """Call ``write(tmp)`` (False: it failed) on a temporary file beside ``path``, then rename
+    the file over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    os.close(fd)
+    try:
+        if write(tmp) is False:
+            raise MapError(f"Open3D could not write {path}")
+        os.chmod(tmp, 0o644)  # mkstemp makes it private
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class TSDFMap:
+    """The fused map of one session. All methods may be called from different threads."""
+
+    def __init__(self, config: TSDFConfig | None = None, grid=None, camera_positions=None):
+        """config: None for ``TSDFConfig()``. grid: an existing ``open3d.t.geometry.VoxelBlockGrid``
+        and camera_positions (N, 3) (world, metres) of the frames fused in it (used by ``load``)."""
+        self.config = config = config or TSDFConfig()
+        self._device = o3c.Device(config.device)
+        if grid is None:
+            f32 = o3c.float32
+            grid = o3d.t.geometry.VoxelBlockGrid(
+                ["tsdf", "weight", "color"], [f32, f32, f32], [[1], [1], [3]],
+                config.voxel_m, config.block_resolution, config.block_count, self._device,
+            )
+        self._grid = grid
+        self._lock = threading.Lock()
+        # Where each fused frame's camera was: known free space, even just behind the camera.
+        self._cameras = list(np.reshape([] if camera_positions is None else camera_positions,
+                                        (-1, 3)))
+        self._dirty = np.sort(_pack(self._active_keys()))  # blocks touched since the last preview
+        self._sent = np.empty(0, np.int64)  # voxel keys of the points already previewed
+        self._rng = np.random.default_rng(0)
+
+    # --- fusion ------------------------------------------------------------------------------
+    def integrate(self, colour_rgb_uint8: np.ndarray, depth_m: np.ndarray, K: Intrinsics,
+                  T_world_camera: np.ndarray) -> int:
+        """Fuse one frame and return the number of newly allocated blocks.
+
+        colour_rgb_uint8: (Hc, Wc, 3) RGB uint8, registered to the depth image; resized (area
+        interpolation) to the depth image's size when they differ. depth_m: (H, W) metres along
+        the optical axis; NaN, inf, zero and negative values mean no measurement. K: intrinsics
+        of the camera at K.width x K.height, rescaled to the depth image's size when it differs
+        (same aspect ratio required). T_world_camera: 4x4 pose of the camera in the world, metres.
+        """
+        cfg = self.config
+        depth = np.asarray(depth_m, dtype=np.float32)
+        colour = np.asarray(colour_rgb_uint8)
+        if depth.ndim != 2 or colour.ndim != 3 or colour.shape[2] != 3 or colour.dtype != np.uint8:
+            raise MapError(f"need depth (H, W) and colour (H, W, 3) uint8, got depth "
+                           f"{depth.shape} and colour {colour.shape} {colour.dtype}")
+        T = np.asarray(T_world_camera, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise MapError(f"T_world_camera must be a finite 4x4 matrix, got shape {T.shape}")
+        h, w = depth.shape
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+        if colour.shape[:2] != (h, w):
+            colour = cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA)
+        K = self._intrinsics_for(K, w, h)
+        intrinsic = o3c.Tensor(K.matrix, o3c.float64)
+        extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64)  # T_camera_world, as Open3D wants
+        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth)).to(self._device)
+        colour_img = o3d.t.geometry.Image(
+            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0)).to(self._device)
+
+        with self._lock:
+            self._cameras.append(T[:3, 3].copy())
+            if not np.any(depth):
+                return 0
+            blocks = self._grid.compute_unique_block_coordinates(
+                depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels)
+            keys = np.unique(_pack(blocks.cpu().numpy()))
+            if cfg.carve_free_space:
+                keys = np.union1d(keys, self._free_space_keys(depth, K, T))
+            if keys.size == 0:
+                return 0
+            hashmap = self._grid.hashmap()
+            before = hashmap.size()
+            coords = o3c.Tensor(_unpack(keys).astype(np.int32)).to(self._device)
+            self._grid.integrate(coords, depth_img, colour_img, intrinsic, extrinsic,
+                                 1.0, cfg.depth_max_m, cfg.trunc_voxels)
+            self._dirty = np.union1d(self._dirty, keys)
+            return hashmap.size() - before
+
+    def _intrinsics_for(self, K: Intrinsics, w: int, h: int) -> Intrinsics:
+        if (K.width, K.height) == (w, h):
+            return K
+        factor = w / K.width
+        if abs(K.height * factor - h) > 1.0:
+            raise MapError(f"depth {w}x{h} has not the aspect of intrinsics {K.width}x{K.height}")
+        return K.scaled(factor)
+
+    def _free_space_keys(self, depth: np.ndarray, K: Intrinsics, T: np.ndarray) -> np.ndarray:
+        """Packed keys of the blocks that sparse rays cross between the camera and the surface
+        band (which compute_unique_block_coordinates already covers)."""
+        cfg, s = self.config, _CARVE_STRIDE_PX
+        d = depth[s // 2 :: s, s // 2 :: s]
+        v, u = np.nonzero((d > 0) & (d <= cfg.depth_max_m))
+        z = d[v, u]
+        # Ray direction scaled to unit depth, so that a point at depth t is rays * t.
+        rays = np.stack([(u * s + s // 2 - K.cx) / K.fx, (v * s + s // 2 - K.cy) / K.fy,
+                         np.ones_like(z, dtype=np.float64)], axis=1)
+        t = np.arange(0.0, cfg.depth_max_m, cfg.block_m / 2)
+        r, c = np.nonzero(t[None, :] < z[:, None] - cfg.trunc_m)
+        world = (rays[r] * t[c, None]) @ T[:3, :3].T + T[:3, 3]
+        return np.unique(_pack(np.floor(world / cfg.block_m)))
+
+    # --- extraction --------------------------------------------------------------------------
+    def _active_keys(self) -> np.ndarray:
+        hashmap = self._grid.hashmap()
+        idx = hashmap.active_buf_indices().to(o3c.int64)
+        return hashmap.key_tensor()[idx].cpu().numpy().reshape(-1, 3)
+
+    def _extract(self) -> tuple[np.ndarray, np.ndarray]:
+        empty = np.empty((0, 3)), np.empty((0, 3))
+        if self._grid.hashmap().size() == 0:  # Open3D raises on an empty grid
+            return empty
+        pcd = self._grid.extract_point_cloud(self.config.min_weight).cpu()
+        if "positions" not in pcd.point or len(pcd.point.positions) == 0:
+            return empty
+        points = pcd.point.positions.numpy().astype(np.float64)
+        colours = np.clip(pcd.point.colors.numpy().astype(np.float64), 0.0, 1.0)
+        return points, colours
+
+    def point_cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """Surface points of the TSDF: (points (N, 3) float64 metres in the world frame,
+        colours (N, 3) float64 RGB in 0..1)."""
+        with self._lock:
+            return self._extract()
+
+    def take_preview(self, max_points: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+        """Surface points (as in ``point_cloud``, at most one per voxel) of the blocks touched
+        since the last call and not returned before: at most ``max_points``, a random subset when
+        there are more (the rest stays pending for the next call)."""
+        with self._lock:
+            if self._dirty.size == 0:
+                return np.empty((0, 3)), np.empty((0, 3))
+            points, colours = self._extract()
+            voxels = _pack(np.floor(points / self.config.voxel_m))
+            blocks = _pack(np.floor(points / self.config.block_m))
+            fresh = np.isin(blocks, self._dirty) & ~np.isin(voxels, self._sent)
+            _, first = np.unique(voxels[fresh], return_index=True)
+            idx = np.flatnonzero(fresh)[first]
+            self._dirty = np.empty(0, np.int64)
+            if idx.size > max_points:
+                pick = self._rng.choice(idx.size, size=max_points, replace=False)
+                rest = np.setdiff1d(np.arange(idx.size), pick)
+                self._dirty = np.unique(blocks[idx[rest]])
+                idx = np.sort(idx[pick])
+            self._sent = np.union1d(self._sent, voxels[idx])
+            return points[idx], colours[idx]
+
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes surface (legacy mesh, world frame, metres, vertex colours 0..1)."""
+        with self._lock:
+            if self._grid.hashmap().size() == 0:
+                return o3d.geometry.TriangleMesh()
+            return self._grid.extract_triangle_mesh(self.config.min_weight).cpu().to_legacy()
+
+    def occupancy(self, voxel_m: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A coarse occupancy grid derived from the TSDF, for the drone simulator.
+
+        Returns (origin (3,) metres in the world frame, occupied, observed), both bool arrays of
+        the same shape indexed [i, j, k] <-> world x, y, z: cell (i, j, k) spans
+        origin + [i, i + 1) * voxel_m along x, and likewise for y (j) and z (k). A cell is
+        observed when one of its TSDF voxels was seen (weight > 0) or a fused frame's camera was in
+        it, and occupied when a seen TSDF voxel in it has a TSDF distance under half the cell's
+        diagonal (at least one TSDF voxel, at most the truncation). Free = observed & ~occupied;
+        unobserved cells should be treated as unknown (not safe to fly).
+        """
+        if voxel_m <= 0:
+            raise ConfigError(f"occupancy voxel size must be positive, got {voxel_m}")
+        cfg, res = self.config, self.config.block_resolution
+        # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
+        # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
+        band = min(max(0.87 * voxel_m, cfg.voxel_m), 0.99 * cfg.trunc_m)
+        with self._lock:
+            keys = self._active_keys().astype(np.int64)
+            idx = self._grid.hashmap().active_buf_indices().to(o3c.int64)
+            tsdf = self._grid.attribute("tsdf")[idx].cpu().numpy()[..., 0]  # (B, z, y, x)
+            weight = self._grid.attribute("weight")[idx].cpu().numpy()[..., 0]
+            cameras = np.array(self._cameras).reshape(-1, 3)
+        b, zl, yl, xl = np.nonzero(weight > 0)
+        fine = keys[b] * res + np.stack([xl, yl, zl], axis=1)  # voxel sample at fine * voxel_m
+        seen = np.floor(fine * (cfg.voxel_m / voxel_m)).astype(np.int64)
+        near = np.abs(tsdf[b, zl, yl, xl]) * cfg.trunc_m <= band
+        cells = np.concatenate([seen, np.floor(cameras / voxel_m).astype(np.int64)])
+        if cells.size == 0:
+            return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
+        lo = cells.min(axis=0)
+        cells -= lo
+        observed = np.zeros(tuple(cells.max(axis=0) + 1), dtype=bool)
+        occupied = np.zeros_like(observed)
+        observed[tuple(cells.T)] = True
+        occupied[tuple(cells[: len(seen)][near].T)] = True
+        return lo * voxel_m, occupied, observed
+
+    # --- files -------------------------------------------------------------------------------
+    def write_point_cloud_ply(self, path: str | Path) -> None:
+        """Binary PLY of ``point_cloud()`` with per-point colours, written atomically."""
+        points, colours = self.point_cloud()
+        if len(points) == 0:
+            raise MapError(f"the map has no surface to write to {path} yet")
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        cloud.colors = o3d.utility.Vector3dVector(colours)
+        _atomic_write(path, ".ply", lambda tmp: o3d.io.write_point_cloud(tmp, cloud))  # binary
+
+    def write_mesh_ply(self, path: str | Path) -> None:
+        """Binary PLY of ``mesh()`` with vertex colours, written atomically."""
+        mesh = self.mesh()
+        if not mesh.has_triangles():
+            raise MapError(f"the map has no surface to write to {path} yet")
+        _atomic_write(path, ".ply", lambda tmp: o3d.io.write_triangle_mesh(tmp, mesh))  # binary
+
+    def save(self, path: str | Path) -> None:
+        """Persist the whole grid (Open3D's .npz plus the camera positions), written atomically."""
+        def write(tmp: str) -> None:  # Open3D's file, then the camera positions added to it
+            with self._lock:
+                self._grid.save(tmp)
+                cameras = np.array(self._cameras).reshape(-1, 3)
+            buf = io.BytesIO()
+            np.save(buf, cameras)
+            with zipfile.ZipFile(tmp, "a") as archive:
+                archive.writestr("camera_positions.npy", buf.getvalue())
+
+        _atomic_write(path, ".npz", write)
+        log.info("saved TSDF map (%d blocks) to %s", self._grid.hashmap().size(), path)
+
+    @classmethod
+    def load(cls, path: str | Path, config: TSDFConfig | None = None) -> TSDFMap:
+        """Restore a map written by ``save``. ``config`` must match the file's voxel size and block
+        resolution; None takes them from the file (other settings at their defaults)."""
+        path = Path(path)
+        if not path.is_file():
+            raise MapError(f"no TSDF map file at {path}")
+        try:
+            grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
+            with np.load(path) as stored:
+                voxel_m = float(np.ravel(stored["voxel_size"])[0])
+                resolution = int(np.ravel(stored["block_resolution"])[0])
+                cameras = stored["camera_positions"] if "camera_positions" in stored else None
+        except (OSError, RuntimeError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+            raise MapError(f"cannot load a TSDF map from {path}: {exc}") from exc
+        if config is None:
+            config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
+        elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
+            raise ConfigError(f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
+                              f"asks for {config.voxel_m} m in {config.block_resolution}^3")
+        return cls(config, grid=grid.to(o3c.Device(config.device)), camera_positions=cameras)
+
+    def stats(self) -> dict:
+        """frames_integrated, active_blocks, capacity_blocks, voxel_m, memory_bytes (approximate:
+        the allocated block buffers, which Open3D sizes to the capacity)."""
+        with self._lock:
+            hashmap = self._grid.hashmap()
+            active, capacity = hashmap.size(), hashmap.capacity()
+            frames = len(self._cameras)
+        per_block = self.config.block_resolution**3 * _BYTES_PER_VOXEL + 3 * 4
+        return {"frames_integrated": frames, "active_blocks": active, "capacity_blocks": capacity,
+                "voxel_m": self.config.voxel_m, "memory_bytes": capacity * per_block}
+

@@ -1,0 +1,113 @@
+"""All sessions of a server: creation with a capacity cap, token checks, closing, restoring."""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+
+from server.sessions.session import Session, SessionConfig, SessionError, hash_token
+from server.sessions.store import SessionStore, StoreError
+
+log = logging.getLogger(__name__)
+
+
+class SessionManager:
+    """Live sessions in memory; closed ones on disk under the store, loaded back on start."""
+
+    def __init__(self, store: SessionStore, config: SessionConfig | None = None,
+                 max_sessions: int = 16) -> None:
+        self.store = store
+        self.config = config or SessionConfig()
+        self.max_sessions = max_sessions
+        self._live: dict[str, Session] = {}
+        self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ lifecycle
+    def load_saved(self) -> int:
+        """Index the sessions a previous run left on disk (closed, downloadable)."""
+        for sid in self.store.saved_ids():
+            try:
+                self._saved[sid] = self.store.read_meta(sid)
+            except StoreError as exc:
+                log.warning("skipping saved session: %s", exc)
+        return len(self._saved)
+
+    def create(self) -> tuple[Session, str]:
+        """A new live session and its secret token (shown once; only its hash is kept)."""
+        with self._lock:
+            if len(self._live) >= self.max_sessions:
+                raise SessionError("server_full", f"the server holds its maximum of "
+                                   f"{self.max_sessions} live sessions; try again later")
+            sid = secrets.token_hex(8)
+            while sid in self._live or sid in self._saved:
+                sid = secrets.token_hex(8)
+            token = secrets.token_urlsafe(32)
+            session = Session(sid, hash_token(token), self.store, self.config)
+            self._live[sid] = session
+        session.store.write_meta(sid, session.meta())
+        return session, token
+
+    def authorize(self, session_id: str, token: str | None) -> Session | dict:
+        """The live session, or the saved meta of a closed one, that ``token`` opens.
+
+        Unknown ids and wrong tokens raise the same error, so a stranger learns nothing about
+        which sessions exist."""
+        if token is None:
+            raise SessionError("unauthorized", "this request needs the session's token")
+        with self._lock:
+            live = self._live.get(session_id)
+            saved = self._saved.get(session_id)
+        if live is not None and live.check_token(token):
+            return live
+        if saved is not None and secrets.compare_digest(hash_token(token), saved["token_sha256"]):
+            return saved
+        # Spend the same work as a real comparison before refusing.
+        secrets.compare_digest(hash_token(token), "0" * 64)
+        raise SessionError("not_found", "no session with this id for this token")
+
+    def close(self, session_id: str) -> None:
+        """Stop a live session and keep its map and trajectory on disk."""
+        with self._lock:
+            session = self._live.pop(session_id, None)
+        if session is None:
+            return
+        session.stop(save=True)
+        with self._lock:
+            self._saved[session_id] = session.meta()
+
+    def delete(self, session_id: str) -> None:
+        """Stop a session if live and remove all its data."""
+        with self._lock:
+            session = self._live.pop(session_id, None)
+            self._saved.pop(session_id, None)
+        if session is not None:
+            session.stop(save=False)
+        self.store.delete(session_id)
+
+    def reap(self, ttl_s: float, connected: set[str]) -> list[str]:
+        """Close live sessions with no connection and no frame for ``ttl_s`` seconds."""
+        now = time.monotonic()
+        with self._lock:
+            idle = [sid for sid, s in self._live.items()
+                    if sid not in connected and now - s.last_seen > ttl_s]
+        for sid in idle:
+            log.info("session %s idle for %.0f s: closing", sid, ttl_s)
+            self.close(sid)
+        return idle
+
+    def shutdown(self) -> None:
+        """Close every live session, saving each."""
+        for sid in list(self._live):
+            self.close(sid)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def live_count(self) -> int:
+        return len(self._live)
+
+    @property
+    def saved_count(self) -> int:
+        return len(self._saved)

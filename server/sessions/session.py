@@ -1,0 +1,275 @@
+"""One session: a worker thread that registers the newest frame, fuses the map and reports poses.
+
+Frames arrive faster than they can be processed on a busy server; the inbox holds one frame and
+the newest wins, so latency stays bounded and stale frames are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from server.config import RegistrationConfig
+from server.datasets.base import Trajectory
+from server.errors import DroneSimError
+from server.evaluation.trajectory import write_tum
+from server.geometry import Intrinsics
+from server.mapping.tsdf import TSDFConfig, TSDFMap
+from server.registration import Tracker, TrackingState
+from server.registration.preprocess import resample_depth
+from server.sessions.store import SessionStore
+
+log = logging.getLogger(__name__)
+
+
+class SessionError(DroneSimError):
+    """A request a session cannot honour; ``code`` names the reason for the client."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def hash_token(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+@dataclass
+class SessionConfig:
+    """Per-session processing settings."""
+
+    fuse_every: int = 3  # integrate every n-th tracked frame, and every keyframe
+    voxel_m: float = 0.02
+    preview_points: int = 4000  # per map preview chunk
+    preview_every: int = 3  # a preview chunk after every n-th fusion
+    snapshot_interval_s: float = 10.0
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+
+@dataclass
+class FrameData:
+    """A decoded frame: colour (H, W, 3) RGB uint8; depth (h, w) float32 metres, 0 = none, may be
+    smaller than colour (resampled here)."""
+
+    seq: int
+    timestamp: float
+    colour: np.ndarray
+    depth: np.ndarray
+    received_at: float = field(default_factory=time.monotonic)
+    decode_ms: float = 0.0
+
+
+@dataclass
+class PoseUpdate:
+    """The outcome of one processed frame, for the client."""
+
+    seq: int
+    timestamp: float
+    T_world_camera: np.ndarray  # 4x4, metres
+    state: str
+    inliers: int
+    keyframe: bool
+    timings_ms: dict[str, float]
+    dropped: int  # frames dropped so far in this session
+    processed: int
+    map_points: np.ndarray | None = None  # (N, 3) float32 world metres: new map preview
+    map_colours: np.ndarray | None = None  # (N, 3) uint8 RGB
+
+
+class Session:
+    """A live session. ``start`` launches its worker; ``submit`` hands in frames; every processed
+    frame calls ``on_update(PoseUpdate)`` from the worker thread."""
+
+    def __init__(self, session_id: str, token_hash: str, store: SessionStore,
+                 config: SessionConfig | None = None, created_at: float | None = None,
+                 tsdf: TSDFMap | None = None, trajectory: list | None = None,
+                 closed: bool = False) -> None:
+        self.id = session_id
+        self.token_hash = token_hash
+        self.store = store
+        self.config = config or SessionConfig()
+        self.created_at = created_at or time.time()
+        self.closed = closed
+        self.client_name = ""
+        self.intrinsics: Intrinsics | None = None
+        self.tracker: Tracker | None = None
+        self.map = tsdf or TSDFMap(TSDFConfig(voxel_m=self.config.voxel_m))
+        self.on_update: Callable[[PoseUpdate], None] | None = None
+        self.last_seen = time.monotonic()
+        self._trajectory: list[tuple[float, np.ndarray]] = list(trajectory or [])
+        self._states = {s.value: 0 for s in TrackingState}
+        self.received = self.processed = self.dropped = 0
+        self._last_seq = -1
+        self._fusions = 0
+        self._lock = threading.Lock()  # guards the trajectory and counters
+        self._inbox: FrameData | None = None
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._worker: threading.Thread | None = None
+        self._dirty = False
+        self._last_snapshot = time.monotonic()
+
+    # ------------------------------------------------------------------ access
+    def check_token(self, token: str | None) -> bool:
+        """Constant-time comparison of a presented token with this session's."""
+        return token is not None and hmac.compare_digest(hash_token(token), self.token_hash)
+
+    def configure(self, intrinsics: Intrinsics, client_name: str = "") -> None:
+        """Set the camera from the client's hello. A reconnecting client must present the same
+        camera, as the map and trajectory were built with it."""
+        if self.closed:
+            raise SessionError("session_closed", "this session is closed; create a new one")
+        if self.intrinsics is not None and self.intrinsics != intrinsics:
+            raise SessionError("intrinsics_changed",
+                               "this session was started with another camera; create a new session")
+        if self.tracker is None:
+            T_first = self._trajectory[-1][1] if self._trajectory else None
+            self.tracker = Tracker(intrinsics, self.config.registration, T_world_first=T_first)
+        self.intrinsics = intrinsics
+        self.client_name = client_name
+        self.last_seen = time.monotonic()
+
+    # ------------------------------------------------------------------ frames in
+    def start(self, on_update: Callable[[PoseUpdate], None] | None = None) -> None:
+        self.on_update = on_update
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._run, name=f"session-{self.id}", daemon=True)
+            self._worker.start()
+
+    def submit(self, frame: FrameData) -> None:
+        """Queue a frame; a frame still waiting is dropped in its favour."""
+        if self.tracker is None:
+            raise SessionError("no_hello", "send a hello before frames")
+        with self._lock:
+            if frame.seq <= self._last_seq:
+                raise SessionError("bad_sequence",
+                                   f"sequence number {frame.seq} is not above the last one ({self._last_seq})")
+            self._last_seq = frame.seq
+            self.received += 1
+        self.last_seen = time.monotonic()
+        with self._wake:
+            if self._inbox is not None:
+                with self._lock:
+                    self.dropped += 1
+            self._inbox = frame
+            self._wake.notify()
+
+    # ------------------------------------------------------------------ worker
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while self._inbox is None and not self._stopping:
+                    self._wake.wait(timeout=self.config.snapshot_interval_s)
+                    if self._snapshot_due():
+                        break
+                frame, self._inbox = self._inbox, None
+                stopping = self._stopping
+            if frame is not None:
+                try:
+                    update = self._process(frame)
+                except Exception:  # one bad frame must not end the session's worker
+                    log.exception("session %s: frame %d failed", self.id, frame.seq)
+                    update = None
+                if update is not None and self.on_update is not None:
+                    self.on_update(update)
+            if self._snapshot_due():
+                self.snapshot()
+            if stopping and frame is None:
+                return
+
+    def _snapshot_due(self) -> bool:
+        return self._dirty and time.monotonic() - self._last_snapshot >= self.config.snapshot_interval_s
+
+    def _process(self, frame: FrameData) -> PoseUpdate:
+        K = self.intrinsics
+        t0 = time.perf_counter()
+        depth = resample_depth(frame.depth, K.width, K.height)
+        result = self.tracker.track(frame.colour, depth)
+        timings = {"decode": frame.decode_ms, **{f"track_{k}": v for k, v in result.timings_ms.items()}}
+        timings["track"] = (time.perf_counter() - t0) * 1e3
+        points = colours = None
+        tracked = result.state is not TrackingState.LOST
+        if tracked and (result.new_keyframe or self.processed % self.config.fuse_every == 0):
+            t = time.perf_counter()
+            self.map.integrate(frame.colour, depth, K, result.T_world_camera)
+            self._fusions += 1
+            timings["fuse"] = (time.perf_counter() - t) * 1e3
+            if self._fusions % self.config.preview_every == 1 or self.config.preview_every == 1:
+                t = time.perf_counter()
+                p, c = self.map.take_preview(self.config.preview_points)
+                points, colours = p.astype(np.float32), (c * 255).round().astype(np.uint8)
+                timings["preview"] = (time.perf_counter() - t) * 1e3
+        with self._lock:
+            self._trajectory.append((frame.timestamp, result.T_world_camera))
+            self.processed += 1
+            self._states[result.state.value] += 1
+            dropped, processed = self.dropped, self.processed
+            self._dirty = True
+        timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
+        return PoseUpdate(frame.seq, frame.timestamp, result.T_world_camera, result.state.value,
+                          result.inliers, result.new_keyframe, timings, dropped, processed,
+                          points, colours)
+
+    # ------------------------------------------------------------------ results
+    def trajectory(self) -> Trajectory:
+        with self._lock:
+            stamps = np.array([t for t, _ in self._trajectory], dtype=np.float64)
+            poses = np.array([T for _, T in self._trajectory]).reshape(-1, 4, 4)
+        return Trajectory(stamps, poses)
+
+    def status(self) -> dict:
+        with self._lock:
+            return {
+                "id": self.id,
+                "created_at": self.created_at,
+                "closed": self.closed,
+                "client_name": self.client_name,
+                "frames_received": self.received,
+                "frames_processed": self.processed,
+                "frames_dropped": self.dropped,
+                "tracking_states": dict(self._states),
+                "trajectory_poses": len(self._trajectory),
+                "map": self.map.stats(),
+                "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
+            }
+
+    def snapshot(self) -> None:
+        """Write map and trajectory atomically; a crash leaves the previous snapshot whole."""
+        folder = self.store.folder(self.id)
+        folder.mkdir(parents=True, exist_ok=True)
+        with self._lock:
+            self._dirty = False
+        write_tum(self.store.file(self.id, "trajectory.tum"), self.trajectory())
+        if self.map.stats()["frames_integrated"] > 0:  # Open3D writes no empty geometry
+            self.map.save(self.store.file(self.id, "map.npz"))
+            self.map.write_point_cloud_ply(self.store.file(self.id, "map.ply"))
+        self.store.write_meta(self.id, self.meta())
+        self._last_snapshot = time.monotonic()
+
+    def meta(self) -> dict:
+        return {
+            "id": self.id,
+            "token_sha256": self.token_hash,
+            "created_at": self.created_at,
+            "closed": self.closed,
+            "voxel_m": self.config.voxel_m,
+            "status": self.status(),
+        }
+
+    def stop(self, save: bool = True) -> None:
+        """Stop the worker after the frame in hand, then (optionally) write a final snapshot."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        if self._worker is not None:
+            self._worker.join(timeout=30)
+        self.closed = True
+        if save:
+            self.snapshot()

@@ -1,0 +1,74 @@
+"""Session files under the data directory, every write atomic (temp file + rename).
+
+Layout: ``<data_dir>/sessions/<id>/`` with ``meta.json``, ``trajectory.tum``, ``map.npz`` (the
+TSDF) and ``map.ply`` (its surface points, ready to download).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+
+from server.errors import DroneSimError
+
+SESSION_ID = re.compile(r"^[0-9a-f]{16}$")
+
+
+class StoreError(DroneSimError):
+    """A session's files are missing or unreadable."""
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` so that ``path`` holds either the old or the new content, never half."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class SessionStore:
+    """Where sessions' files live. Ids are checked against a strict pattern before any path is
+    built, so no id can reach outside the data directory."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.root = Path(data_dir) / "sessions"
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def folder(self, session_id: str) -> Path:
+        if not SESSION_ID.match(session_id):
+            raise StoreError("malformed session id")
+        return self.root / session_id
+
+    def write_meta(self, session_id: str, meta: dict) -> None:
+        atomic_write_bytes(self.folder(session_id) / "meta.json", json.dumps(meta, indent=2).encode())
+
+    def read_meta(self, session_id: str) -> dict:
+        path = self.folder(session_id) / "meta.json"
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"session {session_id}: unreadable meta.json ({exc})") from exc
+
+    def file(self, session_id: str, name: str) -> Path:
+        """Path of one of the session's files (``trajectory.tum``, ``map.npz``, ``map.ply``)."""
+        if name not in ("trajectory.tum", "map.npz", "map.ply", "meta.json"):
+            raise StoreError(f"unknown session file {name!r}")
+        return self.folder(session_id) / name
+
+    def saved_ids(self) -> list[str]:
+        return sorted(p.name for p in self.root.iterdir()
+                      if SESSION_ID.match(p.name) and (p / "meta.json").is_file())
+
+    def delete(self, session_id: str) -> None:
+        shutil.rmtree(self.folder(session_id), ignore_errors=True)

@@ -1,0 +1,37 @@
+"""Server settings: one pydantic-settings class, read from ``DRONESIM_*`` environment variables
+and validated at start-up, so that a bad value stops the server with a clear message."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Every setting of the server, with its default."""
+
+    model_config = SettingsConfigDict(env_prefix="DRONESIM_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    data_dir: Path = Path("data")  # sessions' maps and trajectories live here
+    tls: bool = False  # serve HTTPS with a self-signed certificate kept in data_dir/tls
+    max_sessions: int = Field(16, ge=1)  # live sessions at once; more get 503
+    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024)  # refused before decoding
+    session_ttl_s: float = Field(300.0, gt=0)  # a disconnected session is closed after this
+    snapshot_interval_s: float = Field(10.0, gt=0)  # periodic atomic snapshot of map + trajectory
+    fuse_every: int = Field(3, ge=1)  # integrate every n-th tracked frame (and every keyframe)
+    voxel_m: float = Field(0.02, gt=0.001, le=0.2)  # TSDF voxel edge
+    preview_points: int = Field(4000, ge=100)  # points per map preview chunk
+    demo: bool = False  # start a session that replays the bundled demo sequence
+    demo_fps: float = Field(15.0, gt=0, le=60)
+    cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
+
+    @field_validator("data_dir")
+    @classmethod
+    def _data_dir_usable(cls, v: Path) -> Path:
+        if v.exists() and not v.is_dir():
+            raise ValueError(f"data_dir {v} exists and is not a folder")
+        return v

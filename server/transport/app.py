@@ -1,0 +1,87 @@
+"""The FastAPI application: wires settings, the session manager, the REST API and the WebSocket."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse
+
+from server.mapping.tsdf import MapError
+from server.sessions import SessionError, SessionManager
+from server.sessions.session import SessionConfig
+from server.sessions.store import SessionStore, StoreError
+from server.settings import Settings
+from server.transport import routes_sessions, websocket
+
+log = logging.getLogger(__name__)
+
+_STATUS = {"unauthorized": 401, "not_found": 404, "server_full": 503}
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    config = SessionConfig(fuse_every=settings.fuse_every, voxel_m=settings.voxel_m,
+                           preview_points=settings.preview_points,
+                           snapshot_interval_s=settings.snapshot_interval_s)
+    manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        restored = manager.load_saved()
+        log.info("data dir %s: %d saved sessions", settings.data_dir.resolve(), restored)
+        reaper = asyncio.create_task(_reap(app))
+        demo = None
+        if settings.demo:
+            from server.transport.demo import run_demo
+
+            demo = asyncio.create_task(run_demo(app))
+        try:
+            yield
+        finally:
+            for task in (reaper, demo):
+                if task is not None:
+                    task.cancel()
+            await asyncio.to_thread(manager.shutdown)
+
+    app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
+    app.state.settings = settings
+    app.state.manager = manager
+    app.state.connections = set()
+    app.state.demo = None
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST", "DELETE"], allow_headers=["Authorization"])
+    app.include_router(routes_sessions.router)
+    app.include_router(websocket.router)
+
+    @app.exception_handler(SessionError)
+    async def session_error(request: Request, exc: SessionError) -> JSONResponse:
+        return JSONResponse({"error": {"code": exc.code, "message": str(exc)}},
+                            status_code=_STATUS.get(exc.code, 400))
+
+    @app.exception_handler(StoreError)
+    async def store_error(request: Request, exc: StoreError) -> JSONResponse:
+        # A malformed id is indistinguishable from an unknown one.
+        return JSONResponse({"error": {"code": "not_found", "message": "no session with this id for this token"}},
+                            status_code=404)
+
+    @app.exception_handler(MapError)
+    async def map_error(request: Request, exc: MapError) -> JSONResponse:
+        return JSONResponse({"error": {"code": "map_unavailable", "message": str(exc)}}, status_code=409)
+
+    @app.get("/healthz", tags=["server"])
+    def health() -> dict:
+        return {"status": "ok", "live_sessions": manager.live_count, "saved_sessions": manager.saved_count}
+
+    return app
+
+
+async def _reap(app: FastAPI) -> None:
+    settings, manager = app.state.settings, app.state.manager
+    while True:
+        await asyncio.sleep(min(10.0, settings.session_ttl_s / 4))
+        await asyncio.to_thread(manager.reap, settings.session_ttl_s, set(app.state.connections))

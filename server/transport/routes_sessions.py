@@ -1,0 +1,93 @@
+"""REST API for sessions: create, status, delete, and download map, mesh and trajectory."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from fastapi import APIRouter, Request, Response, status
+
+from server.evaluation.trajectory import write_tum
+from server.mapping.tsdf import MapError, TSDFMap
+from server.sessions import Session
+from server.transport.deps import ManagerDep, SessionDep
+
+router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+
+PLY = "application/octet-stream"
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create_session(request: Request, manager: ManagerDep) -> dict:
+    """Create a live session. The token is shown only here: keep it, every other call needs it
+    (``Authorization: Bearer <token>``, or ``?token=`` on the WebSocket)."""
+    session, token = manager.create()
+    scheme = "wss" if request.url.scheme == "https" else "ws"
+    return {
+        "id": session.id,
+        "token": token,
+        "websocket": f"{scheme}://{request.url.netloc}/ws/sessions/{session.id}",
+    }
+
+
+@router.get("/{session_id}")
+def session_status(session: SessionDep) -> dict:
+    """Statistics of a live or closed session."""
+    return session.status() if isinstance(session, Session) else session["status"] | {"closed": True}
+
+
+@router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_session(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+    """Stop the session and delete its map and trajectory."""
+    manager.delete(session_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _via_file(suffix: str, write) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"out{suffix}"
+        write(path)
+        return path.read_bytes()
+
+
+def _saved(path: Path, read: bool = True) -> bytes:
+    if not path.is_file():
+        raise MapError("this session fused no map before it closed")
+    return path.read_bytes() if read else b""
+
+
+def _download(data: bytes, filename: str, media_type: str) -> Response:
+    return Response(data, media_type=media_type,
+                    headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+
+
+@router.get("/{session_id}/map.ply")
+def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+    """The fused map's surface points with colours, binary PLY, world frame, metres."""
+    if isinstance(session, Session):
+        data = _via_file(".ply", session.map.write_point_cloud_ply)
+    else:
+        data = _saved(manager.store.file(session_id, "map.ply"))
+    return _download(data, f"{session_id}-map.ply", PLY)
+
+
+@router.get("/{session_id}/mesh.ply")
+def download_mesh(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+    """The TSDF surface as a triangle mesh with vertex colours, binary PLY."""
+    if isinstance(session, Session):
+        tsdf = session.map
+    else:
+        _saved(manager.store.file(session_id, "map.npz"), read=False)
+        tsdf = TSDFMap.load(manager.store.file(session_id, "map.npz"))
+    data = _via_file(".ply", tsdf.write_mesh_ply)
+    return _download(data, f"{session_id}-mesh.ply", PLY)
+
+
+@router.get("/{session_id}/trajectory.tum")
+def download_trajectory(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+    """Camera poses T_world_camera, one line per processed frame: ``t tx ty tz qx qy qz qw``."""
+    if isinstance(session, Session):
+        data = _via_file(".tum", lambda p: write_tum(p, session.trajectory()))
+    else:
+        data = manager.store.file(session_id, "trajectory.tum").read_bytes()
+    return _download(data, f"{session_id}-trajectory.tum", "text/plain")

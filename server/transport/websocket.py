@@ -1,0 +1,175 @@
+"""The session WebSocket: decode messages, hand frames to the session, send poses back.
+
+This module knows the protocol and asyncio; the math happens in the session's worker thread, and
+image decoding in a thread pool, so one slow session never stalls the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+
+from server.errors import ConfigError
+from server.geometry import Intrinsics
+from server.sessions import FrameData, PoseUpdate, Session, SessionError
+from server.transport import protocol as proto
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+
+# Session errors as the protocol names them.
+_SESSION_CODES = {
+    "no_hello": "unexpected_message",
+    "bad_sequence": "bad_sequence",
+    "intrinsics_changed": "bad_intrinsics",
+    "session_closed": "unauthorized",
+}
+_OUTBOX = 64  # updates waiting for a slow client; beyond this the oldest are skipped
+
+
+async def _send(ws: WebSocket, message: dict) -> None:
+    await ws.send_bytes(proto.encode(message))
+
+
+async def _refuse(ws: WebSocket, error: proto.ProtocolError) -> None:
+    try:
+        await _send(ws, error.to_message())
+        await ws.close(code=error.close_code or 1000, reason=error.code)
+    except (RuntimeError, WebSocketDisconnect):
+        pass
+
+
+@router.websocket("/ws/sessions/{session_id}")
+async def session_socket(ws: WebSocket, session_id: str, token: str | None = None) -> None:
+    app = ws.app
+    manager, settings = app.state.manager, app.state.settings
+    await ws.accept()
+    try:
+        session = manager.authorize(session_id, token)
+    except SessionError as exc:
+        return await _refuse(ws, proto.ProtocolError("unauthorized", str(exc)))
+    if not isinstance(session, Session):
+        return await _refuse(ws, proto.ProtocolError("unauthorized", "this session is closed"))
+    if session_id in app.state.connections:
+        await ws.close(code=proto.CLOSE_CODES["session_in_use"], reason="session_in_use")
+        return
+    app.state.connections.add(session_id)
+    loop = asyncio.get_running_loop()
+    outbox: asyncio.Queue[PoseUpdate | dict] = asyncio.Queue(maxsize=_OUTBOX)
+
+    def deliver(item: PoseUpdate | dict) -> None:  # any thread
+        def put() -> None:
+            if outbox.full():
+                outbox.get_nowait()
+            outbox.put_nowait(item)
+
+        loop.call_soon_threadsafe(put)
+
+    sender = asyncio.create_task(_send_updates(ws, outbox, settings.preview_points))
+    try:
+        await _receive(ws, session, deliver, settings.max_message_bytes)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        session.on_update = None
+        app.state.connections.discard(session_id)
+        sender.cancel()
+
+
+async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int) -> None:
+    chunk = 0
+    try:
+        while True:
+            item = await outbox.get()
+            if isinstance(item, dict):
+                await _send(ws, item)
+                continue
+            await _send(ws, proto.make_pose(item.seq, item.timestamp, item.T_world_camera, item.state,
+                                            item.inliers, item.timings_ms, item.dropped, item.keyframe))
+            if item.map_points is not None and len(item.map_points):
+                for i in range(0, len(item.map_points), chunk_points):
+                    await _send(ws, proto.make_map_chunk(item.map_points[i:i + chunk_points],
+                                                         item.map_colours[i:i + chunk_points], chunk))
+                    chunk += 1
+    except (WebSocketDisconnect, RuntimeError, asyncio.CancelledError):
+        return
+
+
+async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int) -> None:
+    order = proto.ClientOrder()
+    errors_in_a_row = 0
+    limit = proto.LIMITS["max_consecutive_errors"]
+    while True:
+        try:
+            received = await asyncio.wait_for(ws.receive(), proto.LIMITS["idle_timeout_s"])
+        except asyncio.TimeoutError:
+            await ws.close(code=proto.CLOSE_CODES["idle_timeout"], reason="idle_timeout")
+            return
+        if received["type"] == "websocket.disconnect":
+            return
+        data = received.get("bytes")
+        if data is None:
+            data = (received.get("text") or "").encode()  # text frames are not msgpack: refused
+        try:
+            message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes)
+            order.check(message)
+            await _handle(ws, session, message, order, deliver)
+            errors_in_a_row = 0
+        except SessionError as exc:
+            error = proto.ProtocolError(_SESSION_CODES.get(exc.code, "internal_error"), str(exc),
+                                        seq=_seq(data))
+            errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
+        except proto.ProtocolError as exc:
+            errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
+        if errors_in_a_row < 0:
+            return
+        if order.closed:
+            await ws.close(code=1000, reason="bye")
+            return
+
+
+def _seq(data: bytes) -> int | None:
+    try:
+        return int(proto.decode(data)["seq"])
+    except Exception:
+        return None
+
+
+async def _report(ws: WebSocket, error: proto.ProtocolError, in_a_row: int, limit: int) -> int:
+    """Send the error; close on a fatal one or too many in a row. Returns the new count, or -1
+    when the socket was closed."""
+    if error.fatal:
+        await _refuse(ws, error)
+        return -1
+    await _send(ws, error.to_message())
+    in_a_row += 1
+    if in_a_row >= limit:
+        await ws.close(code=proto.CLOSE_CODES["too_many_errors"], reason="too_many_errors")
+        return -1
+    return in_a_row
+
+
+async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver) -> None:
+    kind = message["type"]
+    if kind == "hello":
+        fx, fy, cx, cy = message["intrinsics"]
+        width, height = message["colour_size"]
+        try:
+            intrinsics = Intrinsics(fx, fy, cx, cy, int(width), int(height))
+        except ConfigError as exc:
+            raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
+        session.configure(intrinsics, message["client_name"])
+        session.start(deliver)
+        await _send(ws, proto.make_welcome(session.id, max_message_bytes=ws.app.state.settings.max_message_bytes))
+    elif kind == "frame":
+        t0 = time.perf_counter()
+        colour, depth = await asyncio.to_thread(proto.decode_frame_images, message, order.hello)
+        frame = FrameData(message["seq"], message["timestamp"], colour, depth,
+                          decode_ms=(time.perf_counter() - t0) * 1e3)
+        session.submit(frame)
+    elif kind == "command":
+        raise proto.ProtocolError("bad_command", "the drone simulation is not available yet",
+                                  seq=None)

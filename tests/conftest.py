@@ -34,3 +34,61 @@ def demo_clean(tmp_path_factory) -> Path:
 
     spec = DemoSpec(frames=24, noise=False)
     return demo_sequence_path(spec, cache_dir=tmp_path_factory.mktemp("demo"), progress=False)
+
+
+class LiveServer:
+    """A real uvicorn server on a loopback port, in a background thread."""
+
+    def __init__(self, data_dir: Path, **settings) -> None:
+        import socket
+        import threading
+
+        import uvicorn
+
+        from server.settings import Settings
+        from server.transport.app import create_app
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.settings = Settings(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
+        self.app = create_app(self.settings)
+        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=self.port,
+                                                    log_level="warning", ws_max_size=64 * 2**20))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.thread.start()
+        import time
+
+        deadline = time.time() + 20
+        while not self.server.started:
+            if time.time() > deadline or not self.thread.is_alive():
+                raise RuntimeError("server did not start")
+            time.sleep(0.05)
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.ws_url = f"ws://127.0.0.1:{self.port}"
+
+    def create_session(self) -> tuple[str, str]:
+        import httpx
+
+        r = httpx.post(f"{self.url}/api/sessions")
+        r.raise_for_status()
+        body = r.json()
+        return body["id"], body["token"]
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=60)
+
+
+@pytest.fixture
+def live_server(tmp_path):
+    servers = []
+
+    def start(data_dir: Path | None = None, **settings) -> LiveServer:
+        server = LiveServer(data_dir or tmp_path / "data", **settings)
+        servers.append(server)
+        return server
+
+    yield start
+    for server in servers:
+        server.stop()

@@ -152,8 +152,15 @@ def test_float_fields_accept_integers_as_javascript_sends_them():
 
 @pytest.mark.parametrize(
     "data",
-    [b"\xc1", b"", msgpack.packb({"type": "bye"}) + b"\x00", msgpack.packb([1, 2]),
-     msgpack.packb({"kind": "bye"}), msgpack.packb({1: "bye"}), "text frame"],
+    [
+        b"\xc1",
+        b"",
+        msgpack.packb({"type": "bye"}) + b"\x00",
+        msgpack.packb([1, 2]),
+        msgpack.packb({"kind": "bye"}),
+        msgpack.packb({1: "bye"}),
+        "text frame",
+    ],
     ids=["never-used-byte", "empty", "trailing", "list", "no-type", "int-key", "str"],
 )
 def test_malformed_message(data):
@@ -169,8 +176,16 @@ def test_missing_field():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("seq", "7"), ("seq", True), ("seq", -1), ("seq", 1.0), ("timestamp", float("nan")),
-     ("colour", "not bytes"), ("depth_format", "jpeg"), ("depth_scale", -1000.0)],
+    [
+        ("seq", "7"),
+        ("seq", True),
+        ("seq", -1),
+        ("seq", 1.0),
+        ("timestamp", float("nan")),
+        ("colour", "not bytes"),
+        ("depth_format", "jpeg"),
+        ("depth_scale", -1000.0),
+    ],
 )
 def test_wrong_type_or_value(field, value):
     frame = {**small_frame(np.ones((480, 640))), field: value}
@@ -197,8 +212,13 @@ def test_version_mismatch_is_reported_before_other_fields():
 
 
 @pytest.mark.parametrize(
-    "intrinsics", [[1.0, 1.0, 320.0, 240.0], [525.0, 5000.0, 320.0, 240.0],
-                   [525.0, 525.0, 900.0, 240.0], [525.0, 525.0, 320.0, -5.0]],
+    "intrinsics",
+    [
+        [1.0, 1.0, 320.0, 240.0],
+        [525.0, 5000.0, 320.0, 240.0],
+        [525.0, 525.0, 900.0, 240.0],
+        [525.0, 525.0, 320.0, -5.0],
+    ],
     ids=["tiny-focal", "fy-absurd", "cx-outside", "cy-negative"],
 )
 def test_absurd_intrinsics(intrinsics):
@@ -207,11 +227,14 @@ def test_absurd_intrinsics(intrinsics):
 
 
 @pytest.mark.parametrize(
-    "colour_size, depth_size", [((8, 6), (8, 6)), ((4096, 3072), (256, 192)), ((640, 480), (256, 256))]
+    "colour_size, depth_size",
+    [((8, 6), (8, 6)), ((4096, 3072), (256, 192)), ((640, 480), (256, 256))],
 )
 def test_bad_image_sizes_in_hello(colour_size, depth_size):
     fx = 0.8 * colour_size[0]
-    hello = P.make_hello("t", [fx, fx, colour_size[0] / 2, colour_size[1] / 2], colour_size, depth_size)
+    hello = P.make_hello(
+        "t", [fx, fx, colour_size[0] / 2, colour_size[1] / 2], colour_size, depth_size
+    )
     expect("bad_image_size", P.encode, hello)
 
 
@@ -343,8 +366,21 @@ def test_protocol_error_is_a_project_error_and_becomes_an_error_message():
 def test_definition_is_well_formed():
     spec = json.loads((SHARED / "protocol.json").read_text())
     assert spec["version"] == P.VERSION == 1
-    known = {"name", "type", "required", "unit", "description", "min", "max", "enum", "length",
-             "min_length", "max_length", "items", "values"}
+    known = {
+        "name",
+        "type",
+        "required",
+        "unit",
+        "description",
+        "min",
+        "max",
+        "enum",
+        "length",
+        "min_length",
+        "max_length",
+        "items",
+        "values",
+    }
     for kind, message in spec["messages"].items():
         assert message["direction"] in (P.CLIENT_TO_SERVER, P.SERVER_TO_CLIENT), kind
         for field in message["fields"]:

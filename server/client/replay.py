@@ -46,8 +46,12 @@ async def replay(
     client_name: str = "replay",
     on_pose: Callable[[dict], None] | None = None,
     ssl=None,
+    drop_when_busy: bool = True,
 ) -> ReplayStats:
-    """Stream ``dataset`` to the session at ``ws_url`` and collect what comes back."""
+    """Stream ``dataset`` to the session at ``ws_url`` and collect what comes back.
+
+    drop_when_busy: a frame captured while ``max_in_flight`` frames await answers is dropped
+    (a camera); False waits for an answer instead, so that every frame is sent (tests)."""
     stats = ReplayStats()
     K = dataset.intrinsics
     n = len(dataset) if max_frames is None else max_frames
@@ -87,6 +91,9 @@ async def replay(
             for i in range(n):
                 due = start + i / fps
                 await asyncio.sleep(max(0.0, due - time.monotonic()))
+                while not drop_when_busy and len(in_flight) >= max_in_flight:
+                    answered.clear()
+                    await asyncio.wait_for(answered.wait(), timeout=30.0)
                 if len(in_flight) >= max_in_flight:
                     stats.client_dropped += 1
                     continue

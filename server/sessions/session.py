@@ -21,7 +21,7 @@ from server.datasets.base import Trajectory
 from server.errors import DroneSimError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
-from server.mapping.tsdf import TSDFConfig, TSDFMap
+from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
 from server.sessions.store import SessionStore
@@ -247,9 +247,12 @@ class Session:
         with self._lock:
             self._dirty = False
         write_tum(self.store.file(self.id, "trajectory.tum"), self.trajectory())
-        if self.map.stats()["frames_integrated"] > 0:  # Open3D writes no empty geometry
+        if self.map.stats()["frames_integrated"] > 0:
             self.map.save(self.store.file(self.id, "map.npz"))
-            self.map.write_point_cloud_ply(self.store.file(self.id, "map.ply"))
+            try:
+                self.map.write_point_cloud_ply(self.store.file(self.id, "map.ply"))
+            except MapError:  # too few observations for a surface yet
+                log.info("session %s: no map surface to write yet", self.id)
         self.store.write_meta(self.id, self.meta())
         self._last_snapshot = time.monotonic()
 

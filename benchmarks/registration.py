@@ -1,0 +1,458 @@
+"""Registration benchmark: our tracker (sparse, sparse + dense) against Open3D's RGB-D odometry.
+
+Every method runs in this one process, on the same frames, frame-to-frame (Open3D) or
+frame-to-keyframe (ours), without loop closure, starting from the ground-truth pose of the first
+frame, on one CPU thread. Only the per-frame registration call is timed: frames are loaded (and
+converted to Open3D images) in an untimed pre-pass.
+
+    python benchmarks/registration.py                        # every ../shared/data/* + demo
+    python benchmarks/registration.py ../shared/data/synthetic_room0 --frames 30
+    python benchmarks/registration.py ../shared/data/7scenes_a --stride 2 --methods ours_sparse
+
+Prints one table per sequence, appends it to <out>/registration.md, updates <out>/registration.json
+and writes <out>/trajectories/<run>/<method>.tum and <out>/<run>_trajectories.png, where <run> is
+the sequence name with ``_nN`` / ``_sS`` added for --frames / --stride.
+"""
+
+from __future__ import annotations
+
+import os
+
+# One thread everywhere, set before numpy, OpenCV and Open3D start their thread pools.
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+               "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS")
+for _var in THREAD_VARS:
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import platform  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import matplotlib  # noqa: E402
+import numpy as np  # noqa: E402
+import open3d as o3d  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+from server.config import RegistrationConfig  # noqa: E402
+from server.datasets import RGBDFrame, Trajectory, open_dataset  # noqa: E402
+from server.datasets.tum import associate  # noqa: E402
+from server.errors import DroneSimError  # noqa: E402
+from server.evaluation.metrics import evaluate  # noqa: E402
+from server.evaluation.trajectory import write_tum  # noqa: E402
+from server.geometry import Intrinsics, rotation_angle_deg  # noqa: E402
+from server.registration.tracker import Tracker, TrackingState  # noqa: E402
+
+cv2.setNumThreads(1)
+o3d.utility.set_max_threads(1)  # Open3D 0.20 runs on TBB, which ignores OMP_NUM_THREADS
+o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+
+logger = logging.getLogger("benchmarks.registration")
+console = Console(width=max(Console().width, 180))  # wide table, also when piped
+
+# Targets for our rows: (key, label, test).
+TARGETS: tuple[tuple[str, str, Callable[[float], bool]], ...] = (
+    ("ate_vs_legacy", "ATE <= 0.5x legacy", lambda v: v <= 0.5),
+    ("lost", "0 lost", lambda v: v == 0),
+    ("median_ms", "median <= 33 ms", lambda v: v <= 33.0),
+    ("speedup_legacy", ">= 15x faster than legacy", lambda v: v >= 15.0),
+    ("speedup_tensor", ">= 1.5x faster than tensor", lambda v: v >= 1.5),
+)
+
+
+@dataclass
+class MethodRun:
+    """One method's output on one sequence. Timings cover frames 1..N-1 (frame 0 has no call)."""
+
+    poses: np.ndarray  # (N, 4, 4) T_world_camera, metres
+    times_ms: list[float] = field(default_factory=list)
+    cpu_s: float = 0.0  # process CPU time over the timed calls, to check the one-thread limit
+    lost: int = 0
+    weak: int | None = None  # ours only
+    stage_ms: dict[str, float] = field(default_factory=dict)  # mean per stage (ours only)
+
+
+class Clock:
+    """Wall and CPU time of the calls made inside ``with clock:``."""
+
+    def __init__(self, run: MethodRun) -> None:
+        self.run = run
+
+    def __enter__(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+
+    def __exit__(self, *exc) -> None:
+        self.run.times_ms.append((time.perf_counter() - self.wall) * 1e3)
+        self.run.cpu_s += time.process_time() - self.cpu
+
+
+# ---------------------------------------------------------------------------------- methods
+def run_ours(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar, dense: bool) -> MethodRun:
+    """Our frame-to-keyframe tracker; sparse only or sparse + dense refinement."""
+    config = RegistrationConfig().with_overrides(solver={"dense": dense})
+    tracker = Tracker(K, config, T_world_first=T0)
+    run = MethodRun(poses=np.empty((len(frames), 4, 4)), weak=0)
+    stages: dict[str, list[float]] = {}
+    for i, frame in enumerate(frames):
+        if i == 0:
+            result = tracker.track(frame.colour, frame.depth)  # starts the first keyframe
+        else:
+            with Clock(run):
+                result = tracker.track(frame.colour, frame.depth)
+            run.lost += result.state is TrackingState.LOST
+            run.weak += result.state is TrackingState.WEAK
+            for name, ms in result.timings_ms.items():
+                stages.setdefault(name, []).append(ms)
+        run.poses[i] = result.T_world_camera
+        bar.update()
+    run.stage_ms = {name: float(np.mean(v)) for name, v in stages.items()}
+    return run
+
+
+def run_o3d_legacy(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) -> MethodRun:
+    """Open3D ``compute_rgbd_odometry``, hybrid term, default OdometryOption, frame-to-frame.
+
+    It returns T_target_source (source points -> target camera); with source = previous frame
+    and target = current frame that is T_cur_prev, so T_world_cur = T_world_prev @ inv(T).
+    """
+    pinhole = o3d.camera.PinholeCameraIntrinsic(K.width, K.height, K.fx, K.fy, K.cx, K.cy)
+    trunc = RegistrationConfig().depth.max_depth_m
+    images = [
+        o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(f.colour)),
+            o3d.geometry.Image(np.ascontiguousarray(f.depth, dtype=np.float32)),
+            depth_scale=1.0, depth_trunc=trunc, convert_rgb_to_intensity=True)
+        for f in frames
+    ]
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+    option = o3d.pipelines.odometry.OdometryOption()
+    run = MethodRun(poses=np.empty((len(frames), 4, 4)))
+    run.poses[0] = T0
+    bar.update()
+    for i in range(1, len(frames)):
+        with Clock(run):
+            ok, T_cur_prev, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+                images[i - 1], images[i], pinhole, np.eye(4), jacobian, option)
+        if ok and np.all(np.isfinite(T_cur_prev)):
+            run.poses[i] = run.poses[i - 1] @ np.linalg.inv(T_cur_prev)
+        else:
+            run.poses[i] = run.poses[i - 1]  # hold the last pose
+            run.lost += 1
+        bar.update()
+    return run
+
+
+def run_o3d_tensor(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) -> MethodRun:
+    """Open3D tensor ``rgbd_odometry_multi_scale``, Method.Hybrid on CPU, default criteria and
+    depth_max, identity initialisation, frame-to-frame. Its ``transformation`` is T_target_source
+    as for the legacy call; a singular system raises RuntimeError, counted as a lost frame."""
+    odometry = o3d.t.pipelines.odometry
+    intrinsics = o3d.core.Tensor(K.matrix, o3d.core.float64)
+    identity = o3d.core.Tensor(np.eye(4), o3d.core.float64)
+    images = [
+        o3d.t.geometry.RGBDImage(
+            o3d.t.geometry.Image(np.ascontiguousarray(f.colour)),
+            o3d.t.geometry.Image(np.ascontiguousarray(f.depth, dtype=np.float32)))
+        for f in frames
+    ]
+    run = MethodRun(poses=np.empty((len(frames), 4, 4)))
+    run.poses[0] = T0
+    bar.update()
+    for i in range(1, len(frames)):
+        T_cur_prev = None
+        with Clock(run):
+            try:
+                result = odometry.rgbd_odometry_multi_scale(
+                    images[i - 1], images[i], intrinsics, identity, 1.0,
+                    method=odometry.Method.Hybrid)
+                if result.fitness > 0:
+                    T_cur_prev = result.transformation.numpy()
+            except RuntimeError:
+                pass
+        if T_cur_prev is not None and np.all(np.isfinite(T_cur_prev)):
+            run.poses[i] = run.poses[i - 1] @ np.linalg.inv(T_cur_prev)
+        else:
+            run.poses[i] = run.poses[i - 1]
+            run.lost += 1
+        bar.update()
+    return run
+
+
+# key -> (label, runner)
+METHODS: dict[str, tuple[str, Callable[..., MethodRun]]] = {
+    "ours_sparse": ("ours sparse", lambda *a: run_ours(*a, dense=False)),
+    "ours_dense": ("ours sparse+dense", lambda *a: run_ours(*a, dense=True)),
+    "o3d_legacy": ("Open3D legacy", run_o3d_legacy),
+    "o3d_tensor": ("Open3D tensor", run_o3d_tensor),
+}
+
+
+# ---------------------------------------------------------------------------------- one sequence
+def load_frames(path: Path, frames: int | None, stride: int):
+    """The dataset, its selected frames (in memory), their GT poses and the nominal frame rate."""
+    ds = open_dataset(path)
+    if ds.ground_truth is None:
+        raise DroneSimError(f"{path}: no ground truth, cannot benchmark")
+    stamps = np.asarray(ds.timestamps)
+    indices = np.arange(len(ds) if frames is None else min(frames, len(ds)))[::stride]
+    idx_frame, idx_gt = associate(stamps[indices], ds.ground_truth.timestamps, 0.02)
+    if len(idx_frame) < 2:
+        raise DroneSimError(f"{path}: fewer than 2 selected frames have ground truth")
+    indices = indices[idx_frame[0]:]  # start at the first frame with a ground-truth pose
+    gt_poses = ds.ground_truth.poses[idx_gt]
+    loaded = [ds[int(i)] for i in tqdm(indices, desc=f"{path.name} load", unit="frame")]
+    fps = 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else float("nan")
+    return ds, loaded, gt_poses, fps
+
+
+def motion_stats(gt_poses: np.ndarray, fps: float, stride: int) -> dict[str, float]:
+    """Camera speed the selected frames show when played at the nominal frame rate."""
+    rel = np.linalg.inv(gt_poses[:-1]) @ gt_poses[1:]
+    dist = np.linalg.norm(rel[:, :3, 3], axis=1)
+    angle = np.array([rotation_angle_deg(T) for T in rel])
+    return {
+        "stride": stride, "fps": fps,
+        "mean_speed_m_s": float(dist.mean() * fps), "max_speed_m_s": float(dist.max() * fps),
+        "mean_rot_deg_s": float(angle.mean() * fps), "max_rot_deg_s": float(angle.max() * fps),
+    }
+
+
+def summarise(run: MethodRun, metrics: dict, n_frames: int) -> dict:
+    t = np.asarray(run.times_ms)
+    wall_s = t.sum() / 1e3
+    return {
+        **metrics,
+        "frames": n_frames, "lost": run.lost, "weak": run.weak,
+        "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)),
+        "mean_ms": float(t.mean()), "cpu_per_wall": float(run.cpu_s / wall_s) if wall_s else None,
+        "stage_mean_ms": run.stage_ms,
+    }
+
+
+def add_ratios(results: dict[str, dict]) -> None:
+    """ATE and speed ratios against the Open3D baselines, and the targets for our rows."""
+    legacy, tensor = results.get("o3d_legacy"), results.get("o3d_tensor")
+    for key, r in results.items():
+        r["ate_vs_legacy"] = r["ate_rmse_m"] / legacy["ate_rmse_m"] if legacy else None
+        r["speedup_legacy"] = legacy["median_ms"] / r["median_ms"] if legacy else None
+        r["speedup_tensor"] = tensor["median_ms"] / r["median_ms"] if tensor else None
+        if key.startswith("ours"):
+            r["targets"] = {label: (None if r[k] is None else bool(ok(r[k])))
+                            for k, label, ok in TARGETS}
+
+
+COLUMNS = (  # (key, header, format); a target mark follows the figure where one applies
+    ("ate_rmse_m", "ATE [cm]", lambda v: f"{v * 100:.2f}"),
+    ("rpe_trans_per_frame_m", "RPE/fr [mm]", lambda v: f"{v * 1000:.2f}"),
+    ("rpe_rot_per_frame_deg", "RPE/fr [deg]", lambda v: f"{v:.3f}"),
+    ("rpe_trans_per_second_m", "RPE/s [cm]", lambda v: f"{v * 100:.2f}"),
+    ("rpe_rot_per_second_deg", "RPE/s [deg]", lambda v: f"{v:.2f}"),
+    ("lost", "lost (0)", str),
+    ("weak", "weak", str),
+    ("median_ms", "median ms (<=33)", lambda v: f"{v:.1f}"),
+    ("p90_ms", "p90 ms", lambda v: f"{v:.1f}"),
+    ("ate_vs_legacy", "ATE/legacy (<=0.5)", lambda v: f"{v:.2f}x"),
+    ("speedup_legacy", "x legacy (>=15)", lambda v: f"{v:.1f}x"),
+    ("speedup_tensor", "x tensor (>=1.5)", lambda v: f"{v:.2f}x"),
+)
+TARGET_OF = {key: label for key, label, _ in TARGETS}
+
+
+def table_rows(results: dict[str, dict]) -> list[list[tuple[str, bool | None]]]:
+    """Per method: (cell text, target met?) for each column; None where no target applies."""
+    rows = []
+    for key, r in results.items():
+        cells = [(METHODS[key][0], None)]
+        for col, _, fmt in COLUMNS:
+            value = r.get(col)
+            if value is None or (isinstance(value, float) and not np.isfinite(value)):
+                cells.append(("-", None))
+                continue
+            cells.append((fmt(value), r.get("targets", {}).get(TARGET_OF.get(col))))
+        rows.append(cells)
+    return rows
+
+
+def rich_table(title: str, rows) -> Table:
+    table = Table(title=title)
+    table.add_column("method", style="bold")
+    for _, header, _ in COLUMNS:
+        table.add_column(header, justify="right")
+    for cells in rows:
+        table.add_row(*(text if ok is None else f"{text} [{'green]✓' if ok else 'red]✗'}[/]"
+                        for text, ok in cells))
+    return table
+
+
+def markdown_table(rows) -> str:
+    lines = ["| method | " + " | ".join(h for _, h, _ in COLUMNS) + " |",
+             "|---" + "|---:" * len(COLUMNS) + "|"]
+    for cells in rows:
+        lines.append("| " + " | ".join(text if ok is None else f"{text} {'✓' if ok else '✗'}"
+                                       for text, ok in cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_topview(path: Path, title: str, gt: np.ndarray, estimates: dict[str, np.ndarray]) -> None:
+    """GT and estimated camera positions on the two axes along which GT extends most."""
+    extent = np.ptp(gt[:, :3, 3], axis=0)
+    a, b = sorted(np.argsort(extent)[-2:])
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(gt[:, a, 3], gt[:, b, 3], "k-", lw=2.5, label="ground truth")
+    for name, poses in estimates.items():
+        ax.plot(poses[:, a, 3], poses[:, b, 3], lw=1.2, label=METHODS[name][0])
+    ax.plot(gt[0, a, 3], gt[0, b, 3], "ko", ms=6)
+    ax.set_xlabel(f"{'xyz'[a]} [m]")
+    ax.set_ylabel(f"{'xyz'[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{title}: top view, unaligned, from the GT first pose", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_name_of(name: str, args) -> str:
+    """The sequence name, with _nN / _sS for --frames / --stride, naming its output files."""
+    frames = f"_n{args.frames}" if args.frames else ""
+    return name + frames + (f"_s{args.stride}" if args.stride > 1 else "")
+
+
+def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
+    run_name = run_name_of(name, args)
+    ds, frames, gt_poses, fps = load_frames(path, args.frames, args.stride)
+    stamps = np.array([f.timestamp for f in frames])
+    motion = motion_stats(gt_poses, fps, args.stride)
+    results, estimates = {}, {}
+    for key in args.methods:
+        label, runner = METHODS[key]
+        with tqdm(total=len(frames), desc=f"{run_name} {label}", unit="frame") as bar:
+            run = runner(frames, ds.intrinsics, gt_poses[0], bar)
+        est = Trajectory(stamps, run.poses)
+        write_tum(args.out / "trajectories" / run_name / f"{key}.tum", est)
+        metrics = evaluate(ds.ground_truth, est)
+        results[key] = summarise(run, metrics, len(frames))
+        estimates[key] = run.poses
+    add_ratios(results)
+
+    speed = (f"{len(frames)} frames, stride {args.stride} at {fps:.0f} Hz: camera "
+             f"{motion['mean_speed_m_s']:.2f} m/s (max {motion['max_speed_m_s']:.2f}), "
+             f"{motion['mean_rot_deg_s']:.0f} deg/s (max {motion['max_rot_deg_s']:.0f})")
+    rows = table_rows(results)
+    console.print(rich_table(f"{run_name} — {speed}", rows))
+    targets = "; ".join(label for _, label, _ in TARGETS)
+    console.print(f"targets for our rows: {targets}")
+
+    png = args.out / f"{run_name}_trajectories.png"
+    plot_topview(png, run_name, gt_poses, estimates)
+    with open(args.out / "registration.md", "a") as md:
+        md.write(f"\n### {run_name}\n\n{speed}. Targets for our rows: {targets}.\n\n"
+                 f"{markdown_table(rows)}\n\nTrajectories: `trajectories/{run_name}/`, "
+                 f"plot: `{png.name}`.\n")
+    return {"header": header, "sequence": str(path), "motion": motion, "methods": results}
+
+
+# ---------------------------------------------------------------------------------- CLI
+def default_sequences() -> list[tuple[str, Path]]:
+    data = REPO_ROOT.parent / "shared" / "data"
+    found = [(p.name, p) for p in sorted(data.iterdir()) if p.is_dir()] if data.is_dir() else []
+    try:
+        from server.datasets.demo import demo_sequence_path
+    except ImportError as exc:
+        console.print(f"[yellow]note: demo sequence skipped ({exc})[/]")
+        return found
+    try:
+        found.append(("demo", Path(demo_sequence_path())))
+    except DroneSimError as exc:
+        console.print(f"[yellow]note: demo sequence skipped: {exc}[/]")
+    return found
+
+
+def run_header(argv: list[str]) -> dict:
+    return {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": platform.platform(), "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(), "python": platform.python_version(),
+        "numpy": np.__version__, "opencv": cv2.__version__, "open3d": o3d.__version__,
+        "threads": {"env": {v: os.environ[v] for v in THREAD_VARS},
+                    "cv2": cv2.getNumThreads(), "open3d_max": o3d.utility.get_max_threads()},
+        "command": shlex.join(["python", *argv]),
+    }
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequences", nargs="*", type=Path,
+                        help="TUM-layout folders (default: every ../shared/data/* and the demo)")
+    parser.add_argument("--frames", type=int, help="use only the first N frames of each sequence")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="use every S-th frame, to emulate S times faster motion")
+    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
+    args = parser.parse_args(argv)
+    if args.stride < 1 or (args.frames is not None and args.frames < 2):
+        parser.error("need --stride >= 1 and --frames >= 2")
+    args.methods = [m for m in METHODS if m in args.methods]  # keep the canonical order
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    args = parse_args(argv)
+    header = run_header([sys.argv[0], *argv])
+    threads = header["threads"]
+    console.print(
+        f"[bold]Registration benchmark[/] {header['date']}  {header['machine']}, "
+        f"{header['cpu_count']} CPUs; python {header['python']}, numpy {header['numpy']}, "
+        f"opencv {header['opencv']}, open3d {header['open3d']}\n"
+        f"threads: {', '.join(f'{k}=1' for k in THREAD_VARS)}, cv2.setNumThreads(1) -> "
+        f"{threads['cv2']}, open3d.utility.set_max_threads(1) -> {threads['open3d_max']}\n"
+        f"command: {header['command']}")
+    sequences = [(p.name, p) for p in args.sequences] or default_sequences()
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    md_path, json_path = args.out / "registration.md", args.out / "registration.json"
+    with open(md_path, "a") as md:
+        md.write(f"\n## Run {header['date']}\n\n"
+                 f"- machine: {header['machine']} ({header['processor']}), "
+                 f"{header['cpu_count']} CPUs, all methods on 1 thread\n"
+                 f"- python {header['python']}, numpy {header['numpy']}, "
+                 f"opencv {header['opencv']}, open3d {header['open3d']}\n"
+                 f"- command: `{header['command']}`\n")
+    stored = json.loads(json_path.read_text()) if json_path.is_file() else {}
+    failed = 0
+    for name, path in sequences:
+        try:
+            result = benchmark_sequence(name, path, args, header)
+        except DroneSimError as exc:
+            console.print(f"[red]{name}: skipped: {exc}[/]")
+            failed += 1
+            continue
+        stored[run_name_of(name, args)] = result
+        tmp = json_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(stored, indent=1, sort_keys=False) + "\n")
+        tmp.replace(json_path)
+    console.print(f"results: {md_path}, {json_path}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""The server end to end: real uvicorn on loopback, real WebSocket clients, real data."""
+
+from __future__ import annotations
+
+import asyncio
+
+import httpx
+import numpy as np
+import open3d as o3d
+import pytest
+import websockets
+
+from server.client.replay import replay
+from server.datasets import open_dataset
+from server.evaluation.trajectory import read_tum
+from server.registration import Tracker
+from server.transport import protocol as proto
+
+FRAMES = 60
+
+
+def auth(token: str) -> dict:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def offline_track(ds, n: int) -> np.ndarray:
+    """Poses from the tracker run in-process on the frames as the wire carries them."""
+    tracker = Tracker(ds.intrinsics)
+    poses = []
+    for i in range(n):
+        f = ds[i]
+        msg = proto.decode(proto.encode(proto.make_frame(i, f.timestamp, f.colour, f.depth)))
+        hello = proto.make_hello("t", (1, 1, 1, 1), (f.colour.shape[1], f.colour.shape[0]))
+        colour, depth = proto.decode_frame_images(msg, hello)
+        poses.append(tracker.track(colour, depth).T_world_camera)
+    return np.array(poses)
+
+
+def stream(server, sid, token, ds, n=FRAMES, fps=1000.0, max_in_flight=1):
+    return asyncio.run(replay(f"{server.ws_url}/ws/sessions/{sid}", token, ds, fps=fps,
+                              max_frames=n, max_in_flight=max_in_flight, drop_when_busy=False))
+
+
+def test_streamed_poses_match_offline_tracking_and_the_map_downloads(live_server, shared_data, tmp_path):
+    server = live_server()
+    ds = open_dataset(shared_data / "synthetic_room0")
+    sid, token = server.create_session()
+    stats = stream(server, sid, token, ds)
+    assert not stats.errors
+    assert len(stats.poses) == FRAMES  # one frame in flight at a time: nothing dropped
+    assert [p["seq"] for p in stats.poses] == list(range(FRAMES))
+    assert stats.map_points > 1000  # preview chunks streamed while mapping
+    streamed = np.array([proto.pose_matrix(p) for p in stats.poses])
+    offline = offline_track(ds, FRAMES)
+    assert np.abs(streamed[:, :3, 3] - offline[:, :3, 3]).max() < 1e-6
+    assert {p["state"] for p in stats.poses} <= {"ok", "weak"}
+
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["frames_processed"] == FRAMES and status["map"]["frames_integrated"] > 10
+
+    r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert r.status_code == 200
+    (tmp_path / "map.ply").write_bytes(r.content)
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "map.ply"))
+    assert len(cloud.points) > 10_000 and cloud.has_colors()
+
+    r = httpx.get(f"{server.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60)
+    (tmp_path / "mesh.ply").write_bytes(r.content)
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "mesh.ply"))
+    assert len(mesh.triangles) > 1000
+
+    r = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
+    (tmp_path / "t.tum").write_bytes(r.content)
+    assert len(read_tum(tmp_path / "t.tum")) == FRAMES
+
+
+def test_requests_without_or_with_a_wrong_token_are_refused(live_server):
+    server = live_server()
+    sid, token = server.create_session()
+    other_sid, other_token = server.create_session()
+    base = f"{server.url}/api/sessions"
+    for path in ("", "/map.ply", "/mesh.ply", "/trajectory.tum"):
+        assert httpx.get(f"{base}/{sid}{path}").status_code == 401
+        assert httpx.get(f"{base}/{sid}{path}", headers=auth("wrong")).status_code == 404
+        # Another session's token opens nothing here...
+        assert httpx.get(f"{base}/{sid}{path}", headers=auth(other_token)).status_code == 404
+        # ...and an unknown id answers exactly like a wrong token.
+        assert httpx.get(f"{base}/0123456789abcdef{path}", headers=auth(token)).status_code == 404
+    assert httpx.delete(f"{base}/{sid}", headers=auth(other_token)).status_code == 404
+    assert httpx.get(f"{base}/{sid}", headers=auth(token)).status_code == 200
+
+    async def ws_with(tok):
+        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={tok}") as ws:
+            msg = proto.decode(await ws.recv())
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                await ws.recv()
+            return msg, closed.value.rcvd.code
+
+    msg, code = asyncio.run(ws_with("wrong"))
+    assert msg["name"] == "unauthorized" and code == proto.CLOSE_CODES["unauthorized"]
+
+
+def test_two_sessions_at_once_stay_isolated(live_server, shared_data):
+    server = live_server()
+    a, b = open_dataset(shared_data / "synthetic_room0"), open_dataset(shared_data / "7scenes_a")
+    (sa, ta), (sb, tb) = server.create_session(), server.create_session()
+
+    async def both():
+        return await asyncio.gather(
+            replay(f"{server.ws_url}/ws/sessions/{sa}", ta, a, fps=1000, max_frames=30, max_in_flight=1, drop_when_busy=False),
+            replay(f"{server.ws_url}/ws/sessions/{sb}", tb, b, fps=1000, max_frames=20, max_in_flight=1, drop_when_busy=False))
+
+    stats_a, stats_b = asyncio.run(both())
+    assert len(stats_a.poses) == 30 and len(stats_b.poses) == 20
+    np.testing.assert_allclose(np.array([proto.pose_matrix(p) for p in stats_a.poses])[:, :3, 3],
+                               offline_track(a, 30)[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(np.array([proto.pose_matrix(p) for p in stats_b.poses])[:, :3, 3],
+                               offline_track(b, 20)[:, :3, 3], atol=1e-6)
+    sa_status = httpx.get(f"{server.url}/api/sessions/{sa}", headers=auth(ta)).json()
+    sb_status = httpx.get(f"{server.url}/api/sessions/{sb}", headers=auth(tb)).json()
+    assert sa_status["frames_processed"] == 30 and sb_status["frames_processed"] == 20
+
+
+def test_a_restart_keeps_a_closed_sessions_map_downloadable(live_server, shared_data, tmp_path):
+    data_dir = tmp_path / "persist"
+    server = live_server(data_dir)
+    ds = open_dataset(shared_data / "synthetic_room0")
+    sid, token = server.create_session()
+    stream(server, sid, token, ds, n=20)
+    before = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token)).content
+    server.stop()  # shutdown saves every live session
+
+    again = live_server(data_dir)
+    r = httpx.get(f"{again.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert r.status_code == 200 and r.content.startswith(b"ply")
+    after = httpx.get(f"{again.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token)).content
+    assert after == before
+    status = httpx.get(f"{again.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["closed"] is True and status["frames_processed"] == 20
+    assert httpx.get(f"{again.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60).status_code == 200
+
+
+def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
+    """The client sends far faster than the server can track: the inbox keeps one frame, the
+    rest are dropped and counted, and server memory stays bounded."""
+    server = live_server()
+    ds = open_dataset(shared_data / "synthetic_room0")
+    sid, token = server.create_session()
+    frames = [proto.encode(proto.make_frame(i, ds[i % 10].timestamp + i, ds[i % 10].colour, ds[i % 10].depth))
+              for i in range(10)]
+
+    def rss_mb() -> float:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmRSS"):
+                return int(line.split()[1]) / 1024
+        return 0.0
+
+    async def flood():
+        K = ds.intrinsics
+        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None) as ws:
+            await ws.send(proto.encode(proto.make_hello("flood", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))))
+            assert proto.decode(await ws.recv())["type"] == "welcome"
+            rss_start = None
+            for i in range(300):
+                data = proto.decode(frames[i % 10])
+                data["seq"] = i
+                await ws.send(proto.encode(data))
+                if i == 50:
+                    rss_start = rss_mb()
+            await ws.send(proto.encode(proto.make_bye()))
+            poses = []
+            try:
+                async for raw in ws:
+                    msg = proto.decode(raw)
+                    if msg["type"] == "pose":
+                        poses.append(msg)
+            except websockets.ConnectionClosed:
+                pass
+            return poses, rss_start, rss_mb()
+
+    poses, rss_start, rss_end = asyncio.run(flood())
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["frames_received"] == 300
+    assert status["frames_dropped"] > 100
+    assert status["frames_processed"] + status["frames_dropped"] <= 300
+    assert poses and poses[-1]["dropped"] > 0
+    assert rss_end - rss_start < 300, f"server memory grew by {rss_end - rss_start:.0f} MB"

@@ -41,6 +41,7 @@ import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 from rich.console import Console  # noqa: E402
+from rich.markup import escape  # noqa: E402
 from rich.table import Table  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -293,7 +294,7 @@ def rich_table(title: str, rows) -> Table:
     table = Table(title=title)
     table.add_column("method", style="bold")
     for _, header, _ in COLUMNS:
-        table.add_column(header, justify="right")
+        table.add_column(escape(header), justify="right")
     for cells in rows:
         table.add_row(*(text if ok is None else f"{text} [{'green]✓' if ok else 'red]✗'}[/]"
                         for text, ok in cells))

@@ -1,0 +1,14 @@
+FROM python:3.11-slim
+# open3d needs libusb and OpenGL/OpenMP runtime libraries to import.
+RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY server ./server
+COPY shared ./shared
+COPY client_web ./client_web
+RUN pip install --no-cache-dir .
+ENV DRONESIM_HOST=0.0.0.0 DRONESIM_PORT=8000 DRONESIM_DATA_DIR=/data
+VOLUME /data
+EXPOSE 8000
+CMD ["python", "-m", "server", "serve"]

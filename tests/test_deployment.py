@@ -1,0 +1,41 @@
+"""Docker does not run here: check that the deployment files say what the README says."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from server.settings import Settings
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_compose_names_the_service_port_volume_and_health_check():
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    server = compose["services"]["server"]
+    assert server["build"] == "."
+    assert "8000:8000" in server["ports"]
+    volume, mount = server["volumes"][0].split(":")
+    assert mount == server["environment"]["DRONESIM_DATA_DIR"] == "/data"
+    assert volume in compose["volumes"]
+    health = " ".join(server["healthcheck"]["test"])
+    assert "/healthz" in health and "8000" in health
+    # Every DRONESIM_ variable the file sets is a real setting.
+    fields = {f"DRONESIM_{name.upper()}" for name in Settings.model_fields}
+    assert set(server["environment"]) <= fields
+
+
+def test_dockerfile_installs_the_package_and_serves_on_the_data_volume():
+    text = (REPO / "Dockerfile").read_text()
+    assert "libusb-1.0-0" in text  # open3d does not import without it
+    assert "pip install" in text and "DRONESIM_DATA_DIR=/data" in text
+    assert 'CMD ["python", "-m", "server", "serve"]' in text
+
+
+def test_health_endpoint_answers(live_server):
+    import httpx
+
+    server = live_server()
+    body = httpx.get(f"{server.url}/healthz").json()
+    assert body["status"] == "ok" and body["live_sessions"] == 0

@@ -24,7 +24,7 @@ ROOM_SCALE = 5000.0  # TUM depth units per metre
 
 @pytest.fixture(scope="module")
 def room_frame() -> tuple[np.ndarray, np.ndarray]:
-    """(colour RGB uint8 480x640x3, depth float32 metres 480x640) of a real synthetic_room0 frame."""
+    """Colour RGB uint8 (480, 640, 3) and depth float32 metres (480, 640) of one room frame."""
     if not ROOM.is_dir():
         pytest.skip(f"shared data folder {ROOM} is absent")
     _, rgb_name, _, depth_name = (ROOM / "associations.txt").read_text().splitlines()[10].split()

@@ -1,0 +1,135 @@
+"""Server latency benchmark: one session replaying a sequence over loopback at 30 and 15 fps.
+
+Starts ``python -m server serve`` in its own process (so the client does not share its GIL),
+streams the sequence like a camera (at most two frames in flight; frames captured while busy are
+dropped on the client), and prints frame-to-pose latency percentiles, frames processed/dropped
+and the server's per-stage times, next to the target (p95 <= 50 ms at 15 fps, 640x480, fusion on).
+
+    python benchmarks/server_latency.py [SEQUENCE] [--frames N] [--fps 30 15]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from server.client.replay import latency_summary, replay
+from server.datasets import open_dataset
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET_P95_MS_AT_15 = 50.0
+console = Console()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(data_dir: Path) -> tuple[subprocess.Popen, int]:
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "server", "serve", "--port", str(port),
+                             "--data-dir", str(data_dir), "--no-demo"], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                return proc, port
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    proc.kill()
+    raise RuntimeError("server did not start")
+
+
+def run_once(port: int, dataset, fps: float, frames: int) -> dict:
+    body = httpx.post(f"http://127.0.0.1:{port}/api/sessions").json()
+    stats = asyncio.run(replay(f"ws://127.0.0.1:{port}/ws/sessions/{body['id']}", body["token"],
+                               dataset, fps=fps, max_frames=frames, client_name="bench"))
+    summary = latency_summary(stats)
+    stages: dict[str, list[float]] = {}
+    for pose in stats.poses:
+        for name, ms in pose["timings_ms"].items():
+            stages.setdefault(name, []).append(ms)
+    summary["stages_median_ms"] = {k: float(np.median(v)) for k, v in sorted(stages.items())}
+    summary["fps"] = fps
+    summary["duration_s"] = frames / fps
+    summary["processed_fps"] = summary["poses"] / summary["duration_s"]
+    return summary
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "synthetic_room0"))
+    parser.add_argument("--frames", type=int, default=None, help="frames per run (default: all)")
+    parser.add_argument("--fps", type=float, nargs="+", default=[30.0, 15.0])
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    args = parser.parse_args()
+
+    dataset = open_dataset(args.sequence)
+    frames = len(dataset) if args.frames is None else min(args.frames, len(dataset))
+    # Decode the frames once, untimed, so the client's disk reads do not pace the run.
+    cached = [dataset[i] for i in range(frames)]
+
+    class Cached:
+        intrinsics, name = dataset.intrinsics, dataset.name
+
+        def __len__(self):
+            return len(cached)
+
+        def __getitem__(self, i):
+            return cached[i]
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        proc, port = start_server(Path(tmp))
+        try:
+            for fps in args.fps:
+                console.print(f"replaying {frames} frames of {dataset.name} at {fps:g} fps ...")
+                rows.append(run_once(port, Cached(), fps, frames))
+        finally:
+            proc.terminate()
+            proc.wait(timeout=60)
+
+    table = Table(title=f"server latency, one session, {dataset.name} "
+                        f"{dataset.intrinsics.width}x{dataset.intrinsics.height}, fusion on")
+    for col in ("fps", "sent", "poses", "client drop", "server drop", "errors", "p50 ms", "p95 ms",
+                "p99 ms", "target p95", "stages (median ms)"):
+        table.add_column(col, justify="right")
+    for r in rows:
+        target = f"<= {TARGET_P95_MS_AT_15:.0f} " + ("PASS" if r["p95_ms"] <= TARGET_P95_MS_AT_15 else "FAIL") \
+            if r["fps"] == 15 else "-"
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items()
+                           if not k.startswith("track_"))
+        table.add_row(f"{r['fps']:g}", str(r["sent"]), str(r["poses"]), str(r["client_dropped"]),
+                      str(r["server_dropped"]), str(r["errors"]), f"{r['p50_ms']:.1f}",
+                      f"{r['p95_ms']:.1f}", f"{r['p99_ms']:.1f}", target, stages)
+    console.print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    header = (f"\n## {dataset.name}, {datetime.datetime.now():%Y-%m-%d %H:%M}\n\n"
+              f"machine: {platform.platform()}, {os.cpu_count()} cores; command: "
+              f"`python {' '.join(sys.argv)}`\n\n")
+    with open(args.out / "server_latency.md", "a") as f:
+        f.write(header)
+        Console(file=f, width=200, force_terminal=False).print(table)
+    (args.out / "server_latency.json").write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()

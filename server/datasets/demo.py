@@ -170,16 +170,21 @@ def camera_poses(spec: DemoSpec) -> np.ndarray:
 
 
 def _hash(ix: np.ndarray, iy: np.ndarray, gid: np.ndarray, salt: int) -> np.ndarray:
-    """Deterministic pseudo-random float32 in [0, 1) per uint32 lattice point and geometry id;
-    uint32 products wrap around, as the hash wants."""
+    """Deterministic pseudo-random uint32 per uint32 lattice point and geometry id (products
+    wrap around, as the hash wants)."""
     h = (ix * 0x8DA6B343) ^ (iy * 0xD8163841) ^ (gid * 0xCB1AB31F + np.uint32(salt))
     h = (h ^ (h >> 15)) * 0x2C1B3C6D
     h = (h ^ (h >> 12)) * 0x297A2D39
-    return ((h ^ (h >> 15)) >> 8).astype(np.float32) * np.float32(2.0**-24)
+    return h ^ (h >> 15)
+
+
+def _unit(h: np.ndarray) -> np.ndarray:
+    """The top 24 bits of a hash as float32 in [0, 1)."""
+    return (h >> 8).astype(np.float32) * np.float32(2.0**-24)
 
 
 def _cells(u: np.ndarray, v: np.ndarray, size, gid: np.ndarray, salt: int) -> np.ndarray:
-    """Random value per square cell of ``size`` metres: sharp-edged mosaics full of corners."""
+    """Random uint32 per square cell of ``size`` metres: sharp-edged mosaics full of corners."""
     return _hash((u / size).astype(np.uint32), (v / size).astype(np.uint32), gid, salt)
 
 
@@ -188,8 +193,8 @@ def _value_noise(u: np.ndarray, v: np.ndarray, size: float, gid: np.ndarray, sal
     x, y = u / size, v / size
     ix, iy = x.astype(np.uint32), y.astype(np.uint32)  # u, v > 0, so this is floor
     fx, fy = x - ix, y - iy
-    a, b = _hash(ix, iy, gid, salt), _hash(ix + 1, iy, gid, salt)
-    c, d = _hash(ix, iy + 1, gid, salt), _hash(ix + 1, iy + 1, gid, salt)
+    a, b = _unit(_hash(ix, iy, gid, salt)), _unit(_hash(ix + 1, iy, gid, salt))
+    c, d = _unit(_hash(ix, iy + 1, gid, salt)), _unit(_hash(ix + 1, iy + 1, gid, salt))
     fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
     return a + (b - a) * fx + (c - a) * fy + (a - b - c + d) * fx * fy
 
@@ -206,9 +211,10 @@ def surface_colour(p: np.ndarray, n: np.ndarray, gid: np.ndarray, materials: dic
     base = np.take(materials["colour"], gid, axis=0)
     salt = seed * 7919
     # large cells of random colour, a fine mosaic of random brightness, and smooth stains
-    random_rgb = np.stack([_cells(u, v, 5 * cell, face, salt + k) for k in range(3)], 1)
+    big = _cells(u, v, 5 * cell, face, salt)[:, None] >> np.array([0, 8, 16], np.uint32)
+    random_rgb = (big & 255).astype(np.float32) * np.float32(1 / 255)
     albedo = (1 - mix) * base + mix * random_rgb
-    albedo *= (0.65 + 0.6 * _cells(u + 0.37 * cell, v, cell, face, salt + 3))[:, None]
+    albedo *= (0.65 + 0.6 * _unit(_cells(u + 0.37 * cell, v, cell, face, salt + 3)))[:, None]
     albedo *= (0.75 + 0.4 * _value_noise(u, v, 0.2, face, salt + 4))[:, None]
     tile_u, tile_v = u - np.floor(u * 2) / 2, v - np.floor(v * 2) / 2  # position in 0.5 m tiles
     grout = (np.minimum(tile_u, tile_v) < 0.012) & (axis == 2) & (p[:, 2] < 0.01)

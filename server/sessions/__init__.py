@@ -4,6 +4,6 @@ No web code here: the transport hands decoded frames in and gets pose updates ba
 """
 
 from server.sessions.manager import SessionManager
-from server.sessions.session import FrameData, PoseUpdate, Session, SessionError
+from server.sessions.session import FrameData, MapUpdate, PoseUpdate, Session, SessionError
 
-__all__ = ["FrameData", "PoseUpdate", "Session", "SessionError", "SessionManager"]
+__all__ = ["FrameData", "MapUpdate", "PoseUpdate", "Session", "SessionError", "SessionManager"]

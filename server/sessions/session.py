@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from server.datasets.base import Trajectory
 from server.errors import DroneSimError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
+from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
@@ -47,8 +49,7 @@ class SessionConfig:
 
     fuse_every: int = 3  # integrate every n-th tracked frame, and every keyframe
     voxel_m: float = 0.02
-    preview_points: int = 4000  # per map preview chunk
-    preview_every: int = 3  # a preview chunk after every n-th fusion
+    preview_points: int = 4000  # most new points sent per fused frame
     snapshot_interval_s: float = 10.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
@@ -79,13 +80,34 @@ class PoseUpdate:
     timings_ms: dict[str, float]
     dropped: int  # frames dropped so far in this session
     processed: int
-    map_points: np.ndarray | None = None  # (N, 3) float32 world metres: new map preview
-    map_colours: np.ndarray | None = None  # (N, 3) uint8 RGB
+
+
+@dataclass
+class MapUpdate:
+    """New map preview points, sent as they are fused (after the frame's pose)."""
+
+    seq: int
+    points: np.ndarray  # (N, 3) float32 world metres
+    colours: np.ndarray  # (N, 3) uint8 RGB
+    total_points: int
+
+
+@dataclass
+class _FuseJob:
+    seq: int
+    colour: np.ndarray
+    depth: np.ndarray
+    T_world_camera: np.ndarray
+    keyframe: bool
 
 
 class Session:
-    """A live session. ``start`` launches its worker; ``submit`` hands in frames; every processed
-    frame calls ``on_update(PoseUpdate)`` from the worker thread."""
+    """A live session. ``start`` launches its two workers; ``submit`` hands in frames.
+
+    The tracking worker registers the newest frame and reports its pose at once; the mapping
+    worker fuses frames into the TSDF behind it, so fusion never delays a pose. Keyframes are
+    always fused; other frames are skipped when the mapper is behind. ``on_update`` receives
+    PoseUpdate and MapUpdate objects, from the worker threads."""
 
     def __init__(self, session_id: str, token_hash: str, store: SessionStore,
                  config: SessionConfig | None = None, created_at: float | None = None,
@@ -101,7 +123,11 @@ class Session:
         self.intrinsics: Intrinsics | None = None
         self.tracker: Tracker | None = None
         self.map = tsdf or TSDFMap(TSDFConfig(voxel_m=self.config.voxel_m))
-        self.on_update: Callable[[PoseUpdate], None] | None = None
+        self.preview = MapPreview()
+        self.on_update: Callable[[PoseUpdate | MapUpdate], None] | None = None
+        self._fuse_jobs: queue.Queue[_FuseJob | None] = queue.Queue(maxsize=4)
+        self._mapper: threading.Thread | None = None
+        self.fusion_skipped = 0
         self.last_seen = time.monotonic()
         self._trajectory: list[tuple[float, np.ndarray]] = list(trajectory or [])
         self._states = {s.value: 0 for s in TrackingState}
@@ -140,8 +166,10 @@ class Session:
     def start(self, on_update: Callable[[PoseUpdate], None] | None = None) -> None:
         self.on_update = on_update
         if self._worker is None:
-            self._worker = threading.Thread(target=self._run, name=f"session-{self.id}", daemon=True)
+            self._worker = threading.Thread(target=self._run, name=f"track-{self.id}", daemon=True)
+            self._mapper = threading.Thread(target=self._map, name=f"map-{self.id}", daemon=True)
             self._worker.start()
+            self._mapper.start()
 
     def submit(self, frame: FrameData) -> None:
         """Queue a frame; a frame still waiting is dropped in its favour."""
@@ -194,18 +222,10 @@ class Session:
         result = self.tracker.track(frame.colour, depth)
         timings = {"decode": frame.decode_ms, **{f"track_{k}": v for k, v in result.timings_ms.items()}}
         timings["track"] = (time.perf_counter() - t0) * 1e3
-        points = colours = None
-        tracked = result.state is not TrackingState.LOST
-        if tracked and (result.new_keyframe or self.processed % self.config.fuse_every == 0):
-            t = time.perf_counter()
-            self.map.integrate(frame.colour, depth, K, result.T_world_camera)
-            self._fusions += 1
-            timings["fuse"] = (time.perf_counter() - t) * 1e3
-            if self._fusions % self.config.preview_every == 1 or self.config.preview_every == 1:
-                t = time.perf_counter()
-                p, c = self.map.take_preview(self.config.preview_points)
-                points, colours = p.astype(np.float32), (c * 255).round().astype(np.uint8)
-                timings["preview"] = (time.perf_counter() - t) * 1e3
+        if result.state is not TrackingState.LOST and (
+                result.new_keyframe or self.processed % self.config.fuse_every == 0):
+            self._queue_fusion(_FuseJob(frame.seq, frame.colour, depth, result.T_world_camera,
+                                        result.new_keyframe))
         with self._lock:
             self._trajectory.append((frame.timestamp, result.T_world_camera))
             self.processed += 1
@@ -214,8 +234,38 @@ class Session:
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
         return PoseUpdate(frame.seq, frame.timestamp, result.T_world_camera, result.state.value,
-                          result.inliers, result.new_keyframe, timings, dropped, processed,
-                          points, colours)
+                          result.inliers, result.new_keyframe, timings, dropped, processed)
+
+    # ------------------------------------------------------------------ mapping worker
+    def _queue_fusion(self, job: _FuseJob) -> None:
+        """Keyframes wait for room (no keyframe is lost from the map); other frames are
+        skipped when the mapper is behind."""
+        try:
+            if job.keyframe:
+                self._fuse_jobs.put(job, timeout=10.0)
+            else:
+                self._fuse_jobs.put_nowait(job)
+        except queue.Full:
+            with self._lock:
+                self.fusion_skipped += 1
+
+    def _map(self) -> None:
+        K = self.intrinsics
+        while True:
+            job = self._fuse_jobs.get()
+            if job is None:
+                return
+            try:
+                self.map.integrate(job.colour, job.depth, K, job.T_world_camera)
+                points, colours = self.preview.new_points(job.colour, job.depth, K, job.T_world_camera,
+                                                          self.config.preview_points)
+            except Exception:
+                log.exception("session %s: fusing frame %d failed", self.id, job.seq)
+                continue
+            with self._lock:
+                self._dirty = True
+            if len(points) and self.on_update is not None:
+                self.on_update(MapUpdate(job.seq, points, colours, self.preview.total))
 
     # ------------------------------------------------------------------ results
     def trajectory(self) -> Trajectory:
@@ -234,6 +284,7 @@ class Session:
                 "frames_received": self.received,
                 "frames_processed": self.processed,
                 "frames_dropped": self.dropped,
+                "fusion_skipped": self.fusion_skipped,
                 "tracking_states": dict(self._states),
                 "trajectory_poses": len(self._trajectory),
                 "map": self.map.stats(),
@@ -273,6 +324,8 @@ class Session:
             self._wake.notify()
         if self._worker is not None:
             self._worker.join(timeout=30)
+            self._fuse_jobs.put(None)  # after every queued fusion
+            self._mapper.join(timeout=60)
         self.closed = True
         if save:
             self.snapshot()

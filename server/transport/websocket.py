@@ -14,7 +14,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from server.errors import ConfigError
 from server.geometry import Intrinsics
-from server.sessions import FrameData, PoseUpdate, Session, SessionError
+from server.sessions import FrameData, MapUpdate, PoseUpdate, Session, SessionError
 from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
@@ -87,13 +87,15 @@ async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int)
             if isinstance(item, dict):
                 await _send(ws, item)
                 continue
+            if isinstance(item, MapUpdate):
+                for i in range(0, len(item.points), chunk_points):
+                    await _send(ws, proto.make_map_chunk(item.points[i:i + chunk_points],
+                                                         item.colours[i:i + chunk_points], chunk,
+                                                         total_points=item.total_points))
+                    chunk += 1
+                continue
             await _send(ws, proto.make_pose(item.seq, item.timestamp, item.T_world_camera, item.state,
                                             item.inliers, item.timings_ms, item.dropped, item.keyframe))
-            if item.map_points is not None and len(item.map_points):
-                for i in range(0, len(item.map_points), chunk_points):
-                    await _send(ws, proto.make_map_chunk(item.map_points[i:i + chunk_points],
-                                                         item.map_colours[i:i + chunk_points], chunk))
-                    chunk += 1
     except (WebSocketDisconnect, RuntimeError, asyncio.CancelledError):
         return
 

@@ -59,6 +59,9 @@ class SolverConfig:
     dense_iterations: int = 6
     dense_max_distance_m: float = 0.05
     dense_weight: float = 0.05  # weight of one dense residual relative to one sparse one
+    # Photometric term: intensity of current pixels against the keyframe image (0 = off).
+    photometric_weight: float = 0.0
+    photometric_sigma: float = 4.0  # intensity noise, grey levels 0-255
 
 
 @dataclass(frozen=True)

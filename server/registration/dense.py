@@ -1,4 +1,5 @@
-"""Dense refinement: projective point-to-plane ICP against the keyframe's depth (section III-B).
+"""Dense refinement: projective point-to-plane ICP against the keyframe's depth (section III-B),
+with an optional photometric term (intensity of the current pixels against the keyframe image).
 
 Correspondences come from projecting current points into the keyframe image, not from a nearest
 neighbour search; the sparse term rides along, so that geometry which constrains only some
@@ -25,9 +26,12 @@ class DenseModel:
     vertices: np.ndarray  # (h, w, 3) metres, NaN where unknown
     normals: np.ndarray  # (h, w, 3) unit, NaN where unknown
     intrinsics: Intrinsics  # of the half-resolution maps
+    intensity: np.ndarray | None = None  # (h, w) float32 grey, 0-255, slightly blurred
+    gradient: np.ndarray | None = None  # (h, w, 2) d intensity / d (u, v), per half-res pixel
 
 
-def build_dense_model(depth: np.ndarray, K: Intrinsics, normal_step_px: int = 2) -> DenseModel:
+def build_dense_model(depth: np.ndarray, K: Intrinsics, grey: np.ndarray | None = None,
+                      normal_step_px: int = 2) -> DenseModel:
     """Vertex and normal maps from a depth image (metres) at half resolution.
 
     Raw depth noise biases point-to-plane ICP, so the depth is first averaged over 2x2 blocks
@@ -60,13 +64,62 @@ def build_dense_model(depth: np.ndarray, K: Intrinsics, normal_step_px: int = 2)
     flip = np.sum(n * V[s:-s, s:-s], axis=-1) > 0
     n[flip] *= -1
     N[s:-s, s:-s] = n
-    return DenseModel(V.astype(np.float64), N.astype(np.float64), Kh)
+    intensity = gradient = None
+    if grey is not None:
+        intensity = cv2.GaussianBlur(cv2.pyrDown(grey).astype(np.float32), (3, 3), 0)
+        gradient = np.stack([cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
+                             cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3) / 8.0], axis=-1)
+    return DenseModel(V.astype(np.float64), N.astype(np.float64), Kh, intensity, gradient)
 
 
-def sample_dense_points(depth: np.ndarray, K: Intrinsics, stride: int) -> np.ndarray:
-    """Every ``stride``-th valid pixel of the current depth, back-projected: (N, 3) metres."""
-    points, _ = backproject(depth, K, stride)
-    return points
+def sample_dense_points(depth: np.ndarray, K: Intrinsics, stride: int,
+                        grey: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every ``stride``-th valid pixel of the current depth, back-projected: (N, 3) metres, and
+    the (slightly blurred, like the keyframe's) intensity there (N,), when ``grey`` is given."""
+    points, uv = backproject(depth, K, stride)
+    if grey is None:
+        return points, None
+    blurred = cv2.GaussianBlur(grey, (5, 5), 0)
+    return points, blurred[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(np.float64)
+
+
+def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Image (h, w[, c]) sampled at float pixels; callers keep (u, v) inside [0, w-1) x [0, h-1)."""
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    a, b = u - u0, v - v0
+    if image.ndim == 3:
+        a, b = a[:, None], b[:, None]
+    return ((1 - a) * (1 - b) * image[v0, u0] + a * (1 - b) * image[v0, u0 + 1]
+            + (1 - a) * b * image[v0 + 1, u0] + a * b * image[v0 + 1, u0 + 1])
+
+
+def photometric_equations(
+    model: DenseModel, Q: np.ndarray, intensity: np.ndarray, T: np.ndarray, weight: float,
+    sigma: float, huber_k: float,
+) -> NormalEquations:
+    """Normal equations of e = I_keyframe(pi(T q)) - I_current(q) for current points Q (N, 3)
+    with intensities (N,), moved by T_keyframe_current into the keyframe image."""
+    y = Q @ T[:3, :3].T + T[:3, 3]
+    K = model.intrinsics
+    h, w = model.intensity.shape
+    z = y[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = y[:, 0] * K.fx / z + K.cx
+        v = y[:, 1] * K.fy / z + K.cy
+    inside = (z > 0) & (u >= 1) & (u < w - 2) & (v >= 1) & (v < h - 2)
+    y, u, v, ref = y[inside], u[inside], v[inside], intensity[inside]
+    if len(y) == 0:
+        return NormalEquations(np.zeros((6, 6)), np.zeros(6))
+    e = _bilinear(model.intensity, u, v) - ref
+    g = _bilinear(model.gradient, u, v)
+    inv_z = 1.0 / y[:, 2]
+    # d e / d y = g^T d pi / d y; then d y / d xi = [ -[y]_x , I ].
+    de_dy = np.stack([g[:, 0] * K.fx * inv_z, g[:, 1] * K.fy * inv_z,
+                      -(g[:, 0] * K.fx * y[:, 0] + g[:, 1] * K.fy * y[:, 1]) * inv_z**2], axis=1)
+    J = np.concatenate([np.cross(y, de_dy), de_dy], axis=1)
+    m = np.abs(e) / sigma
+    wts = weight * np.where(m <= huber_k, 1.0, huber_k / np.maximum(m, 1e-12)) / sigma**2
+    return NormalEquations((J * wts[:, None]).T @ J, (J * wts[:, None]).T @ e)
 
 
 def dense_equations(
@@ -108,12 +161,15 @@ def refine_dense(
     sparse_terms,
     cfg: SolverConfig,
     depth_cfg: DepthConfig,
+    intensity: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
-    """Refine T_keyframe_current with point-to-plane terms plus the sparse term.
+    """Refine T_keyframe_current with point-to-plane terms, the photometric term (when the model
+    and ``intensity`` (N,) of the points Q have it) and the sparse term.
 
     ``sparse_terms(T) -> NormalEquations`` evaluates the sparse cost at a pose.
     Returns the refined pose and the number of dense matches in the last iteration.
     """
+    photometric = cfg.photometric_weight > 0 and intensity is not None and model.intensity is not None
     T = T_init.copy()
     matches = 0
     for _ in range(cfg.dense_iterations):
@@ -121,6 +177,9 @@ def refine_dense(
             model, Q, T, cfg.dense_max_distance_m, cfg.dense_weight, depth_cfg, cfg.huber_k
         )
         eq = dense_eq + sparse_terms(T)
+        if photometric:
+            eq = eq + photometric_equations(model, Q, intensity, T, cfg.photometric_weight,
+                                            cfg.photometric_sigma, cfg.huber_k)
         xi = np.linalg.lstsq(eq.H, -eq.g, rcond=None)[0]
         T = orthonormalize(exp_se3(xi) @ T)
         if np.linalg.norm(xi) < 1e-6:

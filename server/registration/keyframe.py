@@ -46,7 +46,7 @@ def make_keyframe(
     z = sample_stable_depth(depth, uv, cfg.depth)
     uv = uv[z > 0]
     points = backproject_pixels(uv.astype(np.float64), z[z > 0], K)
-    dense = build_dense_model(depth, K) if cfg.solver.dense else None
+    dense = build_dense_model(depth, K, grey) if cfg.solver.dense else None
     return Keyframe(
         id=kf_id,
         frame_index=frame_index,

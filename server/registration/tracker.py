@@ -152,7 +152,7 @@ class Tracker:
         T_kf_cur = solution.T
         if self.cfg.solver.dense and kf.dense is not None:
             t = time.perf_counter()
-            T_kf_cur = self._refine(found, depth)
+            T_kf_cur = self._refine(found, depth, grey)
             timings["dense"] = _ms(t)
 
         # 5. Accept the pose, keep the surviving tracks, and decide on a new keyframe.
@@ -229,7 +229,7 @@ class Tracker:
                 return found
         return None
 
-    def _refine(self, reg: _Registration, depth: np.ndarray) -> np.ndarray:
+    def _refine(self, reg: _Registration, depth: np.ndarray, grey: np.ndarray) -> np.ndarray:
         """Dense refinement of T_keyframe_current, with the sparse inliers kept in the cost."""
         kf, solution = reg.kf, reg.solution
         inl = solution.inliers
@@ -243,8 +243,11 @@ class Tracker:
             eq, _ = sparse_equations(P_in, Q_in, W, T, robust_weights(m, self.cfg.solver, True))
             return eq
 
-        dense_points = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride)
-        T, _ = refine_dense(solution.T, kf.dense, dense_points, sparse_terms, self.cfg.solver, self.cfg.depth)
+        photometric = self.cfg.solver.photometric_weight > 0
+        points, intensity = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride,
+                                                grey if photometric else None)
+        T, _ = refine_dense(solution.T, kf.dense, points, sparse_terms, self.cfg.solver, self.cfg.depth,
+                            intensity)
         return T
 
     def _judge(self, solution: SparseSolution) -> TrackingState:

@@ -101,7 +101,10 @@ def _room_boxes(rng: np.random.Generator) -> list[tuple[tuple, tuple, str]]:
         ((1.8, 1.2, 0.0), (2.1, 1.5, Z), "wall"),
     ]
     x0, x1, y0, y1 = -2.4, -1.0, -Y, -Y + 0.35  # shelf against the -y wall, with books
-    boxes += [((x0, y0, 0.0), (x0 + 0.03, y1, 2.0), "wood"), ((x1 - 0.03, y0, 0.0), (x1, y1, 2.0), "wood")]
+    boxes += [
+        ((x0, y0, 0.0), (x0 + 0.03, y1, 2.0), "wood"),
+        ((x1 - 0.03, y0, 0.0), (x1, y1, 2.0), "wood"),
+    ]
     for z in (0.05, 0.5, 1.0, 1.5, 1.97):
         boxes.append(((x0 + 0.03, y0, z), (x1 - 0.03, y1, z + 0.03), "wood"))
         for k in range(3 if z < 1.9 else 0):
@@ -192,7 +195,7 @@ def _value_noise(u: np.ndarray, v: np.ndarray, size: float, gid: np.ndarray, sal
     """Smooth value noise in [0, 1] with features of about ``size`` metres."""
     x, y = u / size, v / size
     ix, iy = x.astype(np.uint32), y.astype(np.uint32)  # u, v > 0, so this is floor
-    fx, fy = x - ix, y - iy
+    fx, fy = x - np.floor(x), y - np.floor(y)
     a, b = _unit(_hash(ix, iy, gid, salt)), _unit(_hash(ix + 1, iy, gid, salt))
     c, d = _unit(_hash(ix, iy + 1, gid, salt)), _unit(_hash(ix + 1, iy + 1, gid, salt))
     fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
@@ -220,29 +223,31 @@ def surface_colour(p: np.ndarray, n: np.ndarray, gid: np.ndarray, materials: dic
     grout = (np.minimum(tile_u, tile_v) < 0.012) & (axis == 2) & (p[:, 2] < 0.01)
     albedo[grout] = 0.15  # dark lines between the floor tiles
     to_light = LIGHT - p
-    dist = np.linalg.norm(to_light, axis=1)
+    dist = np.sqrt(np.einsum("ij,ij->i", to_light, to_light))
     lambert = np.clip(np.einsum("ij,ij->i", n, to_light) / dist, 0.0, 1.0)
     shade = 0.35 + 0.8 * lambert / (1.0 + 0.04 * dist**2)
     return np.clip(albedo * shade[:, None], 0.0, 1.0)
 
 
 @functools.lru_cache(maxsize=4)
-def _camera_rays(spec: DemoSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel centre: ray direction (H * W, 3) in the camera frame with unit z, and 1 / its
-    length (H * W,)."""
+def _camera_rays(spec: DemoSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel centre (H * W,): the camera-frame ray (x, y, 1) as x and y, and 1 / its length."""
     v, u = np.mgrid[0 : spec.height, 0 : spec.width].astype(np.float32)
-    rays = np.stack([(u - spec.cx) / spec.fx, (v - spec.cy) / spec.fy, np.ones_like(u)], -1)
-    rays = rays.reshape(-1, 3)
-    return rays, 1.0 / np.linalg.norm(rays, axis=1)
+    x, y = ((u - spec.cx) / spec.fx).ravel(), ((v - spec.cy) / spec.fy).ravel()
+    return x, y, 1.0 / np.sqrt(x * x + y * y + 1.0)
 
 
 def render_frame(scene, materials: dict, T_world_camera: np.ndarray, spec: DemoSpec, index: int):
     """Ray cast one frame: (colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres along the
     optical axis, 0 = no measurement). Noise, when on, uses a generator seeded by (seed, index)."""
-    rays_cam, inv_length = _camera_rays(spec)
-    dirs = rays_cam @ T_world_camera[:3, :3].T.astype(np.float32)
-    origin = T_world_camera[:3, 3].astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(np.hstack([np.broadcast_to(origin, dirs.shape), dirs])))
+    x, y, inv_length = _camera_rays(spec)
+    R, origin = T_world_camera[:3, :3].astype(np.float32), T_world_camera[:3, 3].astype(np.float32)
+    rays = np.empty((x.size, 6), np.float32)  # origin, direction; columnwise: faster than matmul
+    rays[:, :3] = origin
+    for i in range(3):
+        rays[:, 3 + i] = R[i, 0] * x + R[i, 1] * y + R[i, 2]
+    dirs = rays[:, 3:]
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
     z = hit["t_hit"].numpy()  # directions have unit z in the camera frame, so t_hit is depth
     miss = ~np.isfinite(z)  # none in a closed room, but be safe
     z[miss] = 0.0
@@ -264,11 +269,46 @@ def render_frame(scene, materials: dict, T_world_camera: np.ndarray, spec: DemoS
     return colour, z.reshape(spec.height, spec.width)
 
 
-def _write_text(path: Path, header: str, lines: list[str]) -> None:
-    path.write_text(header + "".join(line + "\n" for line in lines))
+HEADERS = {  # the comment lines that start the TUM text files
+    "rgb.txt": "# color images\n# timestamp filename\n",
+    "depth.txt": "# depth maps (uint16 PNG, depth_scale 5000 as in TUM)\n# timestamp filename\n",
+    "associations.txt": "",
+    "groundtruth.txt": "# exact ground truth trajectory, T_world_camera (camera: x right, y down, "
+    "z forward)\n# timestamp tx ty tz qx qy qz qw\n",
+}
+README = """Synthetic demo RGB-D sequence made by server.datasets.demo, generator version {version}:
+a procedurally textured room ray cast with Open3D along a hand-held-like 6-DoF path, with exact
+ground truth. Spec: {spec}
+
+Layout (TUM RGB-D): rgb/*.jpg (JPEG quality 95), depth/*.png (uint16, depth_scale 5000,
+0 = no measurement), rgb.txt depth.txt associations.txt groundtruth.txt ('timestamp tx ty tz
+qx qy qz qw', T_world_camera), intrinsics.json (fx fy cx cy width height depth_scale).
+"""
 
 
-def generate_demo_sequence(out_dir: Path, spec: DemoSpec = DemoSpec(), progress: bool = True) -> Path:
+def _write_index(folder: Path, spec: DemoSpec, stamps: list[str], poses: np.ndarray) -> None:
+    """The text files of the TUM layout, intrinsics.json and README.txt."""
+    rgb = [f"{s} rgb/{s}.jpg" for s in stamps]
+    depth = [f"{s} depth/{s}.png" for s in stamps]
+    gt = [
+        f"{s} {' '.join(f'{x:.6f}' for x in T[:3, 3])} "
+        + " ".join(f"{x:.9f}" for x in quaternion_from_pose(T))
+        for s, T in zip(stamps, poses, strict=True)
+    ]
+    lines = {"rgb.txt": rgb, "depth.txt": depth, "groundtruth.txt": gt}
+    lines["associations.txt"] = [f"{a} {b}" for a, b in zip(rgb, depth, strict=True)]
+    for name, header in HEADERS.items():
+        (folder / name).write_text(header + "".join(f"{line}\n" for line in lines[name]))
+    intrinsics = {k: getattr(spec, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+    intrinsics["depth_scale"] = DEPTH_SCALE
+    (folder / "intrinsics.json").write_text(json.dumps(intrinsics, indent=1))
+    readme = README.format(version=GENERATOR_VERSION, spec=json.dumps(asdict(spec)))
+    (folder / "README.txt").write_text(readme)
+
+
+def generate_demo_sequence(
+    out_dir: Path, spec: DemoSpec = DemoSpec(), progress: bool = True
+) -> Path:
     """Render ``spec`` into ``out_dir`` (replaced if present) in the TUM RGB-D layout, with a
     ``.complete`` marker. Writes into a temporary sibling folder first and renames it at the end,
     so a half-written folder is never taken for a finished one. Returns ``out_dir``."""
@@ -287,38 +327,18 @@ def generate_demo_sequence(out_dir: Path, spec: DemoSpec = DemoSpec(), progress:
         cv2.imwrite(str(tmp / f"rgb/{stamps[i]}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         depth_units = np.clip(np.rint(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
         cv2.imwrite(str(tmp / f"depth/{stamps[i]}.png"), depth_units)
-    rgb = [f"{s} rgb/{s}.jpg" for s in stamps]
-    depth = [f"{s} depth/{s}.png" for s in stamps]
-    _write_text(tmp / "rgb.txt", "# color images\n# timestamp filename\n", rgb)
-    _write_text(tmp / "depth.txt", "# depth maps (uint16 PNG, depth_scale 5000 as in TUM)\n"
-                "# timestamp filename\n", depth)
-    _write_text(tmp / "associations.txt", "", [f"{a} {b}" for a, b in zip(rgb, depth)])
-    gt = []
-    for s, T in zip(stamps, poses):
-        q = quaternion_from_pose(T)
-        gt.append(f"{s} {' '.join(f'{x:.6f}' for x in T[:3, 3])} {' '.join(f'{x:.9f}' for x in q)}")
-    _write_text(tmp / "groundtruth.txt", "# exact ground truth trajectory, T_world_camera "
-                "(camera: x right, y down, z forward)\n# timestamp tx ty tz qx qy qz qw\n", gt)
-    intrinsics = {k: getattr(spec, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
-    (tmp / "intrinsics.json").write_text(json.dumps({**intrinsics, "depth_scale": DEPTH_SCALE}, indent=1))
-    (tmp / "README.txt").write_text(
-        f"Synthetic demo RGB-D sequence generated by server.datasets.demo (version "
-        f"{GENERATOR_VERSION}): a procedurally textured room ray cast with Open3D along a "
-        f"hand-held-like 6-DoF path, with exact ground truth.\nSpec: {json.dumps(asdict(spec))}\n"
-        "Layout (TUM RGB-D): rgb/*.jpg (JPEG quality 95), depth/*.png (uint16, depth_scale 5000, "
-        "0 = no measurement), rgb.txt depth.txt associations.txt groundtruth.txt ('timestamp tx ty "
-        "tz qx qy qz qw', T_world_camera), intrinsics.json (fx fy cx cy width height depth_scale).\n"
-    )
+    _write_index(tmp, spec, stamps, poses)
     (tmp / ".complete").write_text(f"{spec.key()}\n")
     shutil.rmtree(out_dir, ignore_errors=True)
     os.replace(tmp, out_dir)
-    logger.info("demo sequence: %d frames in %.1f s -> %s", spec.frames,
-                time.perf_counter() - start, out_dir)
+    elapsed = time.perf_counter() - start
+    logger.info("demo sequence: %d frames in %.1f s -> %s", spec.frames, elapsed, out_dir)
     return out_dir
 
 
-def demo_sequence_path(spec: DemoSpec = DemoSpec(), cache_dir: Path | None = None,
-                       progress: bool = True) -> Path:
+def demo_sequence_path(
+    spec: DemoSpec = DemoSpec(), cache_dir: Path | None = None, progress: bool = True
+) -> Path:
     """The cached demo sequence for ``spec``, generated first if absent.
 
     Cache root: ``cache_dir``, else the environment variable ``DRONESIM_CACHE``, else

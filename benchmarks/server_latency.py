@@ -61,7 +61,8 @@ def start_server(data_dir: Path) -> tuple[subprocess.Popen, int]:
 def run_once(port: int, dataset, fps: float, frames: int) -> dict:
     body = httpx.post(f"http://127.0.0.1:{port}/api/sessions").json()
     stats = asyncio.run(replay(f"ws://127.0.0.1:{port}/ws/sessions/{body['id']}", body["token"],
-                               dataset, fps=fps, max_frames=frames, client_name="bench"))
+                               dataset, fps=fps, max_frames=frames, client_name="bench",
+                               preencode=True))
     summary = latency_summary(stats)
     stages: dict[str, list[float]] = {}
     for pose in stats.poses:
@@ -84,25 +85,13 @@ def main() -> None:
 
     dataset = open_dataset(args.sequence)
     frames = len(dataset) if args.frames is None else min(args.frames, len(dataset))
-    # Decode the frames once, untimed, so the client's disk reads do not pace the run.
-    cached = [dataset[i] for i in range(frames)]
-
-    class Cached:
-        intrinsics, name = dataset.intrinsics, dataset.name
-
-        def __len__(self):
-            return len(cached)
-
-        def __getitem__(self, i):
-            return cached[i]
-
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         proc, port = start_server(Path(tmp))
         try:
             for fps in args.fps:
                 console.print(f"replaying {frames} frames of {dataset.name} at {fps:g} fps ...")
-                rows.append(run_once(port, Cached(), fps, frames))
+                rows.append(run_once(port, dataset, fps, frames))
         finally:
             proc.terminate()
             proc.wait(timeout=60)

@@ -47,15 +47,25 @@ async def replay(
     on_pose: Callable[[dict], None] | None = None,
     ssl=None,
     drop_when_busy: bool = True,
+    preencode: bool = False,
 ) -> ReplayStats:
     """Stream ``dataset`` to the session at ``ws_url`` and collect what comes back.
 
     drop_when_busy: a frame captured while ``max_in_flight`` frames await answers is dropped
-    (a camera); False waits for an answer instead, so that every frame is sent (tests)."""
+    (a camera); False waits for an answer instead, so that every frame is sent (tests).
+    preencode: JPEG/PNG-encode every frame before streaming, so that the client's encoding time
+    (a phone's own work) does not sit in the measured latency (benchmarks)."""
     stats = ReplayStats()
     K = dataset.intrinsics
     n = len(dataset) if max_frames is None else max_frames
     in_flight: dict[int, float] = {}
+
+    def frame_message(i: int) -> dict:
+        frame = dataset[i % len(dataset)]
+        return proto.make_frame(i, frame.timestamp, frame.colour, frame.depth,
+                                depth_format=depth_format, depth_scale=1000.0)
+
+    cache = {i: frame_message(i) for i in range(min(n, len(dataset)))} if preencode else {}
     answered = asyncio.Event()
     async with websockets.connect(f"{ws_url}?token={token}", max_size=None, ssl=ssl) as ws:
         await ws.send(proto.encode(proto.make_hello(
@@ -97,9 +107,10 @@ async def replay(
                 if len(in_flight) >= max_in_flight:
                     stats.client_dropped += 1
                     continue
-                frame = dataset[i % len(dataset)] if loop_sequence else dataset[i]
-                message = proto.make_frame(i, frame.timestamp, frame.colour, frame.depth,
-                                           depth_format=depth_format, depth_scale=1000.0)
+                if not loop_sequence and i >= len(dataset):
+                    break
+                message = cache.get(i % len(dataset)) or frame_message(i)
+                message = {**message, "seq": i}
                 in_flight[i] = time.monotonic()
                 await ws.send(proto.encode(message))
                 stats.sent += 1

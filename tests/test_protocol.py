@@ -66,7 +66,10 @@ def example_messages() -> dict[str, dict]:
         "bye": P.make_bye("user closed the page"),
         "welcome": P.make_welcome("abc123"),
         "pose": P.make_pose(3, 12.25, T, "weak", 57, {"decode": 3.5, "total": 21.0}, 2, True),
-        "drone_state": P.make_drone_state(4.0, T, [0.1, 0.0, -0.2], "flying", command_id=1),
+        "drone_state": P.make_drone_state(4.0, T, [0.1, 0.0, -0.2], "goto", command_id=1,
+                                          T_camera_drone=T, camera_seq=3, clearance=0.4,
+                                          target=[1.0, 0.5, -2.0], route=np.zeros((4, 3))),
+        "drone_event": P.make_drone_event("collision", 4.5, [0.1, 0.2, 0.3], "hit a wall", 1),
         "map_chunk": P.make_map_chunk(
             rng.normal(size=(500, 3)), rng.integers(0, 256, (500, 3)), chunk=4, total_points=2500
         ),
@@ -407,3 +410,19 @@ def test_markdown_documents_every_message_field_error_and_close_code():
         assert re.search(rf"{close['code']}\s*\|\s*`{close['name']}`", text), close["name"]
     for name in P.LIMITS:
         assert f"`{name}`" in text, name
+
+
+def test_zero_gravity_is_refused():
+    hello = P.make_hello("t", [500.0, 500.0, 320.0, 240.0], (640, 480), gravity=[0.0, 9.8, 0.1])
+    assert P.decode(P.encode(hello))["gravity"] == [0.0, 9.8, 0.1]
+    error = expect("invalid_field", P.encode, {**hello, "gravity": [0.0, 0.0, 0.0]})
+    assert "gravity" in error.message
+
+
+def test_each_drone_command_needs_its_own_field():
+    for name, field in [("goto", "target"), ("goto_pixel", "pixel"), ("sticks", "sticks")]:
+        error = expect("bad_command", P.encode, P.make_command(1, name))
+        assert field in str(error)
+    sticks = P.make_command(2, "sticks", sticks=[0.0, 0.5, 1.0, -1.0])
+    assert P.decode(P.encode(sticks))["sticks"] == [0.0, 0.5, 1.0, -1.0]
+    expect("invalid_field", P.encode, {**sticks, "sticks": [0.0, 0.0, 1.5, 0.0]})

@@ -126,13 +126,19 @@ def _check_hello(msg: Mapping) -> None:
         )
     if max(fx, fy) / min(fx, fy) > LIMITS["max_focal_aspect"]:
         raise ProtocolError("bad_intrinsics", f"fx {fx} and fy {fy} differ too much")
+    if "gravity" in msg and not np.linalg.norm(msg["gravity"]) > 1e-6:
+        raise ProtocolError("invalid_field", "gravity must be a non-zero vector")
     if not (0 <= cx <= cw and 0 <= cy <= ch):
         raise ProtocolError("bad_intrinsics", f"principal point ({cx}, {cy}) outside {cw}x{ch}")
 
 
+_COMMAND_NEEDS = {"goto": "target", "goto_pixel": "pixel", "sticks": "sticks"}
+
+
 def _check_command(msg: Mapping) -> None:
-    if msg["name"] == "goto" and "target" not in msg:
-        raise ProtocolError("bad_command", "goto needs a target [x, y, z]")
+    needed = _COMMAND_NEEDS.get(msg["name"])
+    if needed and needed not in msg:
+        raise ProtocolError("bad_command", f"{msg['name']} needs the field {needed!r}")
 
 
 def _check_map_chunk(msg: Mapping) -> None:
@@ -268,9 +274,11 @@ def make_hello(
     depth_size: Sequence[int] | None = None,
     depth_scale: float = 1000.0,
     version: int = VERSION,
+    gravity: Sequence[float] | None = None,
 ) -> dict:
     """intrinsics: fx, fy, cx, cy of the colour image (px); sizes (width, height) px;
-    depth_size defaults to colour_size; depth_scale: depth units per metre."""
+    depth_size defaults to colour_size; depth_scale: depth units per metre; gravity: its
+    direction in the first camera's frame (None: the server assumes +y)."""
     depth_size = colour_size if depth_size is None else depth_size
     return _message(
         "hello",
@@ -280,6 +288,7 @@ def make_hello(
         colour_size=[int(v) for v in colour_size],
         depth_size=[int(v) for v in depth_size],
         depth_scale=float(depth_scale),
+        gravity=None if gravity is None else _floats(gravity, 3, "gravity"),
     )
 
 
@@ -341,11 +350,27 @@ def make_frame(
 
 
 def make_command(
-    command_id: int, name: str, target: Sequence[float] | None = None, speed: float | None = None
+    command_id: int,
+    name: str,
+    target: Sequence[float] | None = None,
+    speed: float | None = None,
+    *,
+    pixel: Sequence[float] | None = None,
+    seq: int | None = None,
+    sticks: Sequence[float] | None = None,
 ) -> dict:
-    target = None if target is None else _floats(target, 3, "target")
-    speed = None if speed is None else float(speed)
-    return _message("command", id=int(command_id), name=name, target=target, speed=speed)
+    """target: world [x, y, z] metres (goto); pixel: [u, v] of frame seq (goto_pixel);
+    sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks)."""
+    return _message(
+        "command",
+        id=int(command_id),
+        name=name,
+        target=None if target is None else _floats(target, 3, "target"),
+        pixel=None if pixel is None else _floats(pixel, 2, "pixel"),
+        seq=None if seq is None else int(seq),
+        sticks=None if sticks is None else _floats(sticks, 4, "sticks"),
+        speed=None if speed is None else float(speed),
+    )
 
 
 def make_bye(reason: str | None = None) -> dict:
@@ -398,13 +423,43 @@ def make_drone_state(
     velocity: Sequence[float],
     mode: str,
     command_id: int | None = None,
+    *,
+    T_camera_drone: np.ndarray | None = None,
+    camera_seq: int | None = None,
+    clearance: float | None = None,
+    target: Sequence[float] | None = None,
+    route: np.ndarray | None = None,
 ) -> dict:
+    """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points."""
     return _message(
         "drone_state",
         timestamp=float(timestamp),
         T_world_drone=_floats(T_world_drone, 16, "T_world_drone"),
+        T_camera_drone=None if T_camera_drone is None
+        else _floats(T_camera_drone, 16, "T_camera_drone"),
+        camera_seq=None if camera_seq is None else int(camera_seq),
         velocity=_floats(velocity, 3, "velocity"),
-        mode=mode,
+        mode=str(getattr(mode, "value", mode)),
+        clearance=None if clearance is None else float(clearance),
+        target=None if target is None else _floats(target, 3, "target"),
+        route=None if route is None else [float(x) for x in np.asarray(route).ravel()],
+        command_id=None if command_id is None else int(command_id),
+    )
+
+
+def make_drone_event(
+    event: str,
+    timestamp: float,
+    position: Sequence[float],
+    message: str,
+    command_id: int | None = None,
+) -> dict:
+    return _message(
+        "drone_event",
+        event=str(getattr(event, "value", event)),
+        timestamp=float(timestamp),
+        position=_floats(position, 3, "position"),
+        message=message[:1024],
         command_id=None if command_id is None else int(command_id),
     )
 
@@ -436,7 +491,12 @@ def make_map_chunk(
 
 
 def make_error(
-    code: str | int, message: str, *, seq: int | None = None, command_id: int | None = None
+    code: str | int,
+    message: str,
+    *,
+    seq: int | None = None,
+    command_id: int | None = None,
+    nearest: Sequence[float] | None = None,
 ) -> dict:
     """code: an error name ('corrupt_image') or its number (200)."""
     name = ERROR_NAMES.get(code, code) if isinstance(code, int) else code
@@ -451,6 +511,7 @@ def make_error(
         fatal=entry["fatal"],
         seq=seq,
         command_id=command_id,
+        nearest=None if nearest is None else _floats(nearest, 3, "nearest"),
     )
 
 

@@ -160,3 +160,21 @@ def test_take_preview_is_bounded_and_returns_only_new_content(room):
     assert len(fresh) > 0
     assert np.median(cKDTree(seen).query(fresh)[0]) > VOXEL_M  # mostly new surface
     assert len(tsdf.take_preview(max_points=10**6)[0]) == 0
+
+
+def test_occupancy_in_a_rotated_grid_frame(room, fused):
+    """A gravity-aligned grid: the same cameras and surfaces land in the rotated cells."""
+    cell = 0.05
+    angle = np.deg2rad(30.0)
+    R = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    origin, occupied, observed = fused.occupancy(cell, R_grid_world=R)
+
+    def cells(points_world):
+        return np.floor((points_world @ R.T - origin) / cell).astype(int)
+
+    i, j, k = cells(np.array([pose(room, i)[:3, 3] for i in FUSED])).T
+    assert observed[i, j, k].all() and not occupied[i, j, k].any()
+    ijk = cells(measured_surface(room, FUSED, stride=8))
+    inside = np.all((ijk >= 0) & (ijk < occupied.shape), axis=1)
+    assert inside.mean() > 0.98
+    assert occupied[tuple(ijk[inside].T)].mean() > 0.9

@@ -248,11 +248,15 @@ class TSDFMap:
                 return o3d.geometry.TriangleMesh()
             return self._grid.extract_triangle_mesh(self.config.min_weight).cpu().to_legacy()
 
-    def occupancy(self, voxel_m: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def occupancy(
+        self, voxel_m: float = 0.05, R_grid_world: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A coarse occupancy grid derived from the TSDF, for the drone simulator.
 
-        Returns (origin (3,) metres in the world frame, occupied, observed), both bool arrays of
-        the same shape indexed [i, j, k] <-> world x, y, z: cell (i, j, k) spans
+        R_grid_world: rotation (3x3) from the world frame into the frame whose axes the grid
+        follows (a gravity-aligned flight frame); None for the world's own axes.
+        Returns (origin (3,) metres in the grid frame, occupied, observed), both bool arrays of
+        the same shape indexed [i, j, k] <-> grid-frame x, y, z: cell (i, j, k) spans
         origin + [i, i + 1) * voxel_m along x, and likewise for y (j) and z (k). A cell is
         observed when one of its TSDF voxels was seen (weight > 0) or a fused frame's camera was in
         it, and occupied when a seen TSDF voxel in it has a TSDF distance under half the cell's
@@ -265,16 +269,31 @@ class TSDFMap:
         # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
         # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
         band = min(max(0.87 * voxel_m, cfg.voxel_m), 0.99 * cfg.trunc_m)
+        # Every s-th TSDF voxel is enough to say what was seen, as long as samples stay closer
+        # than a cell; surfaces (a thin band) are placed from every voxel of the band.
+        s = 1
+        while s < res and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
+            s *= 2
         with self._lock:
             keys = self._active_keys().astype(np.int64)
-            idx = self._grid.hashmap().active_buf_indices().to(o3c.int64)
-            tsdf = self._grid.attribute("tsdf")[idx].cpu().numpy()[..., 0]  # (B, z, y, x)
-            weight = self._grid.attribute("weight")[idx].cpu().numpy()[..., 0]
+            idx = self._grid.hashmap().active_buf_indices().cpu().numpy().astype(np.int64)
+            # .numpy() views the grid's memory; fancy indexing copies it while the lock is held
+            # (Open3D's own tensor indexing is ~20x slower here).
+            tsdf = self._grid.attribute("tsdf").numpy()[idx, ..., 0]  # (B, z, y, x)
+            weight = self._grid.attribute("weight").numpy()[idx, ..., 0]
             cameras = np.array(self._cameras).reshape(-1, 3)
-        b, zl, yl, xl = np.nonzero(weight > 0)
-        fine = keys[b] * res + np.stack([xl, yl, zl], axis=1)  # voxel sample at fine * voxel_m
-        seen = np.floor(fine * (cfg.voxel_m / voxel_m)).astype(np.int64)
-        near = np.abs(tsdf[b, zl, yl, xl]) * cfg.trunc_m <= band
+
+        def world(b, zl, yl, xl, step=1):
+            local = np.stack([xl, yl, zl], axis=1) * step
+            return (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
+
+        samples = world(*np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
+        surface = world(*np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
+        if R_grid_world is not None:
+            R = np.asarray(R_grid_world, dtype=np.float64)
+            samples, surface, cameras = samples @ R.T, surface @ R.T, cameras @ R.T
+        seen = np.floor(np.concatenate([samples, surface]) / voxel_m).astype(np.int64)
+        near = np.arange(len(seen)) >= len(samples)
         cells = np.concatenate([seen, np.floor(cameras / voxel_m).astype(np.int64)])
         if cells.size == 0:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)

@@ -1,0 +1,182 @@
+"""Cascaded quadrotor controller: position -> velocity -> acceleration/attitude -> body rates ->
+torques, plus collective thrust, with limits on speed, climb rate, acceleration, tilt and yaw rate.
+
+Each loop is a proportional controller with its own bandwidth (1/s); the route's velocity and
+acceleration enter as feed-forward, gravity and drag are compensated exactly (the model is known).
+The attitude loop is the geometric controller of Lee et al. (2010): the desired body z is the
+direction of the required thrust, the desired heading fixes body x; the error is
+``e_R = vee(R_d^T R - R^T R_d) / 2``. Scalar float arithmetic throughout, like the dynamics.
+
+A setpoint holds, per axis group (horizontal, vertical), either a position with velocity and
+acceleration feed-forward, or only a velocity (manual flight).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from server.simulation.config import SimulationConfig
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
+
+MAX_TILT_RATE_RAD_S = 6.0  # body roll/pitch rate the attitude loop may ask for
+MIN_THRUST_G = 0.25  # never command less vertical thrust than this fraction of the weight
+MAX_THRUST_FRACTION = 0.95  # of the four motors' full thrust
+
+
+@dataclass(frozen=True)
+class ControlGains:
+    """Bandwidths of the loops, 1/s."""
+
+    position: float = 1.8
+    velocity: float = 4.0
+    attitude: float = 9.0
+    yaw: float = 3.0
+    rate: float = 18.0
+
+    @classmethod
+    def from_config(cls, config: SimulationConfig) -> ControlGains:
+        return cls(config.position_gain, config.velocity_gain, config.attitude_gain,
+                   config.yaw_gain, config.rate_gain)
+
+
+@dataclass(frozen=True)
+class ControlLimits:
+    max_speed_m_s: float = 3.0  # horizontal
+    max_climb_rate_m_s: float = 1.0  # vertical, both ways
+    max_accel_m_s2: float = 4.0
+    max_tilt_rad: float = math.radians(35.0)
+    max_yaw_rate_rad_s: float = math.radians(120.0)
+    brake_accel_m_s2: float = 2.0  # position errors are closed no faster than this allows
+
+    @classmethod
+    def from_config(cls, config: SimulationConfig) -> ControlLimits:
+        return cls(config.max_speed_m_s, config.max_climb_rate_m_s, config.max_accel_m_s2,
+                   math.radians(config.max_tilt_deg), math.radians(config.max_yaw_rate_deg_s),
+                   config.route_accel_m_s2)
+
+
+class Setpoint:
+    """What the controller tracks (flight frame, SI units).
+
+    ``hold_xy`` / ``hold_z``: track the position (x, y) / z with the velocity and acceleration
+    as feed-forward; otherwise track the velocity alone on those axes. ``yaw`` is the heading
+    (rad, counter-clockwise from +x), ``yaw_rate`` its feed-forward (rad/s).
+    """
+
+    __slots__ = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "yaw_rate",
+                 "hold_xy", "hold_z")
+
+    def __init__(self, position=(0.0, 0.0, 0.0), yaw: float = 0.0) -> None:
+        self.hold(position, yaw)
+
+    def hold(self, position, yaw: float) -> None:
+        """Hover at ``position`` facing ``yaw``."""
+        self.x, self.y, self.z = (float(c) for c in position)
+        self.vx = self.vy = self.vz = 0.0
+        self.ax = self.ay = self.az = 0.0
+        self.yaw, self.yaw_rate = float(yaw), 0.0
+        self.hold_xy = self.hold_z = True
+
+
+def _sqrt_controller(error: float, gain: float, accel: float) -> float:
+    """Speed that closes ``error`` (m) with gain ``gain`` near zero and at most ``accel`` braking
+    far away, so that large steps do not overshoot (as ArduPilot's sqrt controller)."""
+    linear = accel / (gain * gain)
+    if error > linear:
+        return math.sqrt(2.0 * accel * (error - 0.5 * linear))
+    if error < -linear:
+        return -math.sqrt(2.0 * accel * (-error - 0.5 * linear))
+    return gain * error
+
+
+class CascadedController:
+    """Turns the quadrotor's state and a setpoint into four motor thrust commands."""
+
+    def __init__(self, params: QuadrotorParams, gains: ControlGains = ControlGains(),
+                 limits: ControlLimits = ControlLimits()) -> None:
+        self.params = params
+        self.gains = gains
+        self.limits = limits
+        self._tan_tilt = math.tan(limits.max_tilt_rad)
+        self._drag = params.drag_n_s_m / params.mass_kg
+        self._max_thrust = MAX_THRUST_FRACTION * 4.0 * params.max_motor_thrust_n
+
+    def update(self, q: Quadrotor, sp: Setpoint) -> tuple[float, float, float, float]:
+        """Motor thrust commands (N) for this step."""
+        g = self.gains
+        lim = self.limits
+        grav = self.params.gravity_m_s2
+
+        # Position -> velocity (horizontal and vertical separately, each limited).
+        vx, vy, vz = sp.vx, sp.vy, sp.vz
+        if sp.hold_xy:
+            ex, ey = sp.x - q.px, sp.y - q.py
+            e = math.hypot(ex, ey)
+            if e > 1e-9:
+                s = _sqrt_controller(e, g.position, lim.brake_accel_m_s2) / e
+                vx += s * ex
+                vy += s * ey
+        if sp.hold_z:
+            vz += _sqrt_controller(sp.z - q.pz, g.position, lim.brake_accel_m_s2)
+        speed = math.hypot(vx, vy)
+        if speed > lim.max_speed_m_s:
+            vx *= lim.max_speed_m_s / speed
+            vy *= lim.max_speed_m_s / speed
+        vz = min(max(vz, -lim.max_climb_rate_m_s), lim.max_climb_rate_m_s)
+
+        # Velocity -> acceleration (limited), plus feed-forward.
+        ax = sp.ax + g.velocity * (vx - q.vx)
+        ay = sp.ay + g.velocity * (vy - q.vy)
+        az = sp.az + g.velocity * (vz - q.vz)
+        a = math.sqrt(ax * ax + ay * ay + az * az)
+        if a > lim.max_accel_m_s2:
+            s = lim.max_accel_m_s2 / a
+            ax, ay, az = ax * s, ay * s, az * s
+
+        # Required specific thrust: acceleration + gravity + drag, vertical first, tilt limited.
+        fx = ax + self._drag * q.vx
+        fy = ay + self._drag * q.vy
+        fz = max(az + grav + self._drag * q.vz, MIN_THRUST_G * grav)
+        h = math.hypot(fx, fy)
+        h_max = fz * self._tan_tilt
+        if h > h_max:
+            fx *= h_max / h
+            fy *= h_max / h
+        f = math.sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = fx / f, fy / f, fz / f  # desired body z
+
+        # Desired attitude: body z as above, body x towards the heading.
+        cy, sy = math.cos(sp.yaw), math.sin(sp.yaw)
+        yx, yy, yz = -zz * sy, zz * cy, zx * sy - zy * cy  # z_d x (cos, sin, 0)
+        n = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / n, yy / n, yz / n
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+
+        # Attitude error e_R = vee(M - M^T) / 2 with M = R_d^T R (only 6 entries needed).
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = q.rotation()
+        m01 = xx * r01 + xy * r11 + xz * r21
+        m02 = xx * r02 + xy * r12 + xz * r22
+        m10 = yx * r00 + yy * r10 + yz * r20
+        m12 = yx * r02 + yy * r12 + yz * r22
+        m20 = zx * r00 + zy * r10 + zz * r20
+        m21 = zx * r01 + zy * r11 + zz * r21
+        erx = 0.5 * (m21 - m12)
+        ery = 0.5 * (m02 - m20)
+        erz = 0.5 * (m10 - m01)
+
+        # Attitude -> body rates (limited), yaw rate feed-forward about body z.
+        wdx = min(max(-g.attitude * erx, -MAX_TILT_RATE_RAD_S), MAX_TILT_RATE_RAD_S)
+        wdy = min(max(-g.attitude * ery, -MAX_TILT_RATE_RAD_S), MAX_TILT_RATE_RAD_S)
+        wdz = -g.yaw * erz + sp.yaw_rate * r22
+        wdz = min(max(wdz, -lim.max_yaw_rate_rad_s), lim.max_yaw_rate_rad_s)
+
+        # Body rates -> torques (with gyroscopic compensation); thrust along the current body z.
+        ixx, iyy, izz = self.params.inertia_kg_m2
+        wx, wy, wz = q.wx, q.wy, q.wz
+        tx = ixx * g.rate * (wdx - wx) + (izz - iyy) * wy * wz
+        ty = iyy * g.rate * (wdy - wy) + (ixx - izz) * wz * wx
+        tz = izz * g.rate * (wdz - wz) + (iyy - ixx) * wx * wy
+        thrust = self.params.mass_kg * (fx * r02 + fy * r12 + fz * r22)
+        thrust = min(max(thrust, 0.0), self._max_thrust)
+        return mix(self.params, thrust, tx, ty, tz)

@@ -1,0 +1,219 @@
+"""Rigid-body quadrotor: four motors with first-order lag, linear drag and gravity.
+
+Flight frame: metres, z up, gravity along -z. Body frame: x forward, y left, z up (thrust along
++z). Motors sit in an X at (+-a, +-a) in the body xy plane, a = arm / sqrt(2):
+
+    0 front-left (+a, +a)  yaw torque +k f      1 front-right (+a, -a)  yaw torque -k f
+    3 rear-left  (-a, +a)  yaw torque -k f      2 rear-right  (-a, -a)  yaw torque +k f
+
+Integration is semi-implicit Euler at a fixed step (velocities first, then positions with the new
+velocities); the attitude is a unit quaternion advanced by the exact rotation of the body rates
+over the step and renormalised, so R stays orthonormal. Everything is plain float arithmetic:
+numpy on 3-vectors costs microseconds per call, this step costs a few.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from server.simulation.config import SimulationConfig
+
+
+@dataclass(frozen=True)
+class QuadrotorParams:
+    """Physical constants of the airframe (SI units)."""
+
+    mass_kg: float = 0.5
+    inertia_kg_m2: tuple[float, float, float] = (2.5e-3, 2.5e-3, 4.5e-3)
+    arm_length_m: float = 0.09
+    yaw_moment_m: float = 0.016  # reaction torque per newton of thrust
+    motor_time_constant_s: float = 0.03
+    max_motor_thrust_n: float = 3.5
+    drag_n_s_m: float = 0.1
+    gravity_m_s2: float = 9.81
+
+    @classmethod
+    def from_config(cls, config: SimulationConfig) -> QuadrotorParams:
+        return cls(config.mass_kg, tuple(config.inertia_kg_m2), config.arm_length_m,
+                   config.yaw_moment_m, config.motor_time_constant_s, config.max_motor_thrust_n,
+                   config.drag_n_s_m, config.gravity_m_s2)
+
+    @property
+    def hover_thrust_n(self) -> float:
+        """Per motor, N."""
+        return self.mass_kg * self.gravity_m_s2 / 4.0
+
+
+def mix(params: QuadrotorParams, thrust_n: float, tx: float, ty: float, tz: float
+        ) -> tuple[float, float, float, float]:
+    """Collective thrust (N) and body torques (N m) -> four motor thrusts within [0, max].
+
+    When the motors cannot deliver everything, yaw torque is given up first, then the result is
+    clipped (roll and pitch keep priority over yaw, as on real flight controllers).
+    """
+    a = params.arm_length_m / math.sqrt(2.0)
+    base = 0.25 * thrust_n
+    rx = 0.25 * tx / a
+    ry = 0.25 * ty / a
+    rz = 0.25 * tz / params.yaw_moment_m
+    f_max = params.max_motor_thrust_n
+    f0 = base + rx - ry + rz
+    f1 = base - rx - ry - rz
+    f2 = base - rx + ry + rz
+    f3 = base + rx + ry - rz
+    lo = min(f0, f1, f2, f3)
+    hi = max(f0, f1, f2, f3)
+    if (lo < 0.0 or hi > f_max) and rz != 0.0:
+        # Largest share of the yaw command that keeps every motor within limits.
+        scale = 1.0
+        for f, s in ((f0, 1.0), (f1, -1.0), (f2, 1.0), (f3, -1.0)):
+            without = f - s * rz
+            if f > f_max:
+                scale = min(scale, max(0.0, (f_max - without) / (f - without)))
+            elif f < 0.0:
+                scale = min(scale, max(0.0, without / (without - f)))
+        rz *= scale
+        f0 = base + rx - ry + rz
+        f1 = base - rx - ry - rz
+        f2 = base - rx + ry + rz
+        f3 = base + rx + ry - rz
+    return (min(max(f0, 0.0), f_max), min(max(f1, 0.0), f_max),
+            min(max(f2, 0.0), f_max), min(max(f3, 0.0), f_max))
+
+
+class Quadrotor:
+    """State and fixed-step dynamics of one quadrotor.
+
+    State (public float attributes, flight frame unless noted): position ``px, py, pz`` (m),
+    velocity ``vx, vy, vz`` (m/s), attitude quaternion ``qw, qx, qy, qz`` (body to flight),
+    body rates ``wx, wy, wz`` (rad/s, body frame) and motor thrusts ``f0..f3`` (N).
+    """
+
+    __slots__ = ("params", "dt", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
+                 "wx", "wy", "wz", "f0", "f1", "f2", "f3", "_alpha", "_a", "_k", "_drag",
+                 "_ixx", "_iyy", "_izz")
+
+    def __init__(self, params: QuadrotorParams, dt_s: float) -> None:
+        self.params = params
+        self.dt = float(dt_s)
+        self._alpha = 1.0 - math.exp(-self.dt / params.motor_time_constant_s)  # exact lag step
+        self._a = params.arm_length_m / math.sqrt(2.0)
+        self._k = params.yaw_moment_m
+        self._drag = params.drag_n_s_m / params.mass_kg
+        self._ixx, self._iyy, self._izz = (float(i) for i in params.inertia_kg_m2)
+        self.reset((0.0, 0.0, 0.0))
+
+    def reset(self, position, yaw_rad: float = 0.0, hovering: bool = True) -> None:
+        """Level at ``position`` facing ``yaw_rad``, at rest; motors at hover thrust or off."""
+        self.px, self.py, self.pz = (float(c) for c in position)
+        self.vx = self.vy = self.vz = 0.0
+        self.set_level(yaw_rad)
+        f = self.params.hover_thrust_n if hovering else 0.0
+        self.f0 = self.f1 = self.f2 = self.f3 = f
+
+    def set_level(self, yaw_rad: float) -> None:
+        """Attitude level with heading ``yaw_rad``, body rates zero."""
+        self.qw, self.qx, self.qy, self.qz = math.cos(0.5 * yaw_rad), 0.0, 0.0, math.sin(
+            0.5 * yaw_rad)
+        self.wx = self.wy = self.wz = 0.0
+
+    def step(self, c0: float, c1: float, c2: float, c3: float) -> None:
+        """Advance one step with commanded motor thrusts ``c0..c3`` (N, clipped to [0, max])."""
+        dt = self.dt
+        f_max = self.params.max_motor_thrust_n
+        al = self._alpha
+        # Motors: first-order lag towards the (saturated) commands.
+        f0 = self.f0 + al * (min(max(c0, 0.0), f_max) - self.f0)
+        f1 = self.f1 + al * (min(max(c1, 0.0), f_max) - self.f1)
+        f2 = self.f2 + al * (min(max(c2, 0.0), f_max) - self.f2)
+        f3 = self.f3 + al * (min(max(c3, 0.0), f_max) - self.f3)
+        self.f0, self.f1, self.f2, self.f3 = f0, f1, f2, f3
+        thrust = f0 + f1 + f2 + f3
+        a = self._a
+        tx = a * (f0 - f1 - f2 + f3)
+        ty = a * (-f0 - f1 + f2 + f3)
+        tz = self._k * (f0 - f1 + f2 - f3)
+
+        # Translation: thrust along body z, gravity, linear drag.
+        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
+        t_m = thrust / self.params.mass_kg
+        drag = self._drag
+        self.vx += (t_m * 2.0 * (qx * qz + qw * qy) - drag * self.vx) * dt
+        self.vy += (t_m * 2.0 * (qy * qz - qw * qx) - drag * self.vy) * dt
+        self.vz += (t_m * (1.0 - 2.0 * (qx * qx + qy * qy)) - drag * self.vz
+                    - self.params.gravity_m_s2) * dt
+        self.px += self.vx * dt
+        self.py += self.vy * dt
+        self.pz += self.vz * dt
+
+        # Rotation: Euler's equations with diagonal inertia.
+        ixx, iyy, izz = self._ixx, self._iyy, self._izz
+        wx, wy, wz = self.wx, self.wy, self.wz
+        wx += (tx - (izz - iyy) * wy * wz) / ixx * dt
+        wy += (ty - (ixx - izz) * wz * wx) / iyy * dt
+        wz += (tz - (iyy - ixx) * wx * wy) / izz * dt
+        self.wx, self.wy, self.wz = wx, wy, wz
+
+        # Attitude: q <- q * exp(w dt / 2), then renormalise.
+        n = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if n > 1e-12:
+            half = 0.5 * n * dt
+            s = math.sin(half) / n
+            dw, dx, dy, dz = math.cos(half), wx * s, wy * s, wz * s
+            qw, qx, qy, qz = (qw * dw - qx * dx - qy * dy - qz * dz,
+                              qw * dx + qx * dw + qy * dz - qz * dy,
+                              qw * dy - qx * dz + qy * dw + qz * dx,
+                              qw * dz + qx * dy - qy * dx + qz * dw)
+            inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            self.qw, self.qx, self.qy, self.qz = qw * inv, qx * inv, qy * inv, qz * inv
+
+    # Read-outs (numpy, for callers outside the hot loop)
+
+    def rotation(self) -> tuple[float, ...]:
+        """R_flight_body as 9 floats, row-major."""
+        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
+        return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
+                2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
+                2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.array([self.px, self.py, self.pz])
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return np.array([self.vx, self.vy, self.vz])
+
+    @property
+    def body_rates(self) -> np.ndarray:
+        return np.array([self.wx, self.wy, self.wz])
+
+    @property
+    def motor_thrusts(self) -> np.ndarray:
+        return np.array([self.f0, self.f1, self.f2, self.f3])
+
+    @property
+    def R_flight_body(self) -> np.ndarray:
+        return np.array(self.rotation()).reshape(3, 3)
+
+    @property
+    def T_flight_body(self) -> np.ndarray:
+        """4x4 body-to-flight transform, metres."""
+        T = np.eye(4)
+        T[:3, :3] = self.R_flight_body
+        T[:3, 3] = (self.px, self.py, self.pz)
+        return T
+
+    @property
+    def yaw_rad(self) -> float:
+        """Heading of body x projected on the flight xy plane, counter-clockwise from +x."""
+        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
+        return math.atan2(2 * (qx * qy + qw * qz), 1 - 2 * (qy * qy + qz * qz))
+
+    @property
+    def tilt_rad(self) -> float:
+        """Angle between body z and flight z."""
+        return math.acos(min(1.0, max(-1.0, 1 - 2 * (self.qx * self.qx + self.qy * self.qy))))

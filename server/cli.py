@@ -133,6 +133,70 @@ def serve(
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info", **ssl)
 
 
+@app.command()
+def loadtest(
+    dataset: Annotated[str, typer.Argument(help="sequence folder (TUM or Redwood), or 'demo'")],
+    url: Annotated[str, typer.Option(help="the server's base URL")] = "http://127.0.0.1:8000",
+    sessions: Annotated[int, typer.Option(min=1, help="concurrent clients, a session each")] = 4,
+    fps: Annotated[float, typer.Option(min=0.1, help="capture rate per client")] = 15.0,
+    duration: Annotated[float, typer.Option(min=0.5, help="capture time, seconds")] = 30.0,
+    frames: Annotated[Optional[int], typer.Option(min=1, help="only the first N frames")] = None,
+    max_in_flight: Annotated[int, typer.Option(min=1, help="unanswered frames at most")] = 2,
+    depth_format: Annotated[str, typer.Option(help="zlib (as browsers send) or png")] = "zlib",
+    command_every: Annotated[float, typer.Option(min=0, help="drone command period, s")] = 2.0,
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="report (JSON)")] = None,
+    plot: Annotated[Optional[Path], typer.Option(help="latency over time (PNG)")] = None,
+    keep_sessions: Annotated[bool, typer.Option(help="do not delete the sessions")] = False,
+    insecure: Annotated[bool, typer.Option(help="accept a self-signed certificate")] = False,
+) -> None:
+    """Stream a sequence from N concurrent clients at F fps; print latency, throughput, drops and
+    errors per session. Exits with 2 when any session saw an error or a failed request."""
+    import asyncio
+    import json
+
+    from rich.progress import Progress, TextColumn, TimeElapsedColumn
+
+    from server.client import loadtest as lt
+
+    if depth_format not in ("png", "zlib"):
+        raise DroneSimError(f"--depth-format must be png or zlib, got {depth_format!r}")
+    ds = _open(dataset, None, None, None, None, None)
+    with console.status(f"encoding {min(frames or len(ds), len(ds))} frames of {ds.name} ..."):
+        sequence = lt.EncodedSequence.from_dataset(ds, frames, depth_format)
+    cfg = lt.LoadTestConfig(url=url, sessions=sessions, fps=fps, duration_s=duration,
+                            max_in_flight=max_in_flight, command_every_s=command_every,
+                            keep_sessions=keep_sessions, insecure=insecure)
+    with Progress(TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
+                  transient=True) as progress:
+        task = progress.add_task("connecting ...")
+        logged = [0.0]
+
+        def show(results, elapsed: float) -> None:
+            line = lt.live_line(results, elapsed)
+            progress.update(task, description=f"{elapsed:5.1f}/{duration:g} s | {line}")
+            if not console.is_terminal and elapsed - logged[0] >= 5:  # logs: a line every 5 s
+                logged[0] = elapsed
+                console.print(f"{elapsed:5.1f} s | {line}")
+
+        report = asyncio.run(lt.run_loadtest(sequence, cfg, on_progress=show))
+    console.print(lt.report_table(report))
+    console.print(lt.report_footer(report))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(report, indent=1))
+        console.print(f"report: {json_path}")
+    if plot is not None:
+        plot.parent.mkdir(parents=True, exist_ok=True)
+        lt.write_plot(report, plot)
+        console.print(f"plot: {plot}")
+    failures = [f"session {s['index']}: {f}" for s in report["sessions"] for f in s["failures"]]
+    if failures:
+        more = f"\n  ... {len(failures) - 20} more" if len(failures) > 20 else ""
+        err_console.print(f"[red]{len(failures)} failures:[/red]\n  " + "\n  ".join(failures[:20])
+                          + more)
+        raise typer.Exit(2)
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -1,0 +1,81 @@
+"""The load tester as an operator runs it: a separate process against a real server on loopback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+
+from server.client.loadtest import EncodedSequence
+
+REPO = Path(__file__).resolve().parents[1]
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def run_loadtest(server, shared_data: Path, tmp_path: Path, *args: str):
+    """The CLI on the first 12 frames of a real sequence (played back and forth) at 10 fps;
+    returns the finished process and the JSON report."""
+    report = tmp_path / "report.json"
+    command = [sys.executable, "-m", "server", "loadtest", str(shared_data / "synthetic_room0"),
+               "--url", server.url, "--frames", "12", "--fps", "10", "--json", str(report), *args]
+    proc = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert report.is_file(), proc.stdout + proc.stderr
+    return proc, json.loads(report.read_text())
+
+
+def test_every_session_gets_poses_and_the_report_adds_up(live_server, shared_data, tmp_path):
+    server = live_server()
+    plot = tmp_path / "latency.png"
+    proc, report = run_loadtest(server, shared_data, tmp_path, "--sessions", "2", "--duration", "4",
+                                "--plot", str(plot))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "p95" in proc.stdout
+
+    sessions = report["sessions"]
+    assert len(sessions) == 2 and len({s["id"] for s in sessions}) == 2
+    for s in sessions:
+        assert s["processed"] > 5 and not s["failures"] and s["close_code"] == 1000
+        assert s["sent"] + s["client_dropped"] == s["captured"] >= 35  # 4 s at 10 fps
+        assert s["processed"] + s["server_dropped"] <= s["sent"]
+        assert sum(s["states"].values()) == s["processed"]
+        # The server counted the same frames as the client.
+        assert s["server_status"]["frames_received"] == s["sent"]
+        assert s["server_status"]["frames_processed"] == s["processed"]
+        lat = s["latency"]
+        assert 0 < lat["p50_ms"] <= lat["p95_ms"] <= lat["p99_ms"] <= lat["max_ms"]
+        assert s["commands"]["sent"] >= 1
+    total = report["total"]
+    assert total["processed"] == sum(s["processed"] for s in sessions)
+    assert total["processed"] + total["server_dropped"] <= total["sent"]
+    assert 0 <= total["drop_rate"] <= 1 and total["failures"] == 0
+    assert report["stages_ms"]["track"]["median"] > 0
+    # One latency per pose, each pose answering a frame still in flight.
+    assert [len(t) for t in report["timeline"]] == [s["processed"] for s in sessions]
+
+    png = plot.read_bytes()
+    assert png.startswith(PNG_SIGNATURE) and len(png) > 10_000
+    # The sessions are deleted afterwards.
+    assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 0
+
+
+def test_exit_status_is_non_zero_when_the_server_refuses_a_session(live_server, shared_data,
+                                                                  tmp_path):
+    server = live_server(max_sessions=1)
+    proc, report = run_loadtest(server, shared_data, tmp_path, "--sessions", "2", "--duration", "1")
+    assert proc.returncode != 0
+    assert "HTTP 503" in proc.stderr
+    refused = [s for s in report["sessions"] if s["id"] is None]
+    assert len(refused) == 1 and "HTTP 503" in refused[0]["failures"][0]
+    assert report["total"]["failures"] == 1
+    served = [s for s in report["sessions"] if s["id"] is not None]
+    assert served[0]["processed"] > 0  # the other session ran as usual
+
+
+def test_the_sequence_plays_back_and_forth_so_the_motion_stays_continuous():
+    seq = EncodedSequence("four", (500.0, 500.0, 320.0, 240.0), (640, 480), [{}] * 4)
+    assert [seq.index(k) for k in range(10)] == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
+    single = EncodedSequence("one", (500.0, 500.0, 320.0, 240.0), (640, 480), [{}])
+    assert {single.index(k) for k in range(5)} == {0}

@@ -1,0 +1,570 @@
+"""One session's virtual drone: modes, pilot commands, route following, collisions, events.
+
+Everything is in the gravity-aligned flight frame (metres, z up; body x forward, y left, z up).
+Time is simulation time in seconds since the drone spawned; ``advance(dt)`` moves it on by fixed
+physics steps (the remainder carries over to the next call).
+
+Collisions are checked at every physics step: the drone is a sphere of ``radius_m`` and touches
+the map when the distance field at its centre drops below the radius. The distance field is
+1-Lipschitz, so a chunk of steps whose travelled length is provably shorter than the clearance
+at its start needs no query per step; near obstacles every step is queried. A step moves at most
+max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
+between two checks (the swept segment is covered), and ``segment_is_free`` guards longer steps.
+On contact the drone goes back to its last collision-free position, level and at rest, hovers,
+and a ``collision`` event says where; while landing, contact is the touchdown instead.
+
+Commands come from one thread and ``advance`` from another: a lock guards the state.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from server.errors import DroneSimError
+from server.simulation.config import SimulationConfig
+from server.simulation.control import CascadedController, ControlGains, ControlLimits, Setpoint
+from server.simulation.flight_map import Box, FlightMap
+from server.simulation.planner import PlanningError, plan_path, route_is_clear
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams
+
+log = logging.getLogger(__name__)
+
+LIPSCHITZ_SAFETY = 1.5  # the interpolated distance field may change faster than 1 m per metre
+MAX_CHUNK_STEPS = 100  # physics steps between distance queries far from obstacles
+YAW_FOLLOW_MIN_SPEED = 0.2  # m/s: below this a route does not turn the drone's heading
+# A drone pushed against a wall touches it again and again: one collision event per second
+# at the same place (the stop itself happens every time).
+COLLISION_REPEAT_S = 1.0
+COLLISION_REPEAT_M = 0.05
+
+
+class DroneMode(str, Enum):
+    """Flight modes, named as in the protocol's drone_state.mode."""
+
+    LANDED = "landed"
+    HOVER = "hover"
+    MANUAL = "manual"
+    GOTO = "goto"
+    LANDING = "landing"
+
+
+class DroneEventKind(str, Enum):
+    """Kinds of drone_event."""
+
+    SPAWNED = "spawned"
+    COLLISION = "collision"
+    ARRIVED = "arrived"
+    REPLANNED = "replanned"
+    BLOCKED = "blocked"
+    LANDED = "landed"
+
+
+class DroneCommandError(DroneSimError):
+    """A command cannot be carried out now (no drone yet, wrong mode, bad input): bad_command."""
+
+
+@dataclass(frozen=True)
+class DroneEvent:
+    kind: DroneEventKind
+    time_s: float  # simulation time
+    position: np.ndarray  # (3,) flight frame, m
+    message: str
+    command_id: int | None = None
+
+
+@dataclass(frozen=True)
+class DroneStatus:
+    time_s: float  # simulation time since spawn, s
+    T_flight_drone: np.ndarray  # (4, 4) body to flight frame, m
+    velocity: np.ndarray  # (3,) flight frame, m/s
+    mode: DroneMode
+    clearance: float  # distance field at the centre, m
+    target: np.ndarray | None  # (3,) goto target
+    route: np.ndarray | None  # (N, 3) remaining route polyline, N <= max_route_points; goto only
+    command_id: int | None
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class DroneSimulator:
+    """The virtual quadrotor of one session, flying in ``flight_map``."""
+
+    def __init__(self, config: SimulationConfig, flight_map: FlightMap) -> None:
+        self.config = config
+        self.flight_map = flight_map
+        params = QuadrotorParams.from_config(config)
+        self._quad = Quadrotor(params, config.dt_s)
+        self._ctrl = CascadedController(params, ControlGains.from_config(config),
+                                        ControlLimits.from_config(config))
+        self._sp = Setpoint()
+        self._lock = threading.RLock()
+        self._mode: DroneMode | None = None  # None until spawned
+        self._time_s = 0.0
+        self._carry_s = 0.0
+        self._events: list[DroneEvent] = []
+        self._command_id: int | None = None
+        # goto
+        self._route = None
+        self._route_t = 0.0  # route clock, s
+        self._table: list[list[float]] = []  # route samples every physics step: p, v, a
+        self._goal: np.ndarray | None = None
+        self._speed = config.cruise_speed_m_s
+        self._planned_at = 0.0
+        # manual
+        self._sticks = (0.0, 0.0, 0.0, 0.0)
+        self._sticks_at = -math.inf
+        self._last_collision = (-math.inf, np.zeros(3))  # time, position
+        self._a_max = 4 * params.max_motor_thrust_n / params.mass_kg + params.gravity_m_s2
+
+    # Commands
+
+    def spawn(self, near: np.ndarray, yaw_rad: float = 0.0) -> np.ndarray:
+        """Appear hovering in observed free space as close to ``near`` as possible (within
+        spawn_search_m); returns the position. Time restarts at 0; a ``spawned`` event follows."""
+        near = self._point(near, "spawn point")
+        with self._lock:
+            free = self._nearest_free(near, self.config.planning_radius_m)
+            if free is None or np.linalg.norm(np.asarray(free) - near) > self.config.spawn_search_m:
+                raise DroneCommandError(
+                    f"no observed free space for the drone within {self.config.spawn_search_m} m "
+                    f"of {np.round(near, 2).tolist()}")
+            position = np.asarray(free, dtype=float)
+            self._quad.reset(position, yaw_rad, hovering=True)
+            self._hold(position)
+            self._time_s = self._carry_s = 0.0
+            self._last_collision = (-math.inf, np.zeros(3))
+            self._command_id = None
+            self._emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
+            return position.copy()
+
+    def command_goto(self, target: np.ndarray, speed: float | None = None,
+                     command_id: int | None = None) -> None:
+        """Fly a planned route to ``target`` at ``speed`` (m/s, cruise speed when None).
+
+        Raises PlanningError (with ``reason`` and ``nearest``) when there is no route; the drone
+        then holds where it is.
+        """
+        with self._lock:
+            self._require_flying("goto")
+            speed = self.config.cruise_speed_m_s if speed is None else float(speed)
+            if not math.isfinite(speed) or speed <= 0:
+                raise DroneCommandError(f"goto speed must be a positive number, got {speed}")
+            speed = min(speed, self.config.max_speed_m_s)
+            self._command_id = command_id
+            try:
+                route = self._plan(np.asarray(target, dtype=float), speed)
+            except PlanningError:
+                self._hold(self._quad.position)
+                raise
+            self._goal = np.asarray(target, dtype=float).copy()
+            self._speed = speed
+            self._start_route(route)
+
+    def command_sticks(self, sticks: Sequence[float], now_s: float | None = None,
+                       command_id: int | None = None) -> None:
+        """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1 (climb rate, yaw rate with
+        positive counter-clockwise seen from above, forward speed, rightward speed; each a
+        fraction of its limit). ``now_s`` is when they were read, in simulation time (now when
+        None); they count as centred once older than stick_timeout_s.
+
+        Non-centred sticks take over from any flying mode; centred ones do not interrupt a goto
+        or a landing. When landed, throttle above one half takes off into manual flight.
+        """
+        values = np.asarray(sticks, dtype=float).reshape(-1)
+        if values.shape != (4,) or not np.all(np.isfinite(values)):
+            raise DroneCommandError("sticks must be 4 finite numbers [throttle, yaw, pitch, roll]")
+        values = tuple(float(v) for v in np.clip(values, -1.0, 1.0))
+        with self._lock:
+            if self._mode is None:
+                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._sticks = values
+            self._sticks_at = self._time_s if now_s is None else float(now_s)
+            active = any(abs(v) > self.config.stick_deadband for v in values)
+            if self._mode == DroneMode.LANDED:
+                if values[0] <= 0.5:
+                    return
+                self._quad.reset(self._quad.position, self._quad.yaw_rad, hovering=True)
+            elif self._mode != DroneMode.MANUAL and not active:
+                return
+            if self._mode != DroneMode.MANUAL:
+                self._enter_manual()
+            self._command_id = command_id
+
+    def command_hold(self, command_id: int | None = None) -> None:
+        """Stop and hover where the drone is."""
+        with self._lock:
+            self._require_flying("hold")
+            self._command_id = command_id
+            self._hold(self._quad.position)
+
+    def command_land(self, command_id: int | None = None) -> None:
+        """Descend straight down until touching the map, then stop the motors (``landed``)."""
+        with self._lock:
+            if self._mode is None:
+                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._command_id = command_id
+            if self._mode in (DroneMode.LANDED, DroneMode.LANDING):
+                return
+            self._clear_route()
+            self._mode = DroneMode.LANDING
+            sp = self._sp
+            sp.x, sp.y, sp.vx, sp.vy, sp.ax, sp.ay, sp.az = (
+                self._quad.px, self._quad.py, 0.0, 0.0, 0.0, 0.0, 0.0)
+            sp.hold_xy, sp.hold_z, sp.yaw_rate = True, False, 0.0
+            sp.vz = -self.config.landing_speed_m_s
+
+    def command_takeoff(self, command_id: int | None = None) -> None:
+        """From landed: rise up to takeoff_height_m (less where the map is lower) and hover."""
+        with self._lock:
+            if self._mode is None:
+                raise DroneCommandError("no drone yet: it spawns with the first map")
+            if self._mode != DroneMode.LANDED:
+                raise DroneCommandError(f"takeoff needs a landed drone; it is {self._mode.value}")
+            start = self._quad.position
+            step = self.config.voxel_m / 2
+            heights = np.arange(step, self.config.takeoff_height_m + 1e-9, step)
+            clear = self.flight_map.distance(start + heights[:, None] * [0.0, 0.0, 1.0])
+            # Rise through sphere-free space; stop at the highest point with planning clearance.
+            touching = clear < self.config.radius_m
+            reachable = heights[: int(np.argmax(touching)) if touching.any() else len(heights)]
+            good = reachable[clear[: len(reachable)] >= self.config.planning_radius_m]
+            if len(good) == 0:
+                raise DroneCommandError("no room above the drone to take off")
+            self._command_id = command_id
+            self._quad.reset(start, self._quad.yaw_rad, hovering=True)
+            self._hold(start + [0.0, 0.0, good[-1]])
+
+    # Map changes
+
+    def on_map_update(self, changed_box) -> None:
+        """The flight map changed inside ``changed_box`` (a flight_map.Box or a (lo, hi) pair of
+        corners, m; None: nothing changed).
+
+        Moves the drone out if the map grew into it; during a goto, replans when the remaining
+        route is blocked (``replanned``, or ``blocked`` and hold), and at most every
+        replan_min_interval_s when the change is near the route and a new route is clearly
+        shorter.
+        """
+        if changed_box is None:
+            return
+        with self._lock:
+            if self._mode is None or self._mode == DroneMode.LANDED:
+                return
+            self._leave_obstacle()
+            if self._mode != DroneMode.GOTO:
+                return
+            if isinstance(changed_box, Box):
+                changed_box = (changed_box.lo, changed_box.hi)
+            lo, hi = (np.asarray(c, dtype=float) for c in changed_box)
+            remaining = self._remaining_route()
+            margin = self.config.replan_margin_m + self.config.planning_radius_m
+            if not _polyline_near_box(remaining, lo - margin, hi + margin):
+                return
+            blocked = not route_is_clear(self.flight_map, self._route, self.config.radius_m,
+                                         from_time_s=self._route_t)
+            if not blocked and self._time_s - self._planned_at < self.config.replan_min_interval_s:
+                return
+            try:
+                route = self._plan(self._goal, self._speed)
+            except PlanningError as exc:
+                if blocked:
+                    self._hold(self._quad.position)
+                    self._emit(DroneEventKind.BLOCKED, f"no route any more: {exc}; holding")
+                return
+            old = _polyline_length(remaining)
+            if blocked or route.length_m < (1 - self.config.replan_min_gain) * old:
+                self._start_route(route)
+                why = "the route was blocked" if blocked else "a shorter route opened"
+                self._emit(DroneEventKind.REPLANNED,
+                           f"{why}: new route {route.length_m:.2f} m (was {old:.2f} m to go)")
+            else:
+                self._planned_at = self._time_s
+
+    # Simulation
+
+    def advance(self, dt_s: float) -> list[DroneEvent]:
+        """Run the physics for ``dt_s`` seconds of simulated time (whole steps; the rest carries
+        over); returns the events since the last call, oldest first."""
+        with self._lock:
+            if self._mode is not None and dt_s > 0:
+                span = self._carry_s + dt_s
+                if span > self.config.max_advance_s:
+                    log.warning("advance(%.3f s) capped at %.3f s", dt_s, self.config.max_advance_s)
+                    span = self.config.max_advance_s
+                n = int(span * self.config.physics_hz + 1e-9)
+                self._carry_s = span - n * self.config.dt_s
+                self._run(n)
+            events, self._events = self._events, []
+            return events
+
+    def status(self) -> DroneStatus:
+        """The drone's state now; raises DroneCommandError before spawn."""
+        with self._lock:
+            if self._mode is None:
+                raise DroneCommandError("no drone yet: it spawns with the first map")
+            q = self._quad
+            position = q.position
+            goto = self._mode == DroneMode.GOTO
+            return DroneStatus(
+                time_s=self._time_s,
+                T_flight_drone=q.T_flight_body,
+                velocity=q.velocity,
+                mode=self._mode,
+                clearance=float(self.flight_map.distance(position[None])[0]),
+                target=self._goal.copy() if goto else None,
+                route=self._remaining_route(self.config.max_route_points) if goto else None,
+                command_id=self._command_id,
+            )
+
+    @property
+    def spawned(self) -> bool:
+        return self._mode is not None
+
+    @property
+    def mode(self) -> DroneMode | None:
+        return self._mode
+
+    @property
+    def time_s(self) -> float:
+        return self._time_s
+
+    # Physics loop with collision checks
+
+    def _run(self, n: int) -> None:
+        q = self._quad
+        dt = self.config.dt_s
+        radius = self.config.radius_m
+        while n > 0:
+            if self._mode == DroneMode.LANDED:
+                self._time_s += n * dt
+                return
+            here = (q.px, q.py, q.pz)
+            clearance = float(self.flight_map.distance(np.array([here]))[0])
+            budget = (clearance - radius - self.config.voxel_m) / LIPSCHITZ_SAFETY
+            if budget > 0:
+                # Travel bound: |v| t + a_max t^2 / 2 <= budget.
+                v = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz)
+                t = (math.sqrt(v * v + 2 * self._a_max * budget) - v) / self._a_max
+                k = min(n, MAX_CHUNK_STEPS, int(t / dt))
+                if k > 0:
+                    for _ in range(k):
+                        self._step()
+                    n -= k
+                    continue
+            # Close to the map: query every step.
+            self._step()
+            n -= 1
+            new = (q.px, q.py, q.pz)
+            d_new = float(self.flight_map.distance(np.array([new]))[0])
+            # Inside an obstacle (the map grew into the drone) it may move out, never deeper.
+            touching = d_new < radius and d_new < clearance
+            if not touching and math.dist(here, new) > 0.5 * radius:
+                touching = not self.flight_map.segment_is_free(np.array(here), np.array(new),
+                                                               radius)
+            if touching:
+                self._contact(np.array(here))
+
+    def _step(self) -> None:
+        """Mode logic, controller and one physics step."""
+        mode = self._mode
+        if mode == DroneMode.GOTO:
+            self._follow_route()
+        elif mode == DroneMode.MANUAL:
+            self._fly_sticks()
+        q = self._quad
+        q.step(*self._ctrl.update(q, self._sp))
+        self._time_s += q.dt
+
+    def _contact(self, last_free: np.ndarray) -> None:
+        q = self._quad
+        yaw = q.yaw_rad
+        if self._mode == DroneMode.LANDING:
+            q.reset(last_free, yaw, hovering=False)
+            self._hold(last_free)
+            self._mode = DroneMode.LANDED
+            self._emit(DroneEventKind.LANDED, "touched down, motors off")
+            return
+        speed = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz)
+        q.reset(last_free, yaw, hovering=True)
+        self._hold(last_free)
+        t_last, p_last = self._last_collision
+        if (self._time_s - t_last > COLLISION_REPEAT_S
+                or np.linalg.norm(last_free - p_last) > COLLISION_REPEAT_M):
+            self._emit(DroneEventKind.COLLISION,
+                       f"hit the map at {speed:.2f} m/s; stopped and hovering")
+            self._last_collision = (self._time_s, last_free)
+
+    def _leave_obstacle(self) -> None:
+        """If the map grew into the drone, move it to the nearest free point (a collision)."""
+        q = self._quad
+        position = q.position
+        if float(self.flight_map.distance(position[None])[0]) >= self.config.radius_m:
+            return
+        free = self._nearest_free(position, self.config.planning_radius_m)
+        if free is None:
+            log.warning("the map grew into the drone at %s and no free space is near", position)
+            return
+        q.reset(np.asarray(free, dtype=float), q.yaw_rad, hovering=True)
+        self._hold(q.position)
+        self._emit(DroneEventKind.COLLISION, "the map grew into the drone; moved it out")
+
+    # Modes
+
+    def _hold(self, position) -> None:
+        self._clear_route()
+        self._mode = DroneMode.HOVER
+        self._sp.hold(position, self._quad.yaw_rad)
+
+    def _clear_route(self) -> None:
+        self._route = None
+        self._goal = None
+
+    def _require_flying(self, what: str) -> None:
+        if self._mode is None:
+            raise DroneCommandError("no drone yet: it spawns with the first map")
+        if self._mode == DroneMode.LANDED:
+            raise DroneCommandError(f"{what} needs a flying drone; it is landed (take off first)")
+
+    def _plan(self, goal: np.ndarray, speed: float):
+        cfg = self.config
+        return plan_path(self.flight_map, self._quad.position, goal, cfg.radius_m,
+                         margin_m=cfg.planning_margin_m, max_speed_m_s=speed,
+                         max_accel_m_s2=cfg.route_accel_m_s2,
+                         max_climb_rate_m_s=cfg.max_climb_rate_m_s)
+
+    def _start_route(self, route) -> None:
+        self._route = route
+        self._route_t = 0.0
+        # Sample the route once at the physics rate: per step, a lookup instead of numpy calls.
+        times = np.arange(math.ceil(route.duration_s / self.config.dt_s) + 2) * self.config.dt_s
+        self._table = np.hstack(route.sample(times)).tolist()
+        self._planned_at = self._time_s
+        self._mode = DroneMode.GOTO
+        self._sp.hold_xy = self._sp.hold_z = True
+
+    def _follow_route(self) -> None:
+        cfg = self.config
+        q, sp, route = self._quad, self._sp, self._route
+        # The route clock slows down, then stops, while the drone lags behind its setpoint.
+        lag = math.dist((q.px, q.py, q.pz), (sp.x, sp.y, sp.z))
+        rate = min(1.0, max(0.0, 2.0 - 2.0 * lag / cfg.max_tracking_lag_m))
+        self._route_t = min(self._route_t + rate * q.dt, route.duration_s)
+        u = self._route_t / q.dt
+        i = int(u)
+        f = u - i
+        now, after = self._table[i], self._table[i + 1]
+        x, y, z, vx, vy, vz, ax, ay, az = (
+            a + f * (b - a) for a, b in zip(now, after, strict=True))
+        r2 = rate * rate
+        sp.x, sp.y, sp.z = x, y, z
+        sp.vx, sp.vy, sp.vz = rate * vx, rate * vy, rate * vz
+        sp.ax, sp.ay, sp.az = r2 * ax, r2 * ay, r2 * az
+        # Face the direction of travel, turning no faster than the yaw-rate limit.
+        if math.hypot(sp.vx, sp.vy) > YAW_FOLLOW_MIN_SPEED:
+            turn = _wrap(math.atan2(sp.vy, sp.vx) - sp.yaw)
+            max_turn = math.radians(cfg.max_yaw_rate_deg_s) * q.dt
+            turn = min(max(turn, -max_turn), max_turn)
+            sp.yaw = _wrap(sp.yaw + turn)
+            sp.yaw_rate = turn / q.dt
+        else:
+            sp.yaw_rate = 0.0
+        if self._route_t >= route.duration_s:
+            gx, gy, gz = self._goal
+            near = math.dist((q.px, q.py, q.pz), (gx, gy, gz)) <= cfg.arrival_tolerance_m
+            slow = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz) <= cfg.arrival_speed_m_s
+            if near and slow:
+                goal = self._goal
+                self._hold(goal)
+                self._emit(DroneEventKind.ARRIVED, f"arrived at {np.round(goal, 2).tolist()}")
+
+    def _enter_manual(self) -> None:
+        self._clear_route()
+        self._mode = DroneMode.MANUAL
+        self._sp.hold(self._quad.position, self._quad.yaw_rad)
+
+    def _fly_sticks(self) -> None:
+        """Angle-mode sticks as velocity commands; a centred axis brakes, then holds position."""
+        cfg = self.config
+        q, sp = self._quad, self._sp
+        sticks = self._sticks
+        if self._time_s - self._sticks_at > cfg.stick_timeout_s:
+            sticks = (0.0, 0.0, 0.0, 0.0)
+        throttle, yaw, pitch, roll = (0.0 if abs(s) <= cfg.stick_deadband else s for s in sticks)
+        sp.yaw_rate = yaw * math.radians(cfg.max_yaw_rate_deg_s)
+        sp.yaw = _wrap(sp.yaw + sp.yaw_rate * q.dt)
+        sp.ax = sp.ay = sp.az = 0.0
+        if pitch or roll:
+            forward, right = pitch * cfg.max_speed_m_s, roll * cfg.max_speed_m_s
+            c, s = math.cos(sp.yaw), math.sin(sp.yaw)
+            sp.hold_xy, sp.vx, sp.vy = False, forward * c + right * s, forward * s - right * c
+        elif not sp.hold_xy:
+            sp.vx = sp.vy = 0.0
+            if math.hypot(q.vx, q.vy) < 0.1:  # braked: latch the position
+                sp.hold_xy, sp.x, sp.y = True, q.px, q.py
+        if throttle:
+            sp.hold_z, sp.vz = False, throttle * cfg.max_climb_rate_m_s
+        elif not sp.hold_z:
+            sp.vz = 0.0
+            if abs(q.vz) < 0.1:
+                sp.hold_z, sp.z = True, q.pz
+
+    # Helpers
+
+    def _remaining_route(self, limit: int | None = None) -> np.ndarray:
+        """From the setpoint onwards along the route's path; at most ``limit`` points (thinned
+        evenly, ends kept) when given."""
+        route = self._route
+        i = int(np.searchsorted(route.times, self._route_t, side="right"))
+        rest = np.vstack([[self._sp.x, self._sp.y, self._sp.z], route.path[i:]])
+        if limit is not None and len(rest) > limit:
+            rest = rest[np.linspace(0, len(rest) - 1, limit).round().astype(int)]
+        return rest
+
+    def _nearest_free(self, point: np.ndarray, radius_m: float) -> np.ndarray | None:
+        """``point`` itself when its clearance is ``radius_m`` or more, else the nearest free
+        cell centre (None when there is none)."""
+        if float(self.flight_map.distance(point[None])[0]) >= radius_m:
+            return point.copy()
+        free = self.flight_map.nearest_free(point, radius_m)
+        return None if free is None else np.asarray(free, dtype=float)
+
+    def _emit(self, kind: DroneEventKind, message: str) -> None:
+        q = self._quad
+        event = DroneEvent(kind, self._time_s, q.position, message, self._command_id)
+        log.debug("drone event %s at %.2f s: %s", kind.value, self._time_s, message)
+        self._events.append(event)
+
+    @staticmethod
+    def _point(value, what: str) -> np.ndarray:
+        point = np.asarray(value, dtype=float).reshape(-1)
+        if point.shape != (3,) or not np.all(np.isfinite(point)):
+            raise DroneCommandError(f"{what} must be 3 finite numbers, got {value!r}")
+        return point
+
+
+def _polyline_near_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether any segment of the polyline passes through the axis-aligned box (slab test)."""
+    if len(points) == 1:
+        return bool(np.all((points[0] >= lo) & (points[0] <= hi)))
+    a, d = points[:-1], np.diff(points, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (lo - a) / d
+        t1 = (hi - a) / d
+    t_near = np.where(d == 0, np.where((a >= lo) & (a <= hi), -np.inf, np.inf), np.minimum(t0, t1))
+    t_far = np.where(d == 0, np.where((a >= lo) & (a <= hi), np.inf, -np.inf), np.maximum(t0, t1))
+    enter = np.maximum(t_near.max(axis=1), 0.0)
+    leave = np.minimum(t_far.min(axis=1), 1.0)
+    return bool(np.any(enter <= leave))
+
+
+def _polyline_length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())

@@ -1,0 +1,381 @@
+"""The drone's world model: an occupancy grid and its Euclidean signed distance field (ESDF).
+
+Flight frame: metres, z up. Cell (i, j, k) spans ``origin + [i, i + 1) * voxel_m`` along x (and
+likewise j along y, k along z). A cell is *blocked* when it is occupied, or unobserved and
+``unknown_is_free`` is False; space outside the grid counts as unobserved.
+
+The field is stored at cell centres: for a free cell, the distance between its centre and the
+nearest blocked cell's centre minus half a voxel (so a face neighbour of a wall reads +v/2, the
+distance to the wall's face); for a blocked cell, minus the same towards the nearest free cell.
+It is clipped to +-``max_distance_m``. Queries interpolate it trilinearly, so a point on a wall's
+face reads 0. Near edges and corners of obstacles the centre-to-centre distance, and its
+interpolation, overstate the distance to the cells' boundary: by up to ~0.4 voxel around boxes
+and ~0.6 voxel around isolated cells; callers that need a hard guarantee keep a margin (the
+planner keeps half a voxel beyond the radius it is given).
+
+The grid is stored with a one-cell ring around it holding the "outside" state, which makes the
+field exactly that of the infinite lattice (the ring shields the interior from everything beyond
+it), so incremental updates can be checked against a full rebuild exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from server.errors import ConfigError, DroneSimError
+
+log = logging.getLogger(__name__)
+
+_LATTICE_TOL = 1e-3  # origins closer than this (in voxels) to the lattice count as on it
+_REBUILD_FRACTION = 0.5  # a changed region above this share of the grid triggers a full rebuild
+
+
+class FlightMapError(DroneSimError):
+    """A grid given to the flight map is malformed."""
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned box in the flight frame: ``lo`` and ``hi`` (3,) corners, metres."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def contains(self, points: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+        """(N,) bool: which points (N, 3) lie in the box grown by ``margin_m``."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return np.all((p >= self.lo - margin_m) & (p <= self.hi + margin_m), axis=1)
+
+
+def _slices(lo, hi) -> tuple[slice, slice, slice]:
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+
+
+# Integer boxes (lo, hi) of cells, hi exclusive.
+def _volume(box) -> int:
+    return int(np.prod(np.maximum(box[1] - box[0], 0)))
+
+
+def _bbox(mask: np.ndarray):
+    """The integer box (lo, hi) of a mask's True cells, or None."""
+    spans = []
+    for axis in range(3):
+        hit = np.flatnonzero(np.any(mask, axis=tuple(a for a in range(3) if a != axis)))
+        if hit.size == 0:
+            return None
+        spans.append((hit[0], hit[-1] + 1))
+    return np.array([a for a, _ in spans]), np.array([b for _, b in spans])
+
+
+def _intersect(a, b):
+    return np.maximum(a[0], b[0]), np.minimum(a[1], b[1])
+
+
+def _subtract(a, b) -> list:
+    """Disjoint boxes covering box a minus box b (at most six slabs)."""
+    lo, hi = np.array(a[0]), np.array(a[1])
+    pieces = []
+    for axis in range(3):
+        if lo[axis] < b[0][axis]:  # slab below b along this axis
+            top = hi.copy()
+            top[axis] = min(hi[axis], b[0][axis])
+            pieces.append((lo.copy(), top))
+            lo[axis] = min(hi[axis], b[0][axis])
+        if hi[axis] > b[1][axis]:  # slab above
+            bottom = lo.copy()
+            bottom[axis] = max(lo[axis], b[1][axis])
+            pieces.append((bottom, hi.copy()))
+            hi[axis] = max(lo[axis], b[1][axis])
+    return [p for p in pieces if _volume(p)]
+
+
+class FlightMap:
+    """Occupancy grid plus ESDF, replaced grid by grid as the session's map grows."""
+
+    def __init__(self, voxel_m: float = 0.05, unknown_is_free: bool = False,
+                 max_distance_m: float = 1.0):
+        """voxel_m: cell edge (m). unknown_is_free: treat unobserved cells (and the outside of
+        the grid) as free instead of blocked. max_distance_m: the field is clipped to +- this
+        (m); it also bounds how far an incremental update recomputes around a change, so it is
+        kept short: 1 m is 21 cells at 5 cm, and nothing here needs clearances beyond it."""
+        if not (voxel_m > 0 and max_distance_m > 0):
+            raise ConfigError(f"voxel_m and max_distance_m must be positive, got {voxel_m}, "
+                              f"{max_distance_m}")
+        self.voxel_m = float(voxel_m)
+        self.unknown_is_free = bool(unknown_is_free)
+        self.max_distance_m = float(max_distance_m)
+        self.version = 0
+        self.origin = np.zeros(3)
+        self._blocked = np.zeros((0, 0, 0), dtype=bool)
+        self._field = np.full((2, 2, 2), self._far, dtype=np.float32)  # padded by one cell
+        self._anchor: np.ndarray | None = None  # first origin: the lattice every grid sits on
+        self._lo = np.zeros(3, dtype=np.int64)  # lattice index of cell (0, 0, 0)
+        self._reach = math.ceil(self.max_distance_m / self.voxel_m) + 1  # cells a change reaches
+
+    # --- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_boxes(cls, bounds_min, bounds_max, boxes, voxel_m: float = 0.05,
+                   unknown_is_free: bool = False, max_distance_m: float = 1.0) -> FlightMap:
+        """A map where everything inside ``bounds`` (metres) is observed and every cell that
+        overlaps one of ``boxes`` (pairs of (3,) corners) is occupied. For tests and scenes."""
+        lo = np.asarray(bounds_min, dtype=np.float64)
+        shape = np.ceil((np.asarray(bounds_max, dtype=np.float64) - lo) / voxel_m - 1e-9)
+        shape = tuple(int(n) for n in np.maximum(shape, 1))
+        occupied = np.zeros(shape, dtype=bool)
+        for box_lo, box_hi in boxes:
+            # Cells whose open span overlaps the box's open interior.
+            a = np.floor((np.asarray(box_lo) - lo) / voxel_m + 1e-9).astype(int)
+            b = np.ceil((np.asarray(box_hi) - lo) / voxel_m - 1e-9).astype(int)
+            occupied[_slices(np.clip(a, 0, shape), np.clip(b, 0, shape))] = True
+        flight_map = cls(voxel_m, unknown_is_free, max_distance_m)
+        flight_map.update(lo, occupied, np.ones(shape, dtype=bool))
+        return flight_map
+
+    # --- properties --------------------------------------------------------------------------
+    @property
+    def _far(self) -> float:
+        """The field's value far away from everything, which is outside state."""
+        return self.max_distance_m if self.unknown_is_free else -self.max_distance_m
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self._blocked.shape
+
+    @property
+    def blocked(self) -> np.ndarray:
+        """(X, Y, Z) bool, read-only view."""
+        view = self._blocked.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def esdf(self) -> np.ndarray:
+        """(X, Y, Z) float32 signed distance at cell centres (metres), read-only view."""
+        view = self._field[1:-1, 1:-1, 1:-1]
+        view.flags.writeable = False
+        return view
+
+    @property
+    def bounds(self) -> Box:
+        """The grid's extent in the flight frame."""
+        return Box(self.origin.copy(), self.origin + np.array(self.shape) * self.voxel_m)
+
+    def cell_centres(self, ijk: np.ndarray) -> np.ndarray:
+        """(N, 3) integer cell indices -> (N, 3) centres, metres."""
+        return self.origin + (np.asarray(ijk, dtype=np.float64) + 0.5) * self.voxel_m
+
+    # --- updates -----------------------------------------------------------------------------
+    def update(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray) -> Box | None:
+        """Replace the map with this grid and bring the distance field up to date.
+
+        origin: (3,) corner of cell (0, 0, 0), metres; every grid after the first must sit on
+        the same lattice (else the field is rebuilt). occupied, observed: (X, Y, Z) bool.
+        Returns the region (metres) where the field may have changed: the cells whose blocked
+        state changed, grown by ``max_distance_m``; None when no cell changed.
+        """
+        origin = np.asarray(origin, dtype=np.float64).reshape(-1)
+        occupied, observed = np.asarray(occupied, dtype=bool), np.asarray(observed, dtype=bool)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise FlightMapError(f"origin must be 3 finite numbers, got {origin}")
+        if occupied.ndim != 3 or occupied.shape != observed.shape:
+            raise FlightMapError(f"occupied and observed must be (X, Y, Z) arrays of one shape, "
+                                 f"got {occupied.shape} and {observed.shape}")
+        blocked = occupied if self.unknown_is_free else occupied | ~observed
+
+        lo_new = self._lattice_index(origin)
+        if lo_new is None:
+            return self._rebuild(origin, blocked, first=True)
+        return self._update_incremental(origin, lo_new, blocked)
+
+    def _lattice_index(self, origin: np.ndarray) -> np.ndarray | None:
+        if self._anchor is None:
+            return None
+        steps = (origin - self._anchor) / self.voxel_m
+        lo = np.round(steps).astype(np.int64)
+        if np.any(np.abs(steps - lo) > _LATTICE_TOL):
+            log.warning("grid origin %s is off the flight map's lattice: full rebuild", origin)
+            return None
+        return lo
+
+    def _rebuild(self, origin, blocked, first=False, lo=None) -> Box:
+        if first:
+            self._anchor, lo = origin.copy(), np.zeros(3, dtype=np.int64)
+        self.origin, self._lo, self._blocked = origin.copy(), lo, blocked.copy()
+        self._field = self._signed_distance(self._padded(blocked))
+        self.version += 1
+        return self.bounds
+
+    def _padded(self, blocked: np.ndarray) -> np.ndarray:
+        outside = not self.unknown_is_free
+        return np.pad(blocked, 1, constant_values=outside)
+
+    def _signed_distance(self, blocked: np.ndarray) -> np.ndarray:
+        """Clipped signed distance at cell centres of a whole (padded) block, float32."""
+        v, d = self.voxel_m, self.max_distance_m
+        field = np.full(blocked.shape, d, dtype=np.float32)
+        if blocked.any() and not blocked.all():  # edt has no answer without a zero
+            outside = ndimage.distance_transform_edt(~blocked)  # free -> nearest blocked, cells
+            inside = ndimage.distance_transform_edt(blocked)  # blocked -> nearest free
+            field = np.where(blocked, -(inside - 0.5) * v, (outside - 0.5) * v)
+        elif blocked.all():
+            field[...] = -d
+        return np.clip(field, -d, d).astype(np.float32)
+
+    def _update_incremental(self, origin, lo_new, blocked) -> Box | None:
+        k = self._reach
+        old_lo, new_lo = self._lo, lo_new
+        old_hi, new_hi = old_lo + self.shape, new_lo + blocked.shape
+        # A union frame holding both padded grids; everything else has outside state.
+        u_lo = np.minimum(old_lo, new_lo) - 1
+        u_hi = np.maximum(old_hi, new_hi) + 1
+        outside = not self.unknown_is_free
+        old_u = np.full(u_hi - u_lo, outside)
+        new_u = np.full(u_hi - u_lo, outside)
+        old_u[_slices(old_lo - u_lo, old_hi - u_lo)] = self._blocked
+        new_u[_slices(new_lo - u_lo, new_hi - u_lo)] = blocked
+        changed = _bbox(old_u != new_u)
+        same_frame = np.array_equal(old_lo, new_lo) and self.shape == blocked.shape
+        if changed is None and same_frame:
+            return None
+
+        # Regions to recompute (union coordinates, clipped to the new padded grid): around the
+        # changed cells, and the cells of the new padded grid the old one did not store but
+        # close enough to the old grid that their field is not simply the far value.
+        p_lo, p_hi = new_lo - 1 - u_lo, new_hi + 1 - u_lo
+        regions = []
+        changed_box = None
+        if changed is not None:
+            c_lo, c_hi = changed
+            regions.append((c_lo - k, c_hi + k))
+            changed_box = Box(self._anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
+                              self._anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m)
+        near_old = (old_lo - k - u_lo, old_hi + k - u_lo)
+        for box in _subtract((p_lo, p_hi), (old_lo - 1 - u_lo, old_hi + 1 - u_lo)):
+            regions.append(_intersect(box, near_old))
+        regions = [b for b in (_intersect(r, (p_lo, p_hi)) for r in regions) if _volume(b)]
+        if sum(_volume(b) for b in regions) > _REBUILD_FRACTION * _volume((p_lo, p_hi)):
+            self._rebuild(origin, blocked, lo=new_lo)
+            return changed_box
+
+        # Old field carried into the new padded frame, far value where it was not stored.
+        field = np.full(p_hi - p_lo, self._far, dtype=np.float32)
+        ov_lo = np.maximum(old_lo - 1, new_lo - 1)
+        ov_hi = np.minimum(old_hi + 1, new_hi + 1)
+        if np.all(ov_hi > ov_lo):
+            field[_slices(ov_lo - new_lo + 1, ov_hi - new_lo + 1)] = \
+                self._field[_slices(ov_lo - old_lo + 1, ov_hi - old_lo + 1)]
+        for r_lo, r_hi in regions:
+            # Recompute the region from a window grown by the reach (nothing farther matters).
+            w_lo, w_hi = np.maximum(r_lo - k, p_lo), np.minimum(r_hi + k, p_hi)
+            window = self._signed_distance(new_u[_slices(w_lo, w_hi)])
+            field[_slices(r_lo - p_lo, r_hi - p_lo)] = window[_slices(r_lo - w_lo, r_hi - w_lo)]
+        self.origin, self._lo, self._blocked, self._field = origin.copy(), new_lo, \
+            blocked.copy(), field
+        self.version += 1
+        return changed_box
+
+    # --- queries -----------------------------------------------------------------------------
+    def _interpolate(self, points: np.ndarray, want_gradient: bool):
+        p = np.asarray(points, dtype=np.float64)
+        flat = p.reshape(-1, 3)
+        # Continuous index into the padded field: its cell 0 is the ring at -1.
+        u = (flat - self.origin) / self.voxel_m + 0.5
+        top = np.array(self._field.shape) - 1
+        u = np.clip(u, 0.0, top)
+        i0 = np.minimum(np.floor(u).astype(np.int64), top - 1)
+        f = u - i0
+        x, y, z = i0[:, 0], i0[:, 1], i0[:, 2]
+        F = self._field
+        c = np.empty((8, len(flat)), dtype=np.float64)
+        for n, (a, b, d) in enumerate(np.ndindex(2, 2, 2)):
+            c[n] = F[x + a, y + b, z + d]
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        # c index n = 4a + 2b + d; interpolate along z, then y, then x.
+        c00, c01 = c[0] + (c[1] - c[0]) * fz, c[2] + (c[3] - c[2]) * fz
+        c10, c11 = c[4] + (c[5] - c[4]) * fz, c[6] + (c[7] - c[6]) * fz
+        c0, c1 = c00 + (c01 - c00) * fy, c10 + (c11 - c10) * fy
+        value = (c0 + (c1 - c0) * fx).reshape(p.shape[:-1])
+        if not want_gradient:
+            return value
+        gx = c1 - c0
+        gy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
+        dz = [c[2 * m + 1] - c[2 * m] for m in range(4)]  # along z, at (a, b) = 00, 01, 10, 11
+        gz = ((dz[0] * (1 - fy) + dz[1] * fy) * (1 - fx) + (dz[2] * (1 - fy) + dz[3] * fy) * fx)
+        grad = np.stack([gx, gy, gz], axis=1) / self.voxel_m
+        return value, grad.reshape(p.shape)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance (metres) from points (..., 3) to the nearest blocked space: negative
+        inside it, clipped to +-max_distance_m; points beyond the grid read as its outside."""
+        return self._interpolate(points, want_gradient=False)
+
+    def gradient(self, points: np.ndarray) -> np.ndarray:
+        """(..., 3) gradient of ``distance`` (analytic, of the trilinear interpolation); it
+        points away from the nearest obstacle, length about 1 (0 where the field is clipped)."""
+        return self._interpolate(points, want_gradient=True)[1]
+
+    def is_free(self, points: np.ndarray, radius_m: float = 0.0) -> np.ndarray:
+        """(...,) bool: a sphere of ``radius_m`` at each point clears every blocked cell."""
+        return self.distance(points) >= radius_m
+
+    def segment_clearance(self, a: np.ndarray, b: np.ndarray):
+        """Least ``distance`` along the segment a-b, sampled every half voxel or closer (ends
+        included). a, b: (3,) for one segment (returns a float) or (M, 3) for M (returns (M,))."""
+        a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+        single = a.ndim == 1
+        a, b = a.reshape(-1, 3), b.reshape(-1, 3)
+        if len(a) == 0:
+            return np.empty(0)
+        lengths = np.linalg.norm(b - a, axis=1)
+        counts = np.ceil(lengths / (0.5 * self.voxel_m)).astype(np.int64) + 1
+        seg = np.repeat(np.arange(len(a)), counts)
+        starts = np.cumsum(counts) - counts
+        t = (np.arange(counts.sum()) - starts[seg]) / np.maximum(counts[seg] - 1, 1)
+        least = np.minimum.reduceat(self.distance(a[seg] + (b - a)[seg] * t[:, None]), starts)
+        return float(least[0]) if single else least
+
+    def segment_is_free(self, a: np.ndarray, b: np.ndarray, radius_m: float = 0.0):
+        """Whether a sphere of ``radius_m`` swept from a to b stays free (``segment_clearance``
+        >= radius_m). a, b: (3,) (returns bool) or (M, 3) (returns (M,) bool)."""
+        clearance = self.segment_clearance(a, b)
+        return bool(clearance >= radius_m) if np.ndim(clearance) == 0 else clearance >= radius_m
+
+    def nearest_free(self, point: np.ndarray, radius_m: float = 0.0) -> np.ndarray | None:
+        """The cell centre nearest to ``point`` whose clearance is at least ``radius_m``, or None
+        when there is none in the grid."""
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(p)) or 0 in self.shape:
+            return None
+        esdf = self.esdf
+        shape = np.array(self.shape)
+        centre = np.clip(np.floor((p - self.origin) / self.voxel_m).astype(np.int64), 0, shape - 1)
+        half = 4
+        while True:  # grow a window around the point until the best find is provably nearest
+            lo, hi = np.maximum(centre - half, 0), np.minimum(centre + half + 1, shape)
+            cells = np.argwhere(esdf[_slices(lo, hi)] >= radius_m) + lo
+            whole = np.all(lo == 0) and np.all(hi == shape)
+            if len(cells):
+                centres = self.cell_centres(cells)
+                d = np.linalg.norm(centres - p, axis=1)
+                best = int(np.argmin(d))
+                # Anything outside the window is farther than the window's inner half-width.
+                inner = (half - 0.5) * self.voxel_m - np.max(np.abs(p - self.cell_centres(centre)))
+                if whole or d[best] <= inner:
+                    return centres[best]
+            elif whole:
+                return None
+            half *= 2
+
+    def random_free_points(self, n: int, radius_m: float,
+                           rng: np.random.Generator) -> np.ndarray:
+        """(n, 3) cell centres drawn uniformly among those with clearance >= ``radius_m``;
+        (0, 3) when there are none."""
+        cells = np.argwhere(self.esdf >= radius_m)
+        if len(cells) == 0:
+            return np.empty((0, 3))
+        return self.cell_centres(cells[rng.integers(0, len(cells), size=n)])

@@ -174,6 +174,26 @@ def test_full_pitch_into_a_wall_collides_and_stops_on_the_near_side():
     assert status.T_flight_drone[0, 3] <= wall_x - R + 1e-6
 
 
+def test_checking_steps_in_chunks_rewinds_to_exactly_the_stepwise_result():
+    scene = room_with_door()
+    runs = []
+    for per_call in (1, 40):  # one physics step per advance, or 0.1 s (chunks near the wall)
+        drone = spawned(scene, at=(1.3, 0.6, 1.2))
+        events = []
+        for _ in range(round(1.5 * CONFIG.physics_hz / per_call)):
+            if round(drone.time_s / CONFIG.dt_s) % 40 == 0:
+                drone.command_sticks((0.1, 0.0, 1.0, 0.3))
+            events += drone.advance(per_call * CONFIG.dt_s)
+        runs.append((events, drone.status()))
+    (events_a, status_a), (events_b, status_b) = runs
+    assert DroneEventKind.COLLISION in kinds(events_a)
+    assert [(e.kind, e.time_s) for e in events_a] == [(e.kind, e.time_s) for e in events_b]
+    for a, b in zip(events_a, events_b, strict=True):
+        np.testing.assert_array_equal(a.position, b.position)
+    np.testing.assert_array_equal(status_a.T_flight_drone, status_b.T_flight_drone)
+    np.testing.assert_array_equal(status_a.velocity, status_b.velocity)
+
+
 def test_manual_flight_follows_the_sticks_then_centred_sticks_hold_position():
     scene = room_with_door()
     drone = spawned(scene, yaw=math.pi / 2)  # facing +y
@@ -271,7 +291,7 @@ def test_a_route_blocked_for_good_emits_blocked_and_holds():
     sealed = fm.blocked.copy()
     i = int((3.5 - fm.origin[0]) / fm.voxel_m)
     sealed[i:i + 3] = True  # a full wall across the room at x = 3.5
-    drone.on_map_update(fm.update(fm.origin, sealed, np.ones(fm.shape, bool)))
+    assert drone.update_map(fm.origin, sealed, np.ones(fm.shape, bool)) is not None
     events, _ = fly(drone, 2.0)
     assert DroneEventKind.BLOCKED in kinds(events)
     assert drone.status().mode == DroneMode.HOVER
@@ -314,6 +334,36 @@ def test_land_touches_down_and_takeoff_rises_again():
     status = drone.status()
     assert status.mode == DroneMode.HOVER
     assert status.T_flight_drone[2, 3] == pytest.approx(landed.position[2] + 1.0, abs=0.02)
+
+
+def test_throttle_up_when_landed_takes_off_into_manual_flight():
+    drone = spawned(room_with_door())
+    drone.command_land()
+    fly(drone, 4.0)
+    z0 = drone.status().T_flight_drone[2, 3]
+    drone.command_sticks((0.3, 0.0, 0.0, 0.0))  # below half throttle: stays on the ground
+    fly(drone, 0.3)
+    assert drone.mode == DroneMode.LANDED
+    for _ in range(5):
+        drone.command_sticks((1.0, 0.0, 0.0, 0.0))
+        drone.advance(0.1)
+    assert drone.mode == DroneMode.MANUAL
+    assert drone.status().T_flight_drone[2, 3] > z0 + 0.2
+    assert drone.status().velocity[2] > 0.5 * CONFIG.max_climb_rate_m_s
+
+
+def test_goto_with_a_bad_target_is_refused_and_changes_nothing():
+    scene = room_with_door()
+    drone = spawned(scene)
+    for bad in ([1.0, float("nan"), 1.0], [1.0, 2.0]):
+        with pytest.raises(DroneCommandError, match="goto target"):
+            drone.command_goto(bad)
+    with pytest.raises(PlanningError) as info:
+        drone.command_goto([2.0, 0.5, 1.2])  # inside the wall
+    assert info.value.reason == "goal_blocked"
+    assert info.value.nearest is not None
+    assert scene.flight_map.distance(info.value.nearest[None])[0] >= R
+    assert drone.status().mode == DroneMode.HOVER
 
 
 def test_takeoff_under_a_low_ceiling_stops_below_it():

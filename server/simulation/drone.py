@@ -7,7 +7,8 @@ physics steps (the remainder carries over to the next call).
 Collisions are checked at every physics step: the drone is a sphere of ``radius_m`` and touches
 the map when the distance field at its centre drops below the radius. The distance field is
 1-Lipschitz, so a chunk of steps whose travelled length is provably shorter than the clearance
-at its start needs no query per step; near obstacles every step is queried. A step moves at most
+at its start needs no query per step; near obstacles a few steps are run and every one of them
+is checked in one query, rewinding to the step before a contact. A step moves at most
 max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
 between two checks (the swept segment is covered), and ``segment_is_free`` guards longer steps.
 On contact the drone goes back to its last collision-free position, level and at rest, hovers,
@@ -38,6 +39,7 @@ log = logging.getLogger(__name__)
 
 LIPSCHITZ_SAFETY = 1.5  # the interpolated distance field may change faster than 1 m per metre
 MAX_CHUNK_STEPS = 100  # physics steps between distance queries far from obstacles
+NEAR_CHUNK_STEPS = 16  # near obstacles, steps checked together in one query
 YAW_FOLLOW_MIN_SPEED = 0.2  # m/s: below this a route does not turn the drone's heading
 # A drone pushed against a wall touches it again and again: one collision event per second
 # at the same place (the stop itself happens every time).
@@ -153,6 +155,7 @@ class DroneSimulator:
         Raises PlanningError (with ``reason`` and ``nearest``) when there is no route; the drone
         then holds where it is.
         """
+        target = self._point(target, "goto target")
         with self._lock:
             self._require_flying("goto")
             speed = self.config.cruise_speed_m_s if speed is None else float(speed)
@@ -161,11 +164,11 @@ class DroneSimulator:
             speed = min(speed, self.config.max_speed_m_s)
             self._command_id = command_id
             try:
-                route = self._plan(np.asarray(target, dtype=float), speed)
+                route = self._plan(target, speed)
             except PlanningError:
                 self._hold(self._quad.position)
                 raise
-            self._goal = np.asarray(target, dtype=float).copy()
+            self._goal = target
             self._speed = speed
             self._start_route(route)
 
@@ -244,6 +247,14 @@ class DroneSimulator:
             self._hold(start + [0.0, 0.0, good[-1]])
 
     # Map changes
+
+    def update_map(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray):
+        """``flight_map.update`` and ``on_map_update`` under the simulator's lock, so that no
+        physics step reads a half-replaced map; returns the changed box (or None)."""
+        with self._lock:
+            changed = self.flight_map.update(origin, occupied, observed)
+            self.on_map_update(changed)
+            return changed
 
     def on_map_update(self, changed_box) -> None:
         """The flight map changed inside ``changed_box`` (a flight_map.Box or a (lo, hi) pair of
@@ -351,7 +362,8 @@ class DroneSimulator:
             clearance = float(self.flight_map.distance(np.array([here]))[0])
             budget = (clearance - radius - self.config.voxel_m) / LIPSCHITZ_SAFETY
             if budget > 0:
-                # Travel bound: |v| t + a_max t^2 / 2 <= budget.
+                # Far from the map: steps whose travel |v| t + a_max t^2 / 2 stays within the
+                # budget cannot touch it; no query needed.
                 v = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz)
                 t = (math.sqrt(v * v + 2 * self._a_max * budget) - v) / self._a_max
                 k = min(n, MAX_CHUNK_STEPS, int(t / dt))
@@ -360,18 +372,51 @@ class DroneSimulator:
                         self._step()
                     n -= k
                     continue
-            # Close to the map: query every step.
-            self._step()
-            n -= 1
-            new = (q.px, q.py, q.pz)
-            d_new = float(self.flight_map.distance(np.array([new]))[0])
-            # Inside an obstacle (the map grew into the drone) it may move out, never deeper.
-            touching = d_new < radius and d_new < clearance
-            if not touching and math.dist(here, new) > 0.5 * radius:
-                touching = not self.flight_map.segment_is_free(np.array(here), np.array(new),
+            # Near the map: run a few steps, then check each of them in one query; on contact,
+            # rewind and replay up to the step before it (the simulation is deterministic).
+            k = min(n, NEAR_CHUNK_STEPS)
+            saved = self._save()
+            track = [here]
+            for _ in range(k):
+                self._step()
+                track.append((q.px, q.py, q.pz))
+            j = self._first_contact(np.array(track))
+            if j is None:
+                n -= k
+                continue
+            self._restore(saved)
+            for _ in range(j):
+                self._step()
+            self._time_s += dt  # the step that touched
+            self._contact(np.array(track[j]))
+            n -= j + 1
+
+    def _first_contact(self, track: np.ndarray) -> int | None:
+        """Index of the first step of ``track`` ((k + 1, 3) positions) that touches the map, or
+        None. Inside an obstacle (the map grew into the drone) it may move out, never deeper."""
+        radius = self.config.radius_m
+        d = self.flight_map.distance(track)
+        touching = (d[1:] < radius) & (d[1:] < d[:-1])
+        long = np.linalg.norm(np.diff(track, axis=0), axis=1) > 0.5 * radius
+        if long.any():  # never at the configured limits; sweep such steps explicitly
+            touching[long] |= ~self.flight_map.segment_is_free(track[:-1][long], track[1:][long],
                                                                radius)
-            if touching:
-                self._contact(np.array(here))
+        return int(np.argmax(touching)) if touching.any() else None
+
+    def _save(self) -> tuple:
+        """What a physics step may change, for ``_restore``."""
+        sp = self._sp
+        return (self._quad.state(), tuple(getattr(sp, name) for name in Setpoint.__slots__),
+                self._mode, self._route, self._goal, self._route_t, self._time_s,
+                len(self._events))
+
+    def _restore(self, saved: tuple) -> None:
+        quad_state, sp_state, self._mode, self._route, self._goal, self._route_t, \
+            self._time_s, n_events = saved
+        self._quad.set_state(quad_state)
+        for name, value in zip(Setpoint.__slots__, sp_state, strict=True):
+            setattr(self._sp, name, value)
+        del self._events[n_events:]
 
     def _step(self) -> None:
         """Mode logic, controller and one physics step."""

@@ -170,6 +170,15 @@ class Quadrotor:
             inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             self.qw, self.qx, self.qy, self.qz = qw * inv, qx * inv, qy * inv, qz * inv
 
+    def state(self) -> tuple[float, ...]:
+        """Position, velocity, quaternion, body rates and motor thrusts, for ``set_state``."""
+        return (self.px, self.py, self.pz, self.vx, self.vy, self.vz, self.qw, self.qx, self.qy,
+                self.qz, self.wx, self.wy, self.wz, self.f0, self.f1, self.f2, self.f3)
+
+    def set_state(self, state: tuple[float, ...]) -> None:
+        (self.px, self.py, self.pz, self.vx, self.vy, self.vz, self.qw, self.qx, self.qy,
+         self.qz, self.wx, self.wy, self.wz, self.f0, self.f1, self.f2, self.f3) = state
+
     # Read-outs (numpy, for callers outside the hot loop)
 
     def rotation(self) -> tuple[float, ...]:

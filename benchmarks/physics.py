@@ -1,0 +1,175 @@
+"""Physics benchmark: simulated steps per second of one drone on one core.
+
+Cases, from the bare dynamics up to the whole per-session simulator as the server runs it
+(``advance`` in frame-sized slices, collision checks every physics step included):
+
+- ``quadrotor``: ``Quadrotor.step`` with constant motor commands.
+- ``quadrotor + controller``: the cascaded controller holding a hover setpoint.
+- ``simulator hover``: ``DroneSimulator.advance`` hovering in the open.
+- ``simulator goto``: planned routes through the door of ``room_with_door``, back and forth
+  (planning time excluded: only ``advance`` is timed).
+- ``simulator on a wall``: full pitch into a wall, the worst case for collision queries (every
+  step is within reach of the wall, so every step queries the distance field).
+
+Prints steps/s, microseconds per step and the real-time factor at the configured physics rate
+against the target (>= 20x), and appends the table to ``benchmarks/results/physics.md``.
+
+    python benchmarks/physics.py [--seconds S]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core: numpy must not fan out
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from server.simulation.config import SimulationConfig  # noqa: E402
+from server.simulation.control import (  # noqa: E402
+    CascadedController,
+    ControlGains,
+    ControlLimits,
+    Setpoint,
+)
+from server.simulation.drone import DroneEventKind, DroneSimulator  # noqa: E402
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams  # noqa: E402
+from server.simulation.scenes import room_with_door  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "physics.md"
+TARGET_RTF = 20.0
+FRAME_S = 1.0 / 30.0  # the server advances the simulator once per frame or so
+console = Console(width=max(Console().width, 110))  # whole table, also when piped
+
+
+def bench_quadrotor(config: SimulationConfig, steps: int) -> tuple[int, float, float]:
+    params = QuadrotorParams.from_config(config)
+    quad = Quadrotor(params, config.dt_s)
+    f = params.hover_thrust_n
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        quad.step(f, f, f, f)
+    return steps, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def bench_controller(config: SimulationConfig, steps: int) -> tuple[int, float, float]:
+    params = QuadrotorParams.from_config(config)
+    quad = Quadrotor(params, config.dt_s)
+    ctrl = CascadedController(params, ControlGains.from_config(config),
+                              ControlLimits.from_config(config))
+    sp = Setpoint((0.3, -0.2, 0.1), 0.5)  # a small step, then hover
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        quad.step(*ctrl.update(quad, sp))
+    return steps, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def _timed_advance(drone: DroneSimulator, seconds: float,
+                   between: Callable[[DroneSimulator], None] | None = None):
+    """Advance in frame slices for ``seconds`` of simulated time; only advance() is timed."""
+    steps0, wall_s, cpu_s = drone.time_s, 0.0, 0.0
+    while drone.time_s - steps0 < seconds:
+        if between is not None:
+            between(drone)
+        wall, cpu = time.perf_counter(), time.process_time()
+        drone.advance(FRAME_S)
+        wall_s += time.perf_counter() - wall
+        cpu_s += time.process_time() - cpu
+    return round((drone.time_s - steps0) / drone.config.dt_s), wall_s, cpu_s
+
+
+def bench_hover(config: SimulationConfig, seconds: float):
+    scene = room_with_door(config.voxel_m)
+    drone = DroneSimulator(config, scene.flight_map)
+    drone.spawn(scene.start)
+    return _timed_advance(drone, seconds)
+
+
+def bench_goto(config: SimulationConfig, seconds: float):
+    scene = room_with_door(config.voxel_m)
+    drone = DroneSimulator(config, scene.flight_map)
+    drone.spawn(scene.start)
+    ends = [scene.goal, scene.start]
+    events: list = []
+
+    def next_route(d: DroneSimulator) -> None:
+        if d.mode.value != "goto":
+            d.command_goto(ends[0], speed=2.0)
+            ends.reverse()
+
+    steps, wall, cpu = 0, 0.0, 0.0
+    while steps * config.dt_s < seconds:
+        next_route(drone)
+        s, w, c = _timed_advance(drone, FRAME_S)
+        events += drone.advance(0.0)
+        steps, wall, cpu = steps + s, wall + w, cpu + c
+    if any(e.kind == DroneEventKind.COLLISION for e in events):
+        console.print("[red]the goto case collided[/red]")
+    return steps, wall, cpu
+
+
+def bench_wall(config: SimulationConfig, seconds: float):
+    scene = room_with_door(config.voxel_m)
+    drone = DroneSimulator(config, scene.flight_map)
+    drone.spawn([1.6, 0.6, 1.2])  # 0.3 m from the wall's face, facing it
+    return _timed_advance(drone, seconds, lambda d: d.command_sticks((0.0, 0.0, 1.0, 0.0)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=30.0,
+                        help="simulated seconds per case (default 30)")
+    args = parser.parse_args(argv)
+    config = SimulationConfig()
+    n = round(args.seconds * config.physics_hz)
+    cases = [
+        ("quadrotor", lambda: bench_quadrotor(config, n)),
+        ("quadrotor + controller", lambda: bench_controller(config, n)),
+        ("simulator hover", lambda: bench_hover(config, args.seconds)),
+        ("simulator goto", lambda: bench_goto(config, args.seconds)),
+        ("simulator on a wall", lambda: bench_wall(config, args.seconds)),
+    ]
+    table = Table(title=f"Physics, one drone, one core, {config.physics_hz} Hz "
+                        f"({args.seconds:g} simulated s per case)")
+    for column in ("case", "steps", "steps/s", "us/step", "cpu/wall", "real-time factor",
+                   f">= {TARGET_RTF:g}x"):
+        table.add_column(column, justify="left" if column == "case" else "right")
+    rows = []
+    for name, run in cases:
+        steps, wall, cpu = run()
+        rate = steps / wall
+        rtf = rate / config.physics_hz
+        rows.append((name, steps, rate, 1e6 / rate, cpu / wall, rtf))
+        table.add_row(name, f"{steps}", f"{rate:,.0f}", f"{1e6 / rate:.1f}", f"{cpu / wall:.2f}",
+                      f"{rtf:.1f}x", "✓" if rtf >= TARGET_RTF else "✗")
+    console.print(table)
+
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    with RESULTS.open("a") as out:
+        out.write(f"\n## {datetime.datetime.now().isoformat(timespec='seconds')}, "
+                  f"{platform.platform()}, {platform.processor() or platform.machine()}, "
+                  f"Python {platform.python_version()}, numpy {np.__version__}\n\n"
+                  f"`python {' '.join(['benchmarks/physics.py', *sys.argv[1:]])}`, "
+                  f"{config.physics_hz} Hz, {args.seconds:g} simulated s per case\n\n"
+                  f"| case | steps | steps/s | us/step | cpu/wall | real-time factor | "
+                  f">= {TARGET_RTF:g}x |\n|---|--:|--:|--:|--:|--:|:-:|\n")
+        for name, steps, rate, us, load, rtf in rows:
+            out.write(f"| {name} | {steps} | {rate:,.0f} | {us:.1f} | {load:.2f} | {rtf:.1f}x | "
+                      f"{'✓' if rtf >= TARGET_RTF else '✗'} |\n")
+    console.print(f"appended to {RESULTS}")
+    return 0 if all(row[5] >= TARGET_RTF for row in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

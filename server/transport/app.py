@@ -15,7 +15,7 @@ from server.sessions import SessionError, SessionManager
 from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.settings import Settings
-from server.transport import routes_sessions, websocket
+from server.transport import routes_client, routes_sessions, websocket
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_methods=["GET", "POST", "DELETE"], allow_headers=["Authorization"])
     app.include_router(routes_sessions.router)
     app.include_router(websocket.router)
+    app.include_router(routes_client.router)
 
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:

@@ -1,0 +1,344 @@
+// The page: wires the protocol, the session, a capture source (replay or live WebXR), the AR
+// and map views, the HUD and the pilot's controls. `window.dronesim` exposes the app (and a
+// JSON snapshot of what it saw) for debugging and the browser tests.
+
+import { ARView } from "./ar_view.js";
+import { SessionClient, State } from "./connection.js";
+import { upFromGravity } from "./geometry.js";
+import { Hud } from "./hud.js";
+import { MapView } from "./map_view.js";
+import { Pilot } from "./pilot.js";
+import { mapChunkArrays, Protocol } from "./protocol.js";
+import { LiveSource, liveSupport } from "./sources/live.js";
+import { ReplaySequence, ReplaySource } from "./sources/replay.js";
+import { Streamer } from "./streamer.js";
+
+const $ = (selector) => document.querySelector(selector);
+const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
+
+class App {
+  async init() {
+    this.hud = new Hud();
+    this.protocol = await Protocol.load();
+    this.client = new SessionClient(this.protocol);
+    this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
+    this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
+    this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right") });
+    this.streamer = null;
+    this.source = null;
+    this.seen = this.#emptySeen();
+    this.tapCommands = new Set(); // ids of goto commands from taps: unreachable ones retry the nearest point
+    this.#wireClient();
+    this.#wireControls();
+    this.#renderLoop();
+    this.#setupDialog();
+    this.hud.connection(State.IDLE);
+    const params = new URLSearchParams(window.location.search);
+    if (params.get("view")) this.setView(params.get("view"));
+    if (params.get("autostart")) this.start({ mode: params.get("autostart"), fps: Number(params.get("fps") || 15) });
+  }
+
+  #emptySeen() {
+    return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, events: [], errors: [], chunks: 0,
+      mapPoints: 0, serverDropped: 0, shownSeq: null };
+  }
+
+  // ---- session and streaming --------------------------------------------------------------------
+
+  /**
+   * Start streaming from a capture mode into a session.
+   * @param {{mode?: "demo"|"folder"|"live", fps?: number, fresh?: boolean, files?: FileList}} options
+   */
+  async start({ mode = "demo", fps = 15, fresh = false, files = null } = {}) {
+    this.stopStreaming();
+    this.source?.stop?.();
+    const button = $("#btn-stream");
+    button.disabled = true;
+    try {
+      let source;
+      if (mode === "live") {
+        source = new LiveSource(this.ar, $("#overlay-root"));
+        source.onEnd = () => this.stopStreaming("AR ended");
+        this.hud.toast("starting AR…");
+        source.info = await source.start();
+      } else {
+        if (mode === "demo") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
+        const sequence = mode === "folder" ? await ReplaySequence.fromFiles(files) : await ReplaySequence.fromServer();
+        source = new ReplaySource(sequence);
+        source.prefetch(0);
+      }
+      this.source = source;
+      const info = source.info;
+      const hello = this.protocol.hello(info);
+      const { id, resumed } = await this.client.open(hello, { fresh });
+      if (!resumed) this.#resetViews();
+      this.hud.toast(resumed ? `continuing session ${id}` : `new session ${id}`, "ok");
+      this.hello = hello;
+      this.ar.setCamera(info.intrinsics, info.colourSize);
+      const up = upFromGravity(info.gravity);
+      this.ar.setUp(up);
+      this.map.setUp(up);
+      this.streamer = new Streamer(this.client, source, { fps });
+      this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
+      this.streamer.addEventListener("failure", (e) => this.hud.toast(`capture failed: ${e.detail.message}`, "error", 8000));
+      this.streamer.start();
+    } catch (exc) {
+      console.error(exc);
+      this.hud.showBanner(exc.message, "error", 10000);
+      this.#streamingChanged({ running: false });
+      throw exc;
+    } finally {
+      button.disabled = false;
+    }
+  }
+
+  stopStreaming(reason = "") {
+    this.streamer?.stop(reason);
+  }
+
+  resume() {
+    if (this.streamer) this.streamer.start();
+    else this.start(this.#dialogChoice());
+  }
+
+  #resetViews() {
+    this.map.clear();
+    this.ar.clearDrone();
+    this.map.setDroneState(null);
+    this.seen = this.#emptySeen();
+    this.hud.drone(null);
+  }
+
+  #streamingChanged({ running, reason }) {
+    const button = $("#btn-stream");
+    button.textContent = running ? "Stop" : "Start";
+    button.classList.toggle("danger", running);
+    button.classList.toggle("primary", !running);
+    if (!running && reason) this.hud.toast(`streaming stopped: ${reason}`, "warn");
+  }
+
+  #wireClient() {
+    const c = this.client;
+    c.addEventListener("status", ({ detail }) => {
+      this.hud.connection(detail.state, detail.message);
+      if (detail.state === State.RECONNECTING) this.hud.showBanner(`Connection lost: ${detail.message}`, "warn", 0);
+      else if (detail.state === State.OPEN) this.hud.hideBanner();
+      else if (detail.state === State.ENDED) {
+        this.stopStreaming("the session ended");
+        this.hud.showBanner(`${detail.message}. Start again for a new session.`, "error", 0);
+        this.client.forget();
+        this.streamer = null;
+      }
+    });
+    c.addEventListener("pose", ({ detail: pose }) => this.#pose(pose));
+    c.addEventListener("map_chunk", ({ detail: chunk }) => {
+      const { points, colours } = mapChunkArrays(chunk);
+      this.map.addPoints(points, colours, chunk.reset === true);
+      this.seen.chunks += 1;
+      this.seen.mapPoints = this.map.pointCount;
+      this.hud.points(this.map.pointCount);
+      this.ar.setGroundHeight(this.map.groundHeight());
+    });
+    c.addEventListener("drone_state", ({ detail: state }) => {
+      this.seen.droneStates += 1;
+      this.seen.lastDrone = state;
+      this.ar.setDroneState(state);
+      this.map.setDroneState(state);
+      this.hud.drone(state);
+    });
+    c.addEventListener("drone_event", ({ detail: event }) => {
+      this.seen.events.push(event);
+      const where = event.position.map((v) => v.toFixed(2)).join(", ");
+      if (event.event === "collision") this.hud.showBanner(`Collision! ${event.message} (at ${where} m)`, "error", 5000);
+      else if (event.event === "blocked") this.hud.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
+      this.hud.toast(`${event.event}: ${event.message}`, EVENT_KINDS[event.event] ?? "info");
+    });
+    c.addEventListener("error", ({ detail: error }) => this.#serverError(error));
+  }
+
+  #pose(pose) {
+    const s = this.seen;
+    s.poses += 1;
+    s.states[pose.state] = (s.states[pose.state] ?? 0) + 1;
+    s.lastPose = { seq: pose.seq, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera };
+    s.serverDropped = pose.dropped;
+    this.hud.pose(pose);
+    this.map.addCameraPose(pose.T_world_camera);
+    const bitmap = this.streamer?.takeImage(pose.seq) ?? null;
+    this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera);
+    bitmap?.close?.();
+    s.shownSeq = pose.seq;
+  }
+
+  #serverError(error) {
+    this.seen.errors.push(error);
+    if (error.seq !== undefined) this.streamer?.dropImagesUpTo(error.seq);
+    if (error.name === "unreachable_target" && error.nearest && this.tapCommands.has(error.command_id)) {
+      this.tapCommands.delete(error.command_id);
+      this.hud.toast("That point cannot be reached: flying to the nearest reachable point instead.", "warn");
+      this.pilot.goto(error.nearest);
+      return;
+    }
+    const text = `${error.name} (${error.code}): ${error.message}`;
+    if (error.fatal) this.hud.showBanner(text, "error", 10000);
+    else this.hud.toast(text, "error", 6000);
+  }
+
+  // ---- pilot ------------------------------------------------------------------------------------
+
+  #tapAR(pixel, seq) {
+    const id = this.pilot.gotoPixel(pixel.map((v) => Math.round(v * 10) / 10), seq);
+    if (id !== null) this.tapCommands.add(id);
+    this.hud.toast(id === null ? "not connected: tap ignored" : `fly to pixel ${pixel.map(Math.round).join(", ")}`, id === null ? "warn" : "info", 2000);
+  }
+
+  #tapMap(picked) {
+    const target = MapView.targetFor(picked);
+    const id = this.pilot.goto(target);
+    if (id !== null) this.tapCommands.add(id);
+    this.hud.toast(id === null ? "not connected: tap ignored" : `fly to ${target.map((v) => v.toFixed(2)).join(", ")} m`, id === null ? "warn" : "info", 2000);
+  }
+
+  #wireControls() {
+    $("#btn-stream").addEventListener("click", () => (this.streamer?.running ? this.stopStreaming() : this.resume()));
+    $("#btn-takeoff").addEventListener("click", () => this.pilot.takeoff());
+    $("#btn-hold").addEventListener("click", () => this.pilot.hold());
+    $("#btn-land").addEventListener("click", () => this.pilot.land());
+    $("#btn-download").addEventListener("click", () => this.downloadMap());
+    $("#btn-menu").addEventListener("click", () => this.#openDialog());
+    $("#btn-fit").addEventListener("click", () => this.map.fit());
+    $("#btn-colour").addEventListener("click", (e) => {
+      const mode = this.map.colourMode === "height" ? "rgb" : "height";
+      this.map.setColourMode(mode);
+      e.target.textContent = mode === "height" ? "Height" : "Colour";
+    });
+    for (const button of document.querySelectorAll("[data-view]")) {
+      button.addEventListener("click", () => this.setView(button.dataset.view));
+    }
+    this.pilot.addEventListener("refused", (e) => this.hud.toast(`command refused here: ${e.detail.message}`, "error"));
+    this.setView(document.body.className.replace("layout-", "") || "split");
+  }
+
+  setView(view) {
+    document.body.classList.remove("layout-ar", "layout-split", "layout-map");
+    document.body.classList.add(`layout-${view}`);
+    for (const button of document.querySelectorAll("[data-view]")) {
+      button.setAttribute("aria-pressed", String(button.dataset.view === view));
+    }
+  }
+
+  async downloadMap() {
+    try {
+      const { blob, filename } = await this.client.downloadMap();
+      const url = URL.createObjectURL(blob);
+      const a = document.createElement("a");
+      a.href = url;
+      a.download = filename;
+      document.body.append(a);
+      a.click();
+      a.remove();
+      setTimeout(() => URL.revokeObjectURL(url), 10000);
+      this.hud.toast(`map saved as ${filename} (${(blob.size / 1e6).toFixed(1)} MB)`, "ok");
+    } catch (exc) {
+      this.hud.toast(exc.message, "error", 6000);
+    }
+  }
+
+  #renderLoop() {
+    let last = performance.now();
+    let lastHud = 0;
+    const frame = (now) => {
+      const dt = Math.min(0.1, (now - last) / 1000);
+      last = now;
+      const view = document.body.classList;
+      if (!view.contains("layout-map") && !this.source?.session) this.ar.render(dt);
+      if (!view.contains("layout-ar")) this.map.render(dt);
+      if (now - lastHud > 250) {
+        lastHud = now;
+        this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
+          serverDropped: this.seen.serverDropped });
+      }
+      requestAnimationFrame(frame);
+    };
+    requestAnimationFrame(frame);
+  }
+
+  // ---- setup dialog -------------------------------------------------------------------------------
+
+  #dialogChoice() {
+    const form = $("#setup-form");
+    const data = new FormData(form);
+    return { mode: data.get("mode"), fps: Number(data.get("fps")), fresh: data.get("session") === "new",
+      files: $("#folder-input").files };
+  }
+
+  #openDialog() {
+    const session = this.client.session;
+    $("#session-status").textContent = session ? `session ${session.id}` : "a new session starts if there is none";
+    $("#setup-error").hidden = true;
+    $("#setup").showModal();
+  }
+
+  async #setupDialog() {
+    const dialog = $("#setup");
+    const liveOption = $("#live-option");
+    const support = await liveSupport();
+    $("#live-status").textContent = support.reason;
+    if (!support.supported) {
+      liveOption.classList.add("unsupported");
+      liveOption.querySelector("input").disabled = true;
+    }
+    this.liveSupport = support;
+    $("#folder-input").addEventListener("change", () => {
+      document.querySelector('input[name="mode"][value="folder"]').checked = true;
+    });
+    dialog.addEventListener("close", async () => {
+      if (dialog.returnValue === "end") {
+        this.stopStreaming();
+        this.client.bye("ended by the user");
+        this.client.forget();
+        this.streamer = null;
+        this.#resetViews();
+        this.hud.toast("session ended", "info");
+      } else if (dialog.returnValue === "start") {
+        const choice = this.#dialogChoice();
+        if (choice.mode === "folder" && !choice.files?.length) {
+          this.hud.toast("pick a folder first", "warn");
+          return;
+        }
+        try {
+          await this.start(choice);
+        } catch {
+          /* shown in the banner */
+        }
+      }
+    });
+  }
+
+  /** What the page saw, as plain data (tests, debugging). */
+  snapshot() {
+    const rect = this.ar.stage.getBoundingClientRect();
+    return {
+      connection: this.client.state,
+      session: this.client.session?.id ?? null,
+      streaming: this.streamer?.running ?? false,
+      sent: this.client.counts.sent,
+      skipped: this.streamer?.skipped ?? 0,
+      inFlight: this.client.inFlight.size,
+      latencyMs: this.client.latencyMs,
+      hello: this.hello ?? null,
+      ...this.seen,
+      ar: { ...this.ar.lastDraw, stage: { left: rect.left, top: rect.top, width: rect.width, height: rect.height },
+        intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },
+      commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),
+      liveSupport: this.liveSupport ?? null,
+    };
+  }
+}
+
+const app = new App();
+window.dronesim = app;
+app.ready = app.init().catch((exc) => {
+  console.error(exc);
+  document.body.insertAdjacentHTML("afterbegin", `<p class="error" style="padding:12px">The page could not start: ${exc.message}</p>`);
+});

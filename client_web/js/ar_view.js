@@ -1,0 +1,256 @@
+// AR view: the camera image of the latest processed frame, full size, with a three.js overlay
+// whose camera has that frame's intrinsics: the drone at T_camera_drone, its ground marker, the
+// planned route and the target. Tapping the image reports the pixel in colour-image coordinates.
+//
+// Frames: the overlay's objects live in `root`, the three.js camera frame of the shown frame
+// (CV_TO_GL * camera frame). Replay: the three camera sits at the origin with the intrinsics'
+// projection. Live WebXR: root is anchored at the XR pose the frame was captured at, and
+// three's XR camera draws it over the live camera.
+
+import * as THREE from "three";
+import { Line2 } from "three/addons/lines/Line2.js";
+import { LineGeometry } from "three/addons/lines/LineGeometry.js";
+import { LineMaterial } from "three/addons/lines/LineMaterial.js";
+import { createDrone, createGroundMarker, createTargetMarker } from "./drone_model.js";
+import { CV_TO_GL, matrixFromRowMajor, projectPoint } from "./geometry.js";
+import { projectionFromIntrinsics } from "./packing.js";
+
+const TAP_MAX_MOVE_PX = 12;
+const TAP_MAX_MS = 700;
+const Z_AXIS = new THREE.Vector3(0, 0, 1);
+
+export class ARView {
+  /**
+   * @param {HTMLElement} container
+   * @param {{onTap?: (pixel: number[], seq: number, event: PointerEvent) => void}} options
+   */
+  constructor(container, { onTap } = {}) {
+    this.container = container;
+    this.onTap = onTap;
+    this.stage = document.createElement("div");
+    this.stage.className = "ar-stage";
+    this.image = document.createElement("canvas");
+    this.image.className = "ar-image";
+    this.ctx = this.image.getContext("2d");
+    this.renderer = new THREE.WebGLRenderer({ antialias: true, alpha: true });
+    this.renderer.setClearColor(0x000000, 0);
+    this.renderer.domElement.className = "ar-overlay";
+    this.tapMarker = document.createElement("div");
+    this.tapMarker.className = "tap-marker";
+    this.stage.append(this.image, this.renderer.domElement, this.tapMarker);
+    container.append(this.stage);
+
+    this.scene = new THREE.Scene();
+    this.camera = new THREE.PerspectiveCamera();
+    this.camera.matrixAutoUpdate = false;
+    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 1.6));
+    const sun = new THREE.DirectionalLight(0xffffff, 1.2);
+    sun.position.set(0.3, 1, 0.5);
+    this.scene.add(sun);
+    this.root = new THREE.Group();
+    this.root.matrixAutoUpdate = false;
+    this.scene.add(this.root);
+    for (const name of ["drone", "marker", "target"]) {
+      this[name] = { drone: createDrone, marker: createGroundMarker, target: createTargetMarker }[name]();
+      this[name].matrixAutoUpdate = false;
+      this[name].visible = false;
+      this.root.add(this[name]);
+    }
+    this.routeMaterial = new LineMaterial({ color: 0xffd400, linewidth: 4, transparent: true, opacity: 0.9,
+      dashed: false, depthTest: false });
+    this.route = new Line2(new LineGeometry(), this.routeMaterial);
+    this.route.visible = false;
+    this.route.renderOrder = 2;
+    this.root.add(this.route);
+
+    this.intrinsics = null;
+    this.colourSize = null;
+    this.frame = null; // {seq, T_world_camera, T_camera_world, bitmap}
+    this.droneState = null;
+    this.up = new THREE.Vector3(0, -1, 0);
+    this.groundHeight = null; // height of the floor along `up`, metres (from the map)
+    this.xrAnchor = null; // live mode: (seq) => Matrix4 XR pose of that frame's GL camera
+    this.lastDraw = { droneVisible: false };
+    this.#listen();
+    new ResizeObserver(() => this.layout()).observe(container);
+  }
+
+  /** The colour camera: [fx, fy, cx, cy] pixels for an image of colourSize [w, h]. */
+  setCamera(intrinsics, colourSize) {
+    this.intrinsics = [...intrinsics];
+    this.colourSize = [...colourSize];
+    this.image.width = colourSize[0];
+    this.image.height = colourSize[1];
+    this.camera.projectionMatrix.fromArray(projectionFromIntrinsics(intrinsics, ...colourSize, 0.03, 200));
+    this.camera.projectionMatrixInverse.copy(this.camera.projectionMatrix).invert();
+    this.layout();
+  }
+
+  setUp(up) {
+    this.up.copy(up);
+  }
+
+  setGroundHeight(h) {
+    this.groundHeight = h;
+  }
+
+  /** Fit the image (contain) into the container; the overlay covers exactly the image. */
+  layout() {
+    const { clientWidth: cw, clientHeight: ch } = this.container;
+    if (!cw || !ch) return;
+    const [w, h] = this.colourSize ?? [4, 3];
+    const scale = Math.min(cw / w, ch / h);
+    const sw = Math.max(1, Math.round(w * scale));
+    const sh = Math.max(1, Math.round(h * scale));
+    Object.assign(this.stage.style, {
+      width: `${sw}px`, height: `${sh}px`, left: `${Math.round((cw - sw) / 2)}px`, top: `${Math.round((ch - sh) / 2)}px`,
+    });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.setSize(sw, sh);
+    this.routeMaterial.resolution.set(sw, sh);
+    this.render(0);
+  }
+
+  /** Show a processed frame: its image (ImageBitmap or canvas source) and camera pose. */
+  showFrame(bitmap, seq, T_world_camera) {
+    if (bitmap) {
+      this.ctx.drawImage(bitmap, 0, 0, this.image.width, this.image.height);
+      this.container.classList.add("has-image");
+    }
+    const Twc = matrixFromRowMajor(T_world_camera);
+    this.frame = { seq, T_world_camera: Twc, T_camera_world: Twc.clone().invert() };
+  }
+
+  setDroneState(state) {
+    this.droneState = state;
+  }
+
+  clearDrone() {
+    this.droneState = null;
+  }
+
+  /** T_camera_drone (OpenCV camera of the shown frame) as a Matrix4, or null. */
+  droneInCamera() {
+    const s = this.droneState;
+    if (!s || !this.frame) return null;
+    if (s.T_camera_drone && (s.camera_seq === undefined || s.camera_seq === this.frame.seq)) {
+      return matrixFromRowMajor(s.T_camera_drone);
+    }
+    // The state is for another frame's camera: go through the world frame.
+    return this.frame.T_camera_world.clone().multiply(matrixFromRowMajor(s.T_world_drone));
+  }
+
+  /** Update the overlay's objects and draw. dt: seconds since the last call (rotor spin). */
+  render(dt = 0) {
+    const s = this.droneState;
+    const frame = this.frame;
+    const Tcd = this.droneInCamera();
+    if (frame && this.xrAnchor) {
+      const anchor = this.xrAnchor(frame.seq);
+      if (anchor) this.root.matrix.copy(anchor);
+    }
+    this.root.matrixWorldNeedsUpdate = true;
+    this.drone.visible = Tcd !== null;
+    this.lastDraw = { droneVisible: false };
+    if (Tcd) {
+      this.drone.matrix.multiplyMatrices(CV_TO_GL, Tcd);
+      this.drone.userData.update(dt, s.mode !== "landed");
+      const p = new THREE.Vector3().setFromMatrixPosition(Tcd);
+      const pixel = projectPoint(this.intrinsics ?? [1, 1, 0, 0], [p.x, p.y, p.z]);
+      this.lastDraw = { droneVisible: true, seq: frame.seq, cameraPoint: p.toArray(), pixel };
+    }
+    this.#placeGroundMarker(s, frame);
+    this.#placeRoute(s, frame);
+    this.renderer.render(this.scene, this.camera);
+  }
+
+  /** world point -> root frame (three camera of the shown frame). */
+  #toRoot(frame, point) {
+    return point.clone().applyMatrix4(frame.T_camera_world).applyMatrix4(CV_TO_GL);
+  }
+
+  #placeGroundMarker(s, frame) {
+    this.marker.visible = false;
+    this.target.visible = false;
+    if (!s || !frame) return;
+    const rotation = new THREE.Matrix4().extractRotation(frame.T_camera_world).premultiply(CV_TO_GL)
+      .multiply(new THREE.Matrix4().makeRotationFromQuaternion(new THREE.Quaternion().setFromUnitVectors(Z_AXIS, this.up)));
+    if (this.groundHeight !== null) {
+      const drone = new THREE.Vector3().setFromMatrixPosition(matrixFromRowMajor(s.T_world_drone));
+      const height = drone.dot(this.up) - this.groundHeight;
+      const ground = drone.clone().addScaledVector(this.up, -height);
+      this.marker.matrix.copy(rotation).setPosition(this.#toRoot(frame, ground));
+      this.marker.userData.setHeight(height);
+      this.marker.matrixWorldNeedsUpdate = true;
+      this.marker.visible = true;
+    }
+    if (s.target) {
+      this.target.matrix.copy(rotation).setPosition(this.#toRoot(frame, new THREE.Vector3(...s.target)));
+      this.target.visible = true;
+    }
+  }
+
+  #placeRoute(s, frame) {
+    const flat = s?.route;
+    if (!frame || !flat || flat.length < 6) {
+      this.route.visible = false;
+      return;
+    }
+    const positions = [];
+    for (let i = 0; i + 2 < flat.length; i += 3) {
+      positions.push(...this.#toRoot(frame, new THREE.Vector3(flat[i], flat[i + 1], flat[i + 2])).toArray());
+    }
+    this.route.geometry.dispose();
+    this.route.geometry = new LineGeometry();
+    this.route.geometry.setPositions(positions);
+    this.route.computeLineDistances();
+    this.route.visible = true;
+  }
+
+  /** Pixel [u, v] of the colour image under a client point, or null outside the image. */
+  pixelAt(clientX, clientY) {
+    if (!this.colourSize) return null;
+    const rect = this.stage.getBoundingClientRect();
+    const x = (clientX - rect.left) / rect.width;
+    const y = (clientY - rect.top) / rect.height;
+    if (x < 0 || x > 1 || y < 0 || y > 1) return null;
+    // pixel centres at integers: pixel u covers [u - 0.5, u + 0.5)
+    return [Math.max(0, x * this.colourSize[0] - 0.5), Math.max(0, y * this.colourSize[1] - 0.5)];
+  }
+
+  /** Client (CSS px) point of a colour-image pixel: where the tests and markers look. */
+  clientPointOf([u, v]) {
+    const rect = this.stage.getBoundingClientRect();
+    return [rect.left + ((u + 0.5) / this.colourSize[0]) * rect.width, rect.top + ((v + 0.5) / this.colourSize[1]) * rect.height];
+  }
+
+  showTap(pixel) {
+    const [x, y] = this.clientPointOf(pixel);
+    const rect = this.stage.getBoundingClientRect();
+    this.tapMarker.style.left = `${x - rect.left}px`;
+    this.tapMarker.style.top = `${y - rect.top}px`;
+    this.tapMarker.classList.remove("show");
+    void this.tapMarker.offsetWidth; // restart the animation
+    this.tapMarker.classList.add("show");
+  }
+
+  #listen() {
+    let down = null;
+    const el = this.stage;
+    el.addEventListener("pointerdown", (e) => {
+      down = { x: e.clientX, y: e.clientY, t: performance.now(), id: e.pointerId };
+    });
+    el.addEventListener("pointercancel", () => (down = null));
+    el.addEventListener("pointerup", (e) => {
+      if (!down || down.id !== e.pointerId) return;
+      const moved = Math.hypot(e.clientX - down.x, e.clientY - down.y);
+      const quick = performance.now() - down.t < TAP_MAX_MS;
+      down = null;
+      if (moved > TAP_MAX_MOVE_PX || !quick || !this.frame) return;
+      const pixel = this.pixelAt(e.clientX, e.clientY);
+      if (!pixel) return;
+      this.showTap(pixel);
+      this.onTap?.(pixel, this.frame.seq, e);
+    });
+  }
+}

@@ -1,0 +1,183 @@
+// Live source: the phone's camera and depth through WebXR (Chrome on Android with ARCore).
+// An immersive-ar session with depth-sensing (cpu-optimized) and camera-access; each captured
+// frame is the camera image read back from its WebGL texture (downscaled, JPEG), the depth
+// buffer resampled onto the view and packed as zlib uint16 millimetres, and the view's pose in
+// the XR space, which anchors the AR overlay of that frame. Intrinsics come from the view's
+// projection matrix and viewport; gravity from the gravity-aligned "local" reference space.
+
+import * as THREE from "three";
+import {
+  DEPTH_SCALE_MM, depthSizeFor, encodeJpeg, flipRows, gravityInCamera, intrinsicsFromProjection, packDepth,
+  resampleDepth, scaleIntrinsics,
+} from "../packing.js";
+
+const COLOUR_LONG_SIDE = 640; // colour sent at 640 px on the long side (see PROTOCOL.md, bandwidth)
+const ANCHORS_KEPT = 64;
+
+/** Whether this browser can run the live mode, and if not, why, in plain words. */
+export async function liveSupport() {
+  if (!window.isSecureContext) {
+    return { supported: false, reason: "Live AR needs a secure page: start the server with --tls and open its https:// address on the phone." };
+  }
+  if (!navigator.xr) {
+    return { supported: false, reason: "This browser has no WebXR. Live AR needs Chrome on an Android phone with ARCore (Google Play Services for AR)." };
+  }
+  let ar = false;
+  try {
+    ar = await navigator.xr.isSessionSupported("immersive-ar");
+  } catch {
+    ar = false;
+  }
+  if (!ar) {
+    return { supported: false, reason: "This browser or device does not offer WebXR immersive-ar (AR). Live AR needs Chrome on an Android phone with ARCore." };
+  }
+  return { supported: true, reason: "WebXR immersive-ar is available; depth sensing and camera access are checked when AR starts." };
+}
+
+export class LiveSource {
+  /**
+   * @param {import("../ar_view.js").ARView} arView its renderer draws the XR overlay
+   * @param {HTMLElement} overlayRoot shown over the camera (dom-overlay): HUD and controls
+   */
+  constructor(arView, overlayRoot) {
+    this.kind = "live";
+    this.arView = arView;
+    this.overlayRoot = overlayRoot;
+    this.anchors = new Map(); // seq -> Matrix4 (XR pose of the frame's GL camera)
+    this.request = null; // {resolve, reject, timestamp} of the next capture
+    this.onEnd = null;
+  }
+
+  /** Start the XR session; resolves with the camera description for the hello. */
+  async start() {
+    const options = {
+      requiredFeatures: ["depth-sensing", "camera-access", "local"],
+      optionalFeatures: ["dom-overlay"],
+      depthSensing: { usagePreference: ["cpu-optimized"], dataFormatPreference: ["luminance-alpha", "float32"] },
+      domOverlay: { root: this.overlayRoot },
+    };
+    try {
+      this.session = await navigator.xr.requestSession("immersive-ar", options);
+    } catch (exc) {
+      throw new Error(`AR could not start with depth sensing and camera access (${exc.name}: ${exc.message}). ` +
+        "This device or browser gives the web no depth or no camera image; use replay instead.");
+    }
+    const renderer = this.arView.renderer;
+    renderer.xr.enabled = true;
+    renderer.xr.setReferenceSpaceType("local");
+    await renderer.xr.setSession(this.session);
+    this.gl = renderer.getContext();
+    this.binding = new XRWebGLBinding(this.session, this.gl);
+    this.space = renderer.xr.getReferenceSpace();
+    this.session.addEventListener("end", () => this.#ended());
+    this.arView.xrAnchor = (seq) => this.anchors.get(seq) ?? null;
+    this.arView.container.classList.add("xr");
+    this.info = await new Promise((resolve, reject) => {
+      this.describe = { resolve, reject };
+      renderer.setAnimationLoop((time, frame) => this.#onFrame(time, frame));
+    });
+    return this.info;
+  }
+
+  #ended() {
+    this.arView.renderer.setAnimationLoop(null);
+    this.arView.renderer.xr.enabled = false;
+    this.arView.xrAnchor = null;
+    this.arView.container.classList.remove("xr");
+    this.request?.reject(new Error("AR session ended"));
+    this.request = null;
+    this.session = null;
+    this.onEnd?.();
+  }
+
+  stop() {
+    this.session?.end();
+  }
+
+  /** The next XR frame, packed: resolves {fields, bitmap, anchor}. */
+  capture(tick, timestamp) {
+    if (!this.session) return Promise.resolve(null);
+    return new Promise((resolve, reject) => (this.request = { resolve, reject, timestamp }));
+  }
+
+  /** Remember the anchor of a sent frame under its seq (the overlay of that frame uses it). */
+  keep(seq, anchor) {
+    this.anchors.set(seq, anchor);
+    for (const key of this.anchors.keys()) if (this.anchors.size > ANCHORS_KEPT) this.anchors.delete(key);
+  }
+
+  #onFrame(time, frame) {
+    const pose = frame.getViewerPose(this.space);
+    this.arView.render(1 / 60);
+    if (!pose) return;
+    const view = pose.views[0];
+    const layer = this.session.renderState.baseLayer;
+    if (this.describe) {
+      const depth = frame.getDepthInformation(view);
+      if (!view.camera || !depth) return; // not ready yet
+      const viewport = layer.getViewport(view);
+      const scale = COLOUR_LONG_SIDE / Math.max(view.camera.width, view.camera.height);
+      const colourSize = [Math.round(view.camera.width * scale), Math.round(view.camera.height * scale)];
+      const K = intrinsicsFromProjection(view.projectionMatrix, viewport.width, viewport.height);
+      this.colourSize = colourSize;
+      this.depthSize = depthSizeFor(colourSize, depth.width, depth.height);
+      this.describe.resolve({
+        clientName: `web/1.0 live (${navigator.userAgent.match(/\(([^)]*)\)/)?.[1] ?? "XR"})`.slice(0, 64),
+        intrinsics: scaleIntrinsics(K, [viewport.width, viewport.height], colourSize),
+        colourSize, depthSize: this.depthSize, depthScale: DEPTH_SCALE_MM,
+        gravity: gravityInCamera(view.transform.matrix),
+      });
+      this.describe = null;
+    }
+    if (!this.request) return;
+    const request = this.request;
+    this.request = null;
+    try {
+      const rgba = this.#readCamera(view);
+      const depth = frame.getDepthInformation(view);
+      const anchor = new THREE.Matrix4().fromArray(view.transform.matrix);
+      this.#pack(rgba, depth, request.timestamp).then((packed) => request.resolve({ ...packed, anchor }), request.reject);
+    } catch (exc) {
+      request.reject(exc);
+    }
+  }
+
+  /** The camera image, downscaled to colourSize, as top-down RGBA ImageData. */
+  #readCamera(view) {
+    const gl = this.gl;
+    const texture = this.binding.getCameraImage(view.camera);
+    const [w, h] = this.colourSize;
+    const previous = gl.getParameter(gl.FRAMEBUFFER_BINDING);
+    this.readFb ??= gl.createFramebuffer();
+    this.smallFb ??= gl.createFramebuffer();
+    if (!this.smallRb) {
+      this.smallRb = gl.createRenderbuffer();
+      gl.bindRenderbuffer(gl.RENDERBUFFER, this.smallRb);
+      gl.renderbufferStorage(gl.RENDERBUFFER, gl.RGBA8, w, h);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.smallFb);
+      gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.RENDERBUFFER, this.smallRb);
+    }
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.readFb);
+    gl.framebufferTexture2D(gl.READ_FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
+    gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, this.smallFb);
+    gl.blitFramebuffer(0, 0, view.camera.width, view.camera.height, 0, 0, w, h, gl.COLOR_BUFFER_BIT, gl.LINEAR);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.smallFb);
+    const pixels = new Uint8Array(w * h * 4);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, previous);
+    this.arView.renderer.resetState(); // three.js tracks GL state: tell it we touched it
+    return new ImageData(flipRows(pixels, w, h), w, h); // GL rows are bottom-up
+  }
+
+  async #pack(rgba, depthInfo, timestamp) {
+    const [dw, dh] = this.depthSize;
+    const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depthInfo.data) : new Uint16Array(depthInfo.data);
+    const values = resampleDepth(raw, depthInfo.width, depthInfo.height, dw, dh, depthInfo.normDepthBufferFromNormView.matrix);
+    const [colour, depth, bitmap] = await Promise.all([
+      encodeJpeg(rgba, 0.8),
+      packDepth(values, { rawValueToMeters: depthInfo.rawValueToMeters, depthScale: DEPTH_SCALE_MM }),
+      createImageBitmap(rgba),
+    ]);
+    return { bitmap, fields: { timestamp, colour, ...depth } };
+  }
+}

@@ -1,0 +1,100 @@
+// The capture loop: a camera that "captures" at up to `fps`; a frame captured while the session
+// already has max_in_flight frames unanswered (or is still packing the previous one, or is not
+// connected) is skipped, as a phone's camera would drop it. Sent frames keep their image for the
+// AR view until their pose arrives.
+
+export class Streamer extends EventTarget {
+  /**
+   * @param {import("./connection.js").SessionClient} client
+   * @param {{capture: (tick: number, timestamp: number) => Promise<object|null>, keep?: Function}} source
+   */
+  constructor(client, source, { fps = 15 } = {}) {
+    super();
+    this.client = client;
+    this.source = source;
+    this.fps = fps;
+    this.running = false;
+    this.tick = 0;
+    this.capturing = false;
+    this.skipped = 0; // camera frames dropped on this side
+    this.images = new Map(); // seq -> ImageBitmap, until shown or answered
+  }
+
+  start() {
+    if (this.running) return;
+    this.running = true;
+    this.t0 = performance.now();
+    this.firstTick = this.tick;
+    this.#schedule();
+    this.dispatchEvent(new CustomEvent("state", { detail: { running: true } }));
+  }
+
+  stop(reason = "") {
+    if (!this.running) return;
+    this.running = false;
+    clearTimeout(this.timer);
+    this.dispatchEvent(new CustomEvent("state", { detail: { running: false, reason } }));
+  }
+
+  #schedule() {
+    const due = this.t0 + ((this.tick - this.firstTick + 1) * 1000) / this.fps;
+    this.timer = setTimeout(() => this.#onTick(), Math.max(0, due - performance.now()));
+  }
+
+  async #onTick() {
+    if (!this.running) return;
+    const tick = this.tick++;
+    this.#schedule();
+    if (this.capturing || !this.client.isOpen || this.client.busy) {
+      this.skipped += 1;
+      if (this.client.isOpen) this.client.skipSeq();
+      else this.client.wake(); // a session paused by the server's idle timeout reconnects
+      return;
+    }
+    this.capturing = true;
+    try {
+      const captured = await this.source.capture(tick, performance.now() / 1000);
+      if (!captured) {
+        this.stop("end of the sequence");
+        return;
+      }
+      const seq = this.client.sendFrame(captured.fields);
+      if (seq === null) {
+        this.skipped += 1;
+        captured.bitmap?.close();
+      } else {
+        this.images.set(seq, captured.bitmap);
+        if (captured.anchor) this.source.keep?.(seq, captured.anchor);
+        this.dispatchEvent(new CustomEvent("sent", { detail: { seq, index: captured.index } }));
+      }
+    } catch (exc) {
+      this.stop(`capture failed: ${exc.message}`);
+      this.dispatchEvent(new CustomEvent("failure", { detail: exc }));
+    } finally {
+      this.capturing = false;
+    }
+  }
+
+  /** The image of frame seq (for the AR view), releasing the images of older frames. */
+  takeImage(seq) {
+    const bitmap = this.images.get(seq) ?? null;
+    for (const [s, b] of this.images) {
+      if (s < seq) {
+        b?.close();
+        this.images.delete(s);
+      }
+    }
+    this.images.delete(seq);
+    return bitmap;
+  }
+
+  /** Forget images of frames that an error answered (no pose will show them). */
+  dropImagesUpTo(seq) {
+    for (const [s, b] of this.images) {
+      if (s <= seq) {
+        b?.close();
+        this.images.delete(s);
+      }
+    }
+  }
+}

@@ -1,0 +1,162 @@
+"""The phone page: ``client_web/`` at ``/``, its vendored npm modules, the protocol definition
+and the bundled demo sequence that the page's replay mode streams.
+
+| path | what |
+|---|---|
+| ``/`` | the page (``client_web/index.html``) |
+| ``/app/{path}`` | the page's own files (``client_web/``: js, css, icons) |
+| ``/vendor/{package}/{path}`` | the npm packages the page imports (three, @msgpack/msgpack) |
+| ``/protocol.json`` | ``shared/protocol.json``, unchanged: the page validates against it |
+| ``/api/demo`` | the demo sequence's index: camera, sizes, depth scale and frame file URLs |
+| ``/api/demo/files/{path}`` | one colour JPEG or depth PNG of the demo sequence |
+
+The page needs no internet: everything it loads comes from here. Files are looked up under a
+fixed root and a path that leaves it (``..``, absolute, links) is a 404.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from pathlib import Path
+
+import numpy as np
+from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse
+
+from server.datasets.demo import demo_sequence_path
+from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
+
+log = logging.getLogger(__name__)
+router = APIRouter(tags=["client"])
+
+ROOT = Path(__file__).resolve().parents[2]
+CLIENT_DIR = ROOT / "client_web"
+VENDOR_DIR = CLIENT_DIR / "node_modules"
+PROTOCOL_PATH = ROOT / "shared" / "protocol.json"
+VENDOR_PACKAGES = ("three", "@msgpack/msgpack")  # the only npm packages served
+APP_FOLDERS = ("js", "css", "assets")  # the page's own files; never package.json or node_modules
+DEMO_FOLDERS = ("rgb", "depth")
+MEDIA_TYPES = {
+    ".js": "text/javascript",
+    ".mjs": "text/javascript",
+    ".css": "text/css",
+    ".json": "application/json",
+    ".html": "text/html",
+    ".svg": "image/svg+xml",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".map": "application/json",
+}
+# The page is small and changes with the server: revalidate every time (ETag / Last-Modified).
+NO_CACHE = {"Cache-Control": "no-cache"}
+
+_demo_lock = threading.Lock()
+_demo_index: dict | None = None
+
+
+def _file(root: Path, relative: str, headers: dict | None = None) -> FileResponse:
+    """The file ``relative`` below ``root``; 404 for anything outside it or not a plain file."""
+    base = root.resolve()
+    try:
+        path = (base / relative).resolve()
+    except (OSError, RuntimeError) as exc:
+        raise HTTPException(404, "no such file") from exc
+    if not path.is_relative_to(base) or not path.is_file():
+        raise HTTPException(404, "no such file")
+    return FileResponse(path, media_type=MEDIA_TYPES.get(path.suffix.lower()), headers=headers)
+
+
+@router.get("/", include_in_schema=False)
+def page() -> FileResponse:
+    """The phone page."""
+    return _file(CLIENT_DIR, "index.html", NO_CACHE)
+
+
+@router.get("/app/{path:path}", include_in_schema=False)
+def app_file(path: str) -> FileResponse:
+    """The page's scripts, styles and images."""
+    if path.split("/", 1)[0] not in APP_FOLDERS:
+        raise HTTPException(404, "no such file")
+    return _file(CLIENT_DIR, path, NO_CACHE)
+
+
+@router.get("/vendor/{path:path}", include_in_schema=False)
+def vendor_file(path: str) -> FileResponse:
+    """A file of one of the npm packages the page imports (installed by ``npm ci``)."""
+    if not any(path.startswith(f"{package}/") for package in VENDOR_PACKAGES):
+        raise HTTPException(404, "no such package")
+    if not VENDOR_DIR.is_dir():
+        raise HTTPException(503, "client_web/node_modules is missing: run scripts/setup.sh")
+    return _file(VENDOR_DIR, path, {"Cache-Control": "public, max-age=3600"})
+
+
+@router.get("/protocol.json", tags=["client"])
+def protocol_definition() -> FileResponse:
+    """The wire protocol (``shared/protocol.json``), as the server itself uses it."""
+    return _file(PROTOCOL_PATH.parent, PROTOCOL_PATH.name, NO_CACHE)
+
+
+def _gravity(folder: Path) -> list[float] | None:
+    """Gravity in the first camera's frame (OpenCV axes), from the ground truth of a sequence
+    whose world frame is z-up (the demo's): R_world_camera^T @ (0, 0, -1)."""
+    truth = read_ground_truth(folder / "groundtruth.txt")
+    if truth is None or len(truth.poses) == 0:
+        return None
+    down = truth.poses[0][:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    return [float(v) for v in down]
+
+
+def build_demo_index(folder: Path, files_url: str = "/api/demo/files") -> dict:
+    """The page's view of a TUM-layout sequence: camera, sizes, depth scale, gravity and one
+    ``{timestamp, colour, depth}`` entry (file URLs) per associated colour/depth pair."""
+    K, depth_scale = tum_intrinsics(folder, None, None)
+    rgb_stamps, rgb_names = read_file_list(folder / "rgb.txt")
+    depth_stamps, depth_names = read_file_list(folder / "depth.txt")
+    idx_rgb, idx_depth = associate(rgb_stamps, depth_stamps, 0.02)
+    frames = [
+        {"timestamp": float(rgb_stamps[i]), "colour": f"{files_url}/{rgb_names[i]}",
+         "depth": f"{files_url}/{depth_names[j]}"}
+        for i, j in zip(idx_rgb, idx_depth, strict=True)
+    ]
+    fps = (len(frames) - 1) / (frames[-1]["timestamp"] - frames[0]["timestamp"]) if len(frames) > 1 else 15.0
+    return {
+        "name": folder.name,
+        "intrinsics": [K.fx, K.fy, K.cx, K.cy],
+        "colour_size": [K.width, K.height],
+        "depth_size": [K.width, K.height],
+        "depth_scale": depth_scale,
+        "depth_format": "png",
+        "fps": round(float(fps), 3),
+        "gravity": _gravity(folder),
+        "frames": frames,
+    }
+
+
+def _demo() -> tuple[Path, dict]:
+    """The demo folder and its index; the first call generates the sequence (cached on disk)."""
+    global _demo_index
+    with _demo_lock:
+        folder = demo_sequence_path(progress=False)
+        if _demo_index is None or _demo_index["folder"] != str(folder):
+            _demo_index = {"folder": str(folder), "index": build_demo_index(folder)}
+        return folder, _demo_index["index"]
+
+
+@router.get("/api/demo", tags=["client"])
+async def demo_index() -> dict:
+    """The bundled demo sequence (generated on first use, then cached): intrinsics, image sizes,
+    depth scale, gravity in the first camera frame, and per frame the URLs of its colour JPEG
+    and 16-bit depth PNG, for the page's replay mode."""
+    _, index = await asyncio.to_thread(_demo)
+    return index
+
+
+@router.get("/api/demo/files/{path:path}", tags=["client"])
+async def demo_file(path: str) -> FileResponse:
+    """One file of the demo sequence: ``rgb/<t>.jpg`` or ``depth/<t>.png``."""
+    if path.split("/", 1)[0] not in DEMO_FOLDERS:
+        raise HTTPException(404, "no such file")
+    folder, _ = await asyncio.to_thread(_demo)
+    return _file(folder, path, {"Cache-Control": "public, max-age=86400"})

@@ -26,6 +26,29 @@ def test_compose_names_the_service_port_volume_and_health_check():
     assert set(server["environment"]) <= fields
 
 
+def test_compose_loadtest_profile_replays_the_demo_against_the_server_as_the_readme_says():
+    import typer
+
+    from server.cli import app
+
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    loadtest = compose["services"]["loadtest"]
+    assert loadtest["profiles"] == ["loadtest"]  # not started by a plain `docker compose up`
+    assert loadtest["image"] == compose["services"]["server"]["image"]
+    assert loadtest["depends_on"]["server"]["condition"] == "service_healthy"
+    command = loadtest["command"]
+    assert command[:5] == ["python", "-m", "server", "loadtest", "demo"]
+    assert command[command.index("--url") + 1] == "http://server:8000"  # the service's port
+    # Every option it passes is one the CLI knows, and the report lands on the mounted folder.
+    options = {o for p in typer.main.get_command(app).commands["loadtest"].params for o in p.opts}
+    assert {arg for arg in command if arg.startswith("--")} <= options
+    mount = loadtest["volumes"][0].split(":")[1]
+    assert command[command.index("--json") + 1].startswith(mount + "/")
+    readme = (REPO / "README.md").read_text()
+    assert "docker compose --profile loadtest run --rm loadtest" in readme
+    assert "python3 benchmarks/capacity.py" in readme
+
+
 def test_dockerfile_installs_the_package_and_serves_on_the_data_volume():
     text = (REPO / "Dockerfile").read_text()
     assert "libusb-1.0-0" in text  # open3d does not import without it

@@ -40,8 +40,9 @@ from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
 
-# bad_command while the drone does not exist yet: the server says so in its message.
-_NOT_READY = re.compile(r"not (yet )?(available|ready|spawned)|\byet\b|no (map|drone)", re.I)
+# bad_command while the drone is not there yet: before the drone_event 'spawned' (or a first
+# drone_state), or when the server's message says so after it.
+_NOT_READY = re.compile(r"not (yet )?(available|ready|spawned)|\byet\b|no (map|drone)|spawn", re.I)
 _CLOSE_NAMES = {code: name for name, code in proto.CLOSE_CODES.items()}
 HTTP_TIMEOUT_S = 30.0
 
@@ -343,9 +344,12 @@ class _Client:
                 self.spawn = [float(v) for v in proto.pose_matrix(msg, "T_world_drone")[:3, 3]]
         elif kind == "drone_event":
             r.drone_events[msg["event"]] += 1
+            if msg["event"] == "spawned" and self.spawn is None:
+                self.spawn = [float(v) for v in msg["position"]]
         elif kind == "error":
             r.errors[msg["name"]] += 1
-            if msg["name"] == "bad_command" and _NOT_READY.search(msg["message"]):
+            if msg["name"] == "bad_command" and (self.spawn is None
+                                                 or _NOT_READY.search(msg["message"])):
                 r.commands_not_ready += 1
             else:
                 r.failures.append(f"error {msg['code']} {msg['name']}: {msg['message']}")

@@ -1,0 +1,383 @@
+"""Capacity: how many phones one server holds, with map fusion and the drone simulation on.
+
+Starts ``python -m server serve`` in its own process, then runs the load tester
+(``server/client/loadtest.py``) in this process for every combination of sessions (1, 2, 4, 8)
+and frame rate (15, 30 fps), one after another, while sampling the server process's CPU and
+memory. Writes ``benchmarks/results/capacity.md`` and ``capacity.json``: per row the latency
+percentiles, processed fps per session, drop rates (client side, server side, and every captured
+frame without a pose), server CPU and RSS, the load tester's own CPU; the target (4 sessions at
+15 fps: p95 <= 100 ms and < 5 % of captured frames without a pose) with PASS/FAIL; and what
+limits it, computed from the measured CPU per frame and the server's stage timings.
+
+    python benchmarks/capacity.py [SEQUENCE] [--duration 30] [--sessions 1 2 4 8] [--fps 15 30]
+    python benchmarks/capacity.py --quick     # smoke run: 5 s per row on 30 frames
+
+The load tester shares the machine with the server (loopback): its CPU share is reported, and
+taken off the cores available to the server in the analysis.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime
+import json
+import os
+import platform
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from anywhere, installed or not
+
+import numpy as np  # noqa: E402
+from rich import box  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from server.client.loadtest import EncodedSequence, LoadTestConfig, live_line, run_loadtest  # noqa: E402
+from server.datasets import open_dataset  # noqa: E402
+from server.settings import Settings  # noqa: E402
+
+TARGET = {"sessions": 4, "fps": 15.0, "p95_ms": 100.0, "drop_rate": 0.05}
+console = Console()
+
+
+# ---- the server and its CPU / memory ------------------------------------------------------------
+
+
+def server_environment(max_sessions: int) -> dict[str, str]:
+    """Settings for the run: room for every session, no create rate limit, the drone on."""
+    env = {**os.environ, "DRONESIM_MAX_SESSIONS": str(max_sessions)}
+    fields = Settings.model_fields
+    if "create_rate_per_min" in fields:
+        env["DRONESIM_CREATE_RATE_PER_MIN"] = "0"  # one load-test IP creates every session
+    for name, info in fields.items():  # e.g. a switch for the drone simulation
+        if info.annotation is bool and re.search(r"drone|simulat|flight", name):
+            env[f"DRONESIM_{name.upper()}"] = "true"
+    return env
+
+
+def start_server(data_dir: Path, max_sessions: int) -> tuple[subprocess.Popen, str, Path]:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = data_dir.parent / "server.log"  # beside the data, gone with the temporary folder
+    proc = subprocess.Popen([sys.executable, "-m", "server", "serve", "--port", str(port),
+                             "--data-dir", str(data_dir), "--no-demo"], cwd=REPO,
+                            env=server_environment(max_sessions), stdout=log.open("w"),
+                            stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.time() + 90
+    while time.time() < deadline and proc.poll() is None:
+        try:
+            with urllib.request.urlopen(f"{url}/healthz", timeout=1) as r:
+                if r.status == 200:
+                    return proc, url, log
+        except OSError:
+            time.sleep(0.3)
+    proc.kill()
+    raise RuntimeError(f"server did not start; its log:\n{log.read_text()[-3000:]}")
+
+
+class ProcessSampler:
+    """CPU time and RSS of one process (all its threads), sampled in a background thread:
+    psutil when installed, /proc otherwise."""
+
+    def __init__(self, pid: int, every_s: float = 0.5) -> None:
+        self.pid, self.every_s = pid, every_s
+        try:
+            import psutil
+
+            self._proc = psutil.Process(pid)
+        except ImportError:
+            self._proc = None
+        self._tick = os.sysconf("SC_CLK_TCK")
+        self._stop = threading.Event()
+        self._rss: list[float] = []
+
+    def cpu_s(self) -> float:
+        if self._proc is not None:
+            t = self._proc.cpu_times()
+            return t.user + t.system
+        fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / self._tick  # utime, stime
+
+    def rss_mb(self) -> float:
+        if self._proc is not None:
+            return self._proc.memory_info().rss / 2**20
+        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def __enter__(self) -> ProcessSampler:
+        self._t0, self._cpu0 = time.monotonic(), self.cpu_s()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self.every_s):
+            self._rss.append(self.rss_mb())
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.wall_s = time.monotonic() - self._t0
+        self.cpu_used_s = self.cpu_s() - self._cpu0
+        self._rss.append(self.rss_mb())
+
+    def summary(self) -> dict:
+        """cpu_percent: of one core (200 % = two cores busy)."""
+        return {"cpu_s": self.cpu_used_s, "cpu_percent": 100 * self.cpu_used_s / self.wall_s,
+                "rss_max_mb": max(self._rss), "rss_end_mb": self._rss[-1]}
+
+
+# ---- one row ------------------------------------------------------------------------------------
+
+
+def run_row(url: str, seq: EncodedSequence, pid: int, sessions: int, fps: float,
+            duration_s: float) -> dict:
+    cfg = LoadTestConfig(url=url, sessions=sessions, fps=fps, duration_s=duration_s,
+                         client_name="capacity")
+    with console.status(f"{sessions} x {fps:g} fps ...") as status:
+        def show(results, elapsed: float) -> None:
+            status.update(f"{sessions} x {fps:g} fps, {elapsed:4.1f}/{duration_s:g} s | "
+                          f"{live_line(results, elapsed)}")
+
+        with ProcessSampler(pid) as sampler:
+            report = asyncio.run(run_loadtest(seq, cfg, on_progress=show))
+    t = report["total"]
+    row = {"sessions": sessions, "fps": fps, "duration_s": duration_s,
+           **{k: t["latency"][k] for k in ("p50_ms", "p95_ms", "p99_ms")},
+           "processed_fps_per_session": t["processed_fps_per_session"],
+           "processed_fps": t["processed_fps"],
+           **{k: t[k] for k in ("captured", "sent", "processed", "client_dropped",
+                                "server_dropped", "client_drop_rate", "server_drop_rate",
+                                "drop_rate", "errors", "failures")},
+           "server": sampler.summary(),
+           "client_cpu_percent": report["client_cpu_percent"],
+           "stages_ms": report["stages_ms"],
+           "drone_states": sum(s["commands"]["drone_states"] for s in report["sessions"]),
+           "failure_messages": [f for s in report["sessions"] for f in s["failures"]][:10]}
+    row["server"]["cpu_ms_per_frame"] = (1e3 * row["server"]["cpu_s"] / t["processed"]
+                                         if t["processed"] else None)
+    if sessions == TARGET["sessions"] and fps == TARGET["fps"]:
+        row["target"] = bool(row["p95_ms"] is not None and row["p95_ms"] <= TARGET["p95_ms"]
+                             and row["drop_rate"] < TARGET["drop_rate"] and not row["failures"])
+    return row
+
+
+# ---- analysis and report ------------------------------------------------------------------------
+
+
+def _memory_per_session(rows: list[dict]) -> tuple[float, float] | None:
+    """(MB per session, MB base) from a straight line through the rows' peak RSS."""
+    sessions = [r["sessions"] for r in rows]
+    if len(set(sessions)) < 2:
+        return None
+    slope, base = np.polyfit(sessions, [r["server"]["rss_max_mb"] for r in rows], 1)
+    return float(slope), float(base)
+
+
+def what_limits_it(rows: list[dict], cores: int, load_before: float) -> str:
+    """A paragraph from the measured CPU per frame and stage timings."""
+    target = next((r for r in rows if "target" in r), None)
+    ref = target or max(rows, key=lambda r: r["sessions"] * r["fps"])
+    per_frame = [r["server"]["cpu_ms_per_frame"] for r in rows if r["server"]["cpu_ms_per_frame"]]
+    if not per_frame or ref["p95_ms"] is None:
+        return "No frame was processed: nothing to analyse (see the failures)."
+    cpu_ms = float(np.median(per_frame))
+    stages = ref["stages_ms"]
+    decode = stages.get("decode", {}).get("median", 0.0)
+    track = stages.get("track", {}).get("median", 0.0)
+    fastest_track = min(r["stages_ms"].get("track", {}).get("median", np.inf) for r in rows)
+    client_cores = np.median([r["client_cpu_percent"] for r in rows]) / 100
+    server_cores = cores - client_cores
+    ceiling_fps = server_cores * 1e3 / cpu_ms  # frames/s all sessions together, CPU-bound
+    demand = ref["sessions"] * ref["fps"]
+    best = max(rows, key=lambda r: r["processed_fps"])
+    text = (
+        f"The server spends **{cpu_ms:.0f} ms of CPU per processed frame** (median over the rows; "
+        f"measured from the process's CPU time, so it includes decoding ({decode:.0f} ms median), "
+        f"tracking ({track:.0f} ms median wall time), TSDF fusion of one frame in "
+        f"{Settings().fuse_every} and of keyframes, map preview, the drone simulation when on, and "
+        f"the event loop). {ref['sessions']} sessions at {ref['fps']:g} fps ask for {demand:g} "
+        f"frames/s, i.e. **{demand * cpu_ms / 1e3:.2f} cores**; this machine has {cores}, of which "
+        f"the load tester itself took {client_cores:.2f}, leaving {server_cores:.2f} for the "
+        f"server: a CPU ceiling of about **{ceiling_fps:.0f} processed frames/s in total**, "
+        f"{ceiling_fps / TARGET['fps']:.1f} sessions at {TARGET['fps']:g} fps. The highest "
+        f"throughput measured was {best['processed_fps']:.1f} frames/s ({best['sessions']} x "
+        f"{best['fps']:g} fps). One session is tracked by one thread, so it cannot exceed "
+        f"~{1e3 / max(fastest_track, 1e-3):.0f} fps whatever the cores (its fastest median "
+        f"tracking time: {fastest_track:.0f} ms). ")
+    busiest = max(r["server"]["cpu_percent"] for r in rows) / 100
+    if track > 1.2 * cpu_ms:
+        text += (f"Tracking took longer on the clock ({track:.0f} ms) than the whole frame's CPU "
+                 f"({cpu_ms:.0f} ms): the server waited for a CPU that other processes held. ")
+    if busiest < 0.8 * server_cores and best["drop_rate"] > TARGET["drop_rate"]:
+        text += (f"The server never used more than {busiest:.2f} cores although it dropped "
+                 f"frames: the rest of the CPU went to other processes (load average "
+                 f"{load_before:.1f} before the run), or each session's serial pipeline "
+                 f"(one frame at a time) limits it before the cores do. ")
+    per_session = _memory_per_session(rows)
+    if per_session is not None:
+        text += (f"Memory grows by about {per_session[0]:.0f} MB per session (server at "
+                 f"{per_session[1]:.0f} MB with none: each session's map and tracker), "
+                 f"{per_session[1] + 8 * per_session[0]:.0f} MB for 8 sessions. ")
+    if target is not None and not target["target"]:
+        need = server_cores * 1e3 / demand
+        text += (f"To hold {TARGET['sessions']} x {TARGET['fps']:g} fps the CPU per frame must "
+                 f"fall to {need:.0f} ms ({cpu_ms / need:.1f}x less), or the server needs "
+                 f"{demand * cpu_ms / 1e3 + client_cores:.1f} cores with the load tester "
+                 f"beside it.")
+    elif target is not None:
+        spare = 100 * (1 - demand * cpu_ms / 1e3 / server_cores)
+        text += f"The target row passes with {spare:.0f} % of the server's CPU to spare."
+    return text
+
+
+def _fmt(value, pattern: str = "{:.0f}") -> str:
+    return "-" if value is None else pattern.format(value)
+
+
+def markdown(rows: list[dict], meta: dict, analysis: str) -> str:
+    quick = meta["quick"]
+    lines = [f"# Server capacity{' — SMOKE RUN, not a measurement' if quick else ''}", ""]
+    if quick:
+        lines += [f"> **Smoke run** (`--quick`: {rows[0]['duration_s']:g} s per row on "
+                  f"{meta['frames']} frames) on a shared, loaded machine: the figures only show "
+                  f"that the pipeline works. Run `python benchmarks/capacity.py` on a quiet "
+                  f"machine for the capacity table.", ""]
+    lines += [
+        f"{meta['date']}; machine: {meta['machine']}, {meta['cores']} cores, load average "
+        f"{meta['load_before']:.2f} before / {meta['load_after']:.2f} after; sequence "
+        f"{meta['dataset']} {meta['size'][0]}x{meta['size'][1]} ({meta['frames']} frames, played "
+        f"back and forth, {meta['mean_frame_kb']:.0f} kB per frame); map fusion on (one frame "
+        f"in {meta['fuse_every']} + keyframes); drone simulation: {meta['drone']}; "
+        f"commit {meta['commit']}.", "",
+        f"Command: `{meta['command']}`", "",
+        f"Target: {TARGET['sessions']} sessions at {TARGET['fps']:g} fps with p95 <= "
+        f"{TARGET['p95_ms']:.0f} ms and < {100 * TARGET['drop_rate']:.0f} % of captured frames "
+        f"without a pose.", "",
+        "| sessions | fps | p50 ms | p95 ms | p99 ms | processed fps / session | drop client | "
+        "drop server | no pose | server CPU % | server RSS MB | load tester CPU % | failures | "
+        "target |",
+        "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|",
+    ]
+    for r in rows:
+        target = "-"
+        if "target" in r:
+            target = (f"p95 {_fmt(r['p95_ms'])} <= {TARGET['p95_ms']:.0f}, no pose "
+                      f"{100 * r['drop_rate']:.1f} % < {100 * TARGET['drop_rate']:.0f} %: "
+                      f"**{'PASS' if r['target'] else 'FAIL'}**")
+        lines.append(
+            f"| {r['sessions']} | {r['fps']:g} | {_fmt(r['p50_ms'])} | {_fmt(r['p95_ms'])} | "
+            f"{_fmt(r['p99_ms'])} | {r['processed_fps_per_session']:.1f} | "
+            f"{100 * r['client_drop_rate']:.1f} % | {100 * r['server_drop_rate']:.1f} % | "
+            f"{100 * r['drop_rate']:.1f} % | {r['server']['cpu_percent']:.0f} | "
+            f"{r['server']['rss_max_mb']:.0f} | {r['client_cpu_percent']:.0f} | {r['failures']} | "
+            f"{target} |")
+    lines += ["", "## What limits it", "", analysis, "", "## How to read it", "",
+              "- **p50/p95/p99 ms**: send to pose, per frame, over every session of the row "
+              "(loopback: no network in it).",
+              "- **processed fps / session**: poses per second each phone gets back.",
+              "- **drop client**: captured frames not sent because two frames already awaited "
+              "answers (as a phone does); **drop server**: sent frames the server skipped for a "
+              "newer one; **no pose**: every captured frame without a pose, the target's measure.",
+              "- **server CPU %**: of one core (200 % = both cores of this machine); **RSS**: "
+              "the server's peak resident memory during the row (a fresh server per row).",
+              "- **load tester CPU %**: the clients run on the same machine and take that much "
+              "from the server.", ""]
+    return "\n".join(lines)
+
+
+def console_table(rows: list[dict]) -> Table:
+    table = Table(title="server capacity (latency ms; CPU % of one core)", box=box.SIMPLE_HEAD,
+                  pad_edge=False, collapse_padding=True)
+    for col in ("sess", "fps", "p50", "p95", "p99", "fps/sess", "no pose", "srv CPU", "RSS MB",
+                "cli CPU", "fail", "target"):
+        table.add_column(col, justify="right")
+    for r in rows:
+        table.add_row(str(r["sessions"]), f"{r['fps']:g}", _fmt(r["p50_ms"]), _fmt(r["p95_ms"]),
+                      _fmt(r["p99_ms"]), f"{r['processed_fps_per_session']:.1f}",
+                      f"{100 * r['drop_rate']:.1f}%", f"{r['server']['cpu_percent']:.0f}",
+                      f"{r['server']['rss_max_mb']:.0f}", f"{r['client_cpu_percent']:.0f}",
+                      str(r["failures"]), {True: "PASS", False: "FAIL"}.get(r.get("target"), "-"))
+    return table
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sequence", nargs="?",
+                        default=str(REPO.parent / "shared" / "data" / "synthetic_room0"))
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds per row")
+    parser.add_argument("--sessions", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument("--fps", type=float, nargs="+", default=[15.0, 30.0])
+    parser.add_argument("--frames", type=int, default=None, help="first N frames of the sequence")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: 5 s per row on 30 frames, labelled as such")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    args = parser.parse_args()
+    if args.quick:
+        args.duration, args.frames = min(args.duration, 5.0), args.frames or 30
+
+    dataset = open_dataset(args.sequence)
+    with console.status(f"encoding {dataset.name} ..."):
+        seq = EncodedSequence.from_dataset(dataset, args.frames)
+    load_before = os.getloadavg()[0]
+    rows = []
+    for fps in args.fps:
+        for sessions in args.sessions:
+            # A fresh server per row: rows share no memory, caches or leftover sessions.
+            with tempfile.TemporaryDirectory() as tmp:
+                proc, url, log = start_server(Path(tmp) / "data", sessions + 1)
+                try:
+                    rows.append(run_row(url, seq, proc.pid, sessions, fps, args.duration))
+                finally:
+                    proc.terminate()
+                    proc.wait(timeout=120)
+                if rows and rows[-1]["failures"]:
+                    console.print(f"server log (tail):\n{log.read_text()[-3000:]}")
+            console.print(console_table(rows[-1:]))
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
+                            capture_output=True).stdout.strip()
+    drone_states = sum(r["drone_states"] for r in rows)
+    meta = {
+        "date": f"{datetime.datetime.now():%Y-%m-%d %H:%M}", "quick": args.quick,
+        "machine": platform.platform(), "cores": os.cpu_count(), "load_before": load_before,
+        "load_after": os.getloadavg()[0], "dataset": dataset.name, "size": list(seq.size),
+        "frames": len(seq.frames), "mean_frame_kb": seq.mean_bytes / 1e3,
+        "fuse_every": Settings().fuse_every, "commit": commit or "?",
+        "drone": f"on ({drone_states} drone_state messages)" if drone_states
+        else "not running (no drone_state received; commands answered 'not ready')",
+        "command": "python " + " ".join(sys.argv),
+    }
+    analysis = what_limits_it(rows, os.cpu_count() or 1, load_before)
+    console.print(console_table(rows))
+    console.print(analysis)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "capacity.md").write_text(markdown(rows, meta, analysis))
+    (args.out / "capacity.json").write_text(json.dumps({"meta": meta, "target": TARGET,
+                                                        "rows": rows, "analysis": analysis},
+                                                       indent=1))
+    console.print(f"wrote {args.out / 'capacity.md'} and capacity.json")
+    if any(r["failures"] for r in rows):
+        for r in rows:
+            for message in r["failure_messages"]:
+                console.print(f"[red]{r['sessions']} x {r['fps']:g} fps: {message}[/red]")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -2,3 +2,12 @@
 
 Everything here works in a gravity-aligned flight frame: metres, z up, gravity along -z.
 """
+
+# The drone itself: configuration, dynamics, controller and the per-session simulator.
+from server.simulation.config import SimulationConfig as SimulationConfig
+from server.simulation.drone import DroneCommandError as DroneCommandError
+from server.simulation.drone import DroneEvent as DroneEvent
+from server.simulation.drone import DroneEventKind as DroneEventKind
+from server.simulation.drone import DroneMode as DroneMode
+from server.simulation.drone import DroneSimulator as DroneSimulator
+from server.simulation.drone import DroneStatus as DroneStatus

@@ -8,13 +8,16 @@ direction of the required thrust, the desired heading fixes body x; the error is
 ``e_R = vee(R_d^T R - R^T R_d) / 2``. Scalar float arithmetic throughout, like the dynamics.
 
 A setpoint holds, per axis group (horizontal, vertical), either a position with velocity and
-acceleration feed-forward, or only a velocity (manual flight).
+acceleration feed-forward, or only a velocity (manual flight). ``fly_sticks`` and
+``RouteTracker`` turn the pilot's sticks and a planned route into setpoints.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
 
 from server.simulation.config import SimulationConfig
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
@@ -180,3 +183,94 @@ class CascadedController:
         thrust = self.params.mass_kg * (fx * r02 + fy * r12 + fz * r22)
         thrust = min(max(thrust, 0.0), self._max_thrust)
         return mix(self.params, thrust, tx, ty, tz)
+
+
+# Setpoint generators: what the modes above the controller feed it.
+
+BRAKED_SPEED_M_S = 0.1  # a centred stick latches the position once the drone is this slow
+YAW_FOLLOW_MIN_SPEED_M_S = 0.2  # a route slower than this does not turn the drone's heading
+
+
+def wrap_angle(angle: float) -> float:
+    """Angle in [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def fly_sticks(q: Quadrotor, sp: Setpoint, sticks: tuple[float, float, float, float],
+               limits: ControlLimits, dt: float) -> None:
+    """Angle-mode sticks ``(throttle, yaw, pitch, roll)``, each in -1..1 and already zero where
+    centred, as a setpoint: climb rate, yaw rate (positive counter-clockwise from above),
+    forward and rightward speed, each a fraction of its limit. A centred axis brakes to a stop,
+    then holds the position where it stopped."""
+    throttle, yaw, pitch, roll = sticks
+    sp.yaw_rate = yaw * limits.max_yaw_rate_rad_s
+    sp.yaw = wrap_angle(sp.yaw + sp.yaw_rate * dt)
+    sp.ax = sp.ay = sp.az = 0.0
+    if pitch or roll:
+        forward, right = pitch * limits.max_speed_m_s, roll * limits.max_speed_m_s
+        c, s = math.cos(sp.yaw), math.sin(sp.yaw)
+        sp.hold_xy, sp.vx, sp.vy = False, forward * c + right * s, forward * s - right * c
+    elif not sp.hold_xy:
+        sp.vx = sp.vy = 0.0
+        if math.hypot(q.vx, q.vy) < BRAKED_SPEED_M_S:
+            sp.hold_xy, sp.x, sp.y = True, q.px, q.py
+    if throttle:
+        sp.hold_z, sp.vz = False, throttle * limits.max_climb_rate_m_s
+    elif not sp.hold_z:
+        sp.vz = 0.0
+        if abs(q.vz) < BRAKED_SPEED_M_S:
+            sp.hold_z, sp.z = True, q.pz
+
+
+class RouteTracker:
+    """Feeds a timed route (``duration_s``, ``sample(times) -> (pos, vel, acc)``) to the
+    controller: position with velocity and acceleration feed-forward, heading along the travel.
+
+    The route is sampled once at the physics rate, so a step costs a lookup, not numpy calls.
+    Its clock ``t_s`` slows down, then stops, while the drone lags more than half of, then all
+    of ``max_lag_m`` behind the setpoint (feed-forward scaled to match), so that a drone held
+    back never cuts corners to catch up.
+    """
+
+    def __init__(self, route, dt: float, max_lag_m: float, max_yaw_rate_rad_s: float) -> None:
+        self.route = route
+        self.dt = dt
+        self.t_s = 0.0
+        self.duration_s = float(route.duration_s)
+        self._max_lag = max_lag_m
+        self._max_turn = max_yaw_rate_rad_s * dt
+        times = np.arange(math.ceil(self.duration_s / dt) + 2) * dt
+        self._table = np.hstack(route.sample(times)).tolist()
+
+    @property
+    def finished(self) -> bool:
+        """The clock reached the end of the route (the drone may still be settling)."""
+        return self.t_s >= self.duration_s
+
+    def update(self, q: Quadrotor, sp: Setpoint) -> None:
+        """Advance the clock one step and write the setpoint."""
+        lag = math.dist((q.px, q.py, q.pz), (sp.x, sp.y, sp.z))
+        rate = min(1.0, max(0.0, 2.0 - 2.0 * lag / self._max_lag))
+        self.t_s = min(self.t_s + rate * self.dt, self.duration_s)
+        u = self.t_s / self.dt
+        i = int(u)
+        f = u - i
+        x, y, z, vx, vy, vz, ax, ay, az = (
+            a + f * (b - a) for a, b in zip(self._table[i], self._table[i + 1], strict=True))
+        r2 = rate * rate
+        sp.hold_xy = sp.hold_z = True
+        sp.x, sp.y, sp.z = x, y, z
+        sp.vx, sp.vy, sp.vz = rate * vx, rate * vy, rate * vz
+        sp.ax, sp.ay, sp.az = r2 * ax, r2 * ay, r2 * az
+        if math.hypot(sp.vx, sp.vy) > YAW_FOLLOW_MIN_SPEED_M_S:
+            turn = wrap_angle(math.atan2(sp.vy, sp.vx) - sp.yaw)
+            turn = min(max(turn, -self._max_turn), self._max_turn)
+            sp.yaw = wrap_angle(sp.yaw + turn)
+            sp.yaw_rate = turn / self.dt
+        else:
+            sp.yaw_rate = 0.0
+
+    def remaining(self, start: np.ndarray) -> np.ndarray:
+        """``start`` (the setpoint) and the route's path samples still ahead: (N, 3)."""
+        i = int(np.searchsorted(self.route.times, self.t_s, side="right"))
+        return np.vstack([start, self.route.path[i:]])

@@ -30,7 +30,14 @@ import numpy as np
 
 from server.errors import DroneSimError
 from server.simulation.config import SimulationConfig
-from server.simulation.control import CascadedController, ControlGains, ControlLimits, Setpoint
+from server.simulation.control import (
+    CascadedController,
+    ControlGains,
+    ControlLimits,
+    RouteTracker,
+    Setpoint,
+    fly_sticks,
+)
 from server.simulation.flight_map import Box, FlightMap
 from server.simulation.planner import PlanningError, plan_path, route_is_clear
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
@@ -40,7 +47,6 @@ log = logging.getLogger(__name__)
 LIPSCHITZ_SAFETY = 1.5  # the interpolated distance field may change faster than 1 m per metre
 MAX_CHUNK_STEPS = 100  # physics steps between distance queries far from obstacles
 NEAR_CHUNK_STEPS = 16  # near obstacles, steps checked together in one query
-YAW_FOLLOW_MIN_SPEED = 0.2  # m/s: below this a route does not turn the drone's heading
 # A drone pushed against a wall touches it again and again: one collision event per second
 # at the same place (the stop itself happens every time).
 COLLISION_REPEAT_S = 1.0
@@ -74,6 +80,8 @@ class DroneCommandError(DroneSimError):
 
 @dataclass(frozen=True)
 class DroneEvent:
+    """Something the pilot should hear about (the protocol's drone_event)."""
+
     kind: DroneEventKind
     time_s: float  # simulation time
     position: np.ndarray  # (3,) flight frame, m
@@ -83,6 +91,8 @@ class DroneEvent:
 
 @dataclass(frozen=True)
 class DroneStatus:
+    """The drone's state for drone_state, in the flight frame (the server maps it to world)."""
+
     time_s: float  # simulation time since spawn, s
     T_flight_drone: np.ndarray  # (4, 4) body to flight frame, m
     velocity: np.ndarray  # (3,) flight frame, m/s
@@ -93,10 +103,6 @@ class DroneStatus:
     command_id: int | None
 
 
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
 class DroneSimulator:
     """The virtual quadrotor of one session, flying in ``flight_map``."""
 
@@ -105,8 +111,8 @@ class DroneSimulator:
         self.flight_map = flight_map
         params = QuadrotorParams.from_config(config)
         self._quad = Quadrotor(params, config.dt_s)
-        self._ctrl = CascadedController(params, ControlGains.from_config(config),
-                                        ControlLimits.from_config(config))
+        self._limits = ControlLimits.from_config(config)
+        self._ctrl = CascadedController(params, ControlGains.from_config(config), self._limits)
         self._sp = Setpoint()
         self._lock = threading.RLock()
         self._mode: DroneMode | None = None  # None until spawned
@@ -115,9 +121,7 @@ class DroneSimulator:
         self._events: list[DroneEvent] = []
         self._command_id: int | None = None
         # goto
-        self._route = None
-        self._route_t = 0.0  # route clock, s
-        self._table: list[list[float]] = []  # route samples every physics step: p, v, a
+        self._tracker: RouteTracker | None = None
         self._goal: np.ndarray | None = None
         self._speed = config.cruise_speed_m_s
         self._planned_at = 0.0
@@ -135,11 +139,11 @@ class DroneSimulator:
         near = self._point(near, "spawn point")
         with self._lock:
             free = self._nearest_free(near, self.config.planning_radius_m)
-            if free is None or np.linalg.norm(np.asarray(free) - near) > self.config.spawn_search_m:
+            if free is None or np.linalg.norm(free - near) > self.config.spawn_search_m:
                 raise DroneCommandError(
                     f"no observed free space for the drone within {self.config.spawn_search_m} m "
                     f"of {np.round(near, 2).tolist()}")
-            position = np.asarray(free, dtype=float)
+            position = free
             self._quad.reset(position, yaw_rad, hovering=True)
             self._hold(position)
             self._time_s = self._carry_s = 0.0
@@ -273,15 +277,15 @@ class DroneSimulator:
             self._leave_obstacle()
             if self._mode != DroneMode.GOTO:
                 return
-            if isinstance(changed_box, Box):
-                changed_box = (changed_box.lo, changed_box.hi)
-            lo, hi = (np.asarray(c, dtype=float) for c in changed_box)
-            remaining = self._remaining_route()
+            if not isinstance(changed_box, Box):
+                changed_box = Box(*(np.asarray(c, dtype=float) for c in changed_box))
+            # The path samples lie a few centimetres apart: testing them is testing the path.
+            remaining = self._tracker.remaining(self._setpoint())
             margin = self.config.replan_margin_m + self.config.planning_radius_m
-            if not _polyline_near_box(remaining, lo - margin, hi + margin):
+            if not changed_box.contains(remaining, margin).any():
                 return
-            blocked = not route_is_clear(self.flight_map, self._route, self.config.radius_m,
-                                         from_time_s=self._route_t)
+            blocked = not route_is_clear(self.flight_map, self._tracker.route,
+                                         self.config.radius_m, from_time_s=self._tracker.t_s)
             if not blocked and self._time_s - self._planned_at < self.config.replan_min_interval_s:
                 return
             try:
@@ -332,7 +336,7 @@ class DroneSimulator:
                 mode=self._mode,
                 clearance=float(self.flight_map.distance(position[None])[0]),
                 target=self._goal.copy() if goto else None,
-                route=self._remaining_route(self.config.max_route_points) if goto else None,
+                route=self._remaining_route() if goto else None,
                 command_id=self._command_id,
             )
 
@@ -406,13 +410,16 @@ class DroneSimulator:
     def _save(self) -> tuple:
         """What a physics step may change, for ``_restore``."""
         sp = self._sp
+        tracker = self._tracker
         return (self._quad.state(), tuple(getattr(sp, name) for name in Setpoint.__slots__),
-                self._mode, self._route, self._goal, self._route_t, self._time_s,
+                self._mode, tracker, tracker.t_s if tracker else 0.0, self._goal, self._time_s,
                 len(self._events))
 
     def _restore(self, saved: tuple) -> None:
-        quad_state, sp_state, self._mode, self._route, self._goal, self._route_t, \
-            self._time_s, n_events = saved
+        quad_state, sp_state, self._mode, self._tracker, t_s, self._goal, self._time_s, \
+            n_events = saved
+        if self._tracker is not None:
+            self._tracker.t_s = t_s
         self._quad.set_state(quad_state)
         for name, value in zip(Setpoint.__slots__, sp_state, strict=True):
             setattr(self._sp, name, value)
@@ -421,11 +428,13 @@ class DroneSimulator:
     def _step(self) -> None:
         """Mode logic, controller and one physics step."""
         mode = self._mode
-        if mode == DroneMode.GOTO:
-            self._follow_route()
-        elif mode == DroneMode.MANUAL:
-            self._fly_sticks()
         q = self._quad
+        if mode == DroneMode.GOTO:
+            self._tracker.update(q, self._sp)
+            if self._tracker.finished:
+                self._check_arrival()
+        elif mode == DroneMode.MANUAL:
+            fly_sticks(q, self._sp, self._current_sticks(), self._limits, q.dt)
         q.step(*self._ctrl.update(q, self._sp))
         self._time_s += q.dt
 
@@ -470,7 +479,7 @@ class DroneSimulator:
         self._sp.hold(position, self._quad.yaw_rad)
 
     def _clear_route(self) -> None:
-        self._route = None
+        self._tracker = None
         self._goal = None
 
     def _require_flying(self, what: str) -> None:
@@ -487,90 +496,43 @@ class DroneSimulator:
                          max_climb_rate_m_s=cfg.max_climb_rate_m_s)
 
     def _start_route(self, route) -> None:
-        self._route = route
-        self._route_t = 0.0
-        # Sample the route once at the physics rate: per step, a lookup instead of numpy calls.
-        times = np.arange(math.ceil(route.duration_s / self.config.dt_s) + 2) * self.config.dt_s
-        self._table = np.hstack(route.sample(times)).tolist()
+        cfg = self.config
+        self._tracker = RouteTracker(route, cfg.dt_s, cfg.max_tracking_lag_m,
+                                     self._limits.max_yaw_rate_rad_s)
         self._planned_at = self._time_s
         self._mode = DroneMode.GOTO
-        self._sp.hold_xy = self._sp.hold_z = True
 
-    def _follow_route(self) -> None:
-        cfg = self.config
-        q, sp, route = self._quad, self._sp, self._route
-        # The route clock slows down, then stops, while the drone lags behind its setpoint.
-        lag = math.dist((q.px, q.py, q.pz), (sp.x, sp.y, sp.z))
-        rate = min(1.0, max(0.0, 2.0 - 2.0 * lag / cfg.max_tracking_lag_m))
-        self._route_t = min(self._route_t + rate * q.dt, route.duration_s)
-        u = self._route_t / q.dt
-        i = int(u)
-        f = u - i
-        now, after = self._table[i], self._table[i + 1]
-        x, y, z, vx, vy, vz, ax, ay, az = (
-            a + f * (b - a) for a, b in zip(now, after, strict=True))
-        r2 = rate * rate
-        sp.x, sp.y, sp.z = x, y, z
-        sp.vx, sp.vy, sp.vz = rate * vx, rate * vy, rate * vz
-        sp.ax, sp.ay, sp.az = r2 * ax, r2 * ay, r2 * az
-        # Face the direction of travel, turning no faster than the yaw-rate limit.
-        if math.hypot(sp.vx, sp.vy) > YAW_FOLLOW_MIN_SPEED:
-            turn = _wrap(math.atan2(sp.vy, sp.vx) - sp.yaw)
-            max_turn = math.radians(cfg.max_yaw_rate_deg_s) * q.dt
-            turn = min(max(turn, -max_turn), max_turn)
-            sp.yaw = _wrap(sp.yaw + turn)
-            sp.yaw_rate = turn / q.dt
-        else:
-            sp.yaw_rate = 0.0
-        if self._route_t >= route.duration_s:
-            gx, gy, gz = self._goal
-            near = math.dist((q.px, q.py, q.pz), (gx, gy, gz)) <= cfg.arrival_tolerance_m
-            slow = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz) <= cfg.arrival_speed_m_s
-            if near and slow:
-                goal = self._goal
-                self._hold(goal)
-                self._emit(DroneEventKind.ARRIVED, f"arrived at {np.round(goal, 2).tolist()}")
+    def _check_arrival(self) -> None:
+        q, cfg, goal = self._quad, self.config, self._goal
+        near = math.dist((q.px, q.py, q.pz), goal) <= cfg.arrival_tolerance_m
+        slow = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz) <= cfg.arrival_speed_m_s
+        if near and slow:
+            self._hold(goal)
+            self._emit(DroneEventKind.ARRIVED, f"arrived at {np.round(goal, 2).tolist()}")
 
     def _enter_manual(self) -> None:
         self._clear_route()
         self._mode = DroneMode.MANUAL
         self._sp.hold(self._quad.position, self._quad.yaw_rad)
 
-    def _fly_sticks(self) -> None:
-        """Angle-mode sticks as velocity commands; a centred axis brakes, then holds position."""
+    def _current_sticks(self) -> tuple[float, float, float, float]:
+        """The latest sticks, zero where centred, all zero once stale."""
         cfg = self.config
-        q, sp = self._quad, self._sp
-        sticks = self._sticks
         if self._time_s - self._sticks_at > cfg.stick_timeout_s:
-            sticks = (0.0, 0.0, 0.0, 0.0)
-        throttle, yaw, pitch, roll = (0.0 if abs(s) <= cfg.stick_deadband else s for s in sticks)
-        sp.yaw_rate = yaw * math.radians(cfg.max_yaw_rate_deg_s)
-        sp.yaw = _wrap(sp.yaw + sp.yaw_rate * q.dt)
-        sp.ax = sp.ay = sp.az = 0.0
-        if pitch or roll:
-            forward, right = pitch * cfg.max_speed_m_s, roll * cfg.max_speed_m_s
-            c, s = math.cos(sp.yaw), math.sin(sp.yaw)
-            sp.hold_xy, sp.vx, sp.vy = False, forward * c + right * s, forward * s - right * c
-        elif not sp.hold_xy:
-            sp.vx = sp.vy = 0.0
-            if math.hypot(q.vx, q.vy) < 0.1:  # braked: latch the position
-                sp.hold_xy, sp.x, sp.y = True, q.px, q.py
-        if throttle:
-            sp.hold_z, sp.vz = False, throttle * cfg.max_climb_rate_m_s
-        elif not sp.hold_z:
-            sp.vz = 0.0
-            if abs(q.vz) < 0.1:
-                sp.hold_z, sp.z = True, q.pz
+            return (0.0, 0.0, 0.0, 0.0)
+        t, y, p, r = (0.0 if abs(v) <= cfg.stick_deadband else v for v in self._sticks)
+        return t, y, p, r
 
     # Helpers
 
-    def _remaining_route(self, limit: int | None = None) -> np.ndarray:
-        """From the setpoint onwards along the route's path; at most ``limit`` points (thinned
-        evenly, ends kept) when given."""
-        route = self._route
-        i = int(np.searchsorted(route.times, self._route_t, side="right"))
-        rest = np.vstack([[self._sp.x, self._sp.y, self._sp.z], route.path[i:]])
-        if limit is not None and len(rest) > limit:
+    def _setpoint(self) -> np.ndarray:
+        return np.array([self._sp.x, self._sp.y, self._sp.z])
+
+    def _remaining_route(self) -> np.ndarray:
+        """The route ahead for the status, thinned evenly (ends kept) to max_route_points."""
+        rest = self._tracker.remaining(self._setpoint())
+        limit = self.config.max_route_points
+        if len(rest) > limit:
             rest = rest[np.linspace(0, len(rest) - 1, limit).round().astype(int)]
         return rest
 
@@ -590,25 +552,13 @@ class DroneSimulator:
 
     @staticmethod
     def _point(value, what: str) -> np.ndarray:
-        point = np.asarray(value, dtype=float).reshape(-1)
+        try:
+            point = np.asarray(value, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            point = np.empty(0)
         if point.shape != (3,) or not np.all(np.isfinite(point)):
             raise DroneCommandError(f"{what} must be 3 finite numbers, got {value!r}")
         return point
-
-
-def _polyline_near_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Whether any segment of the polyline passes through the axis-aligned box (slab test)."""
-    if len(points) == 1:
-        return bool(np.all((points[0] >= lo) & (points[0] <= hi)))
-    a, d = points[:-1], np.diff(points, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0 = (lo - a) / d
-        t1 = (hi - a) / d
-    t_near = np.where(d == 0, np.where((a >= lo) & (a <= hi), -np.inf, np.inf), np.minimum(t0, t1))
-    t_far = np.where(d == 0, np.where((a >= lo) & (a <= hi), np.inf, -np.inf), np.maximum(t0, t1))
-    enter = np.maximum(t_near.max(axis=1), 0.0)
-    leave = np.minimum(t_far.min(axis=1), 1.0)
-    return bool(np.any(enter <= leave))
 
 
 def _polyline_length(points: np.ndarray) -> float:

@@ -194,3 +194,15 @@ def test_route_to_where_it_starts_is_a_single_point(scene_maps):
     position, velocity, _ = route.sample(1.0)
     np.testing.assert_allclose(position, scene.start)
     np.testing.assert_allclose(velocity, 0)
+
+
+def test_a_narrow_door_is_found_on_the_map_own_cells():
+    # Door centre clearance 0.225 m; the 10 cm lattice's nodes beside the centre have 0.175 m,
+    # too little for their moves, so only the 5 cm cells get through.
+    scene = scenes.room_with_door(door_y=(0.8, 1.25))
+    route = plan_path(scene.flight_map, scene.start, scene.goal, RADIUS)
+    check_route_keeps_radius(scene, route)
+    with pytest.raises(PlanningError) as caught:  # a radius that does not fit through
+        plan_path(scene.flight_map, scene.start, scene.goal, 0.22)
+    assert caught.value.reason == "unreachable"
+    assert caught.value.nearest[0] < 1.9

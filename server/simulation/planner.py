@@ -10,7 +10,8 @@
 2. **Search.** Dijkstra (scipy's, in C, which beats a Python A* by 10x here) from the nodes
    near the start (each joined to it by a free segment) to the nodes near the goal, first within
    a detour bound, then without. Connected components, computed with the graph once per map
-   version, tell an unreachable goal at once. A straight route is tried first.
+   version, tell an unreachable goal at once. When the coarse lattice finds no route, the
+   lattice of the map's own cells gets a try (narrow passages). A straight route is tried first.
 3. **Shortcut.** From each kept vertex, jump to the farthest later vertex whose segment keeps
    the clearance the searched path had there (up to ``radius + margin + preferred_clearance_m``).
 4. **Smooth.** Each corner becomes a quadratic Bezier blend between its two segments, checked
@@ -388,7 +389,8 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
     if direct >= min(wanted, c_start, c_goal) - 1e-9:
         raw = np.stack([start, goal])
     else:
-        raw = _search_route(flight_map, lattice, start, goal, radius_m, sources, search_detour)
+        raw = _search_lattices(flight_map, start, goal, radius_m, lattice, sources,
+                               (required, clearance_weight, preferred_clearance_m), search_detour)
     raw = raw[np.concatenate([[True], np.linalg.norm(np.diff(raw, axis=0), axis=1) > 1e-9])]
     if len(raw) == 1:  # already there
         zero = np.zeros((1, 3))
@@ -401,6 +403,21 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
                           max_climb_rate_m_s)
     length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
     return Route(corners, path, times, speeds, length, float(times[-1]), tangents, kvecs)
+
+
+def _search_lattices(flight_map, start, goal, radius_m, lattice, sources, settings,
+                     detour) -> np.ndarray:
+    """The raw path through the coarse lattice, or, where that finds none, through the lattice
+    of the map's own cells (built on demand: narrow passages the coarse one cannot see)."""
+    try:
+        return _search_route(flight_map, lattice, start, goal, radius_m, sources, detour)
+    except PlanningError as exc:
+        if exc.reason == Reason.GOAL_BLOCKED or lattice.cell_m <= flight_map.voxel_m * 1.01:
+            raise
+        log.debug("coarse lattice: %s; trying the map's own cells", exc)
+    fine = _lattice(flight_map, settings[0], flight_map.voxel_m, settings[1], settings[2])
+    sources, _ = _endpoint_nodes(flight_map, fine, start, radius_m)
+    return _search_route(flight_map, fine, start, goal, radius_m, sources, detour)
 
 
 def _search_route(flight_map, lattice, start, goal, radius_m, sources,

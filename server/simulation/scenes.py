@@ -58,11 +58,13 @@ def _scene(name, size, inner, start, goal, voxel_m, unknown_is_free) -> Scene:
     return Scene(name, flight_map, boxes, np.asarray(start, float), np.asarray(goal, float))
 
 
-def room_with_door(voxel_m: float = 0.05, unknown_is_free: bool = False) -> Scene:
-    """A 4 x 3 x 2.4 m room split at x = 2 by a 0.2 m wall with a 0.9 m wide, 2 m high door
-    (y in [1.2, 2.1]); start and goal on either side, away from the door."""
-    wall = [((1.9, 0.0, 0.0), (2.1, 1.2, 2.4)), ((1.9, 2.1, 0.0), (2.1, 3.0, 2.4)),
-            ((1.9, 1.2, 2.0), (2.1, 2.1, 2.4))]
+def room_with_door(voxel_m: float = 0.05, unknown_is_free: bool = False,
+                   door_y: tuple[float, float] = (1.2, 2.1)) -> Scene:
+    """A 4 x 3 x 2.4 m room split at x = 2 by a 0.2 m wall with a door 2 m high spanning
+    ``door_y`` (default 0.9 m wide); start and goal on either side, away from the door."""
+    (y0, y1), h = door_y, 2.0
+    wall = [((1.9, 0.0, 0.0), (2.1, y0, 2.4)), ((1.9, y1, 0.0), (2.1, 3.0, 2.4)),
+            ((1.9, y0, h), (2.1, y1, 2.4))]
     return _scene("room_with_door", (4.0, 3.0, 2.4), wall, (1.0, 0.6, 1.2), (3.0, 0.6, 1.2),
                   voxel_m, unknown_is_free)
 

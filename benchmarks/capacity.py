@@ -137,7 +137,8 @@ class ProcessSampler:
 
     def summary(self) -> dict:
         """cpu_percent: of one core (200 % = two cores busy)."""
-        return {"cpu_s": self.cpu_used_s, "cpu_percent": 100 * self.cpu_used_s / self.wall_s,
+        return {"cpu_s": self.cpu_used_s, "wall_s": self.wall_s,
+                "cpu_percent": 100 * self.cpu_used_s / self.wall_s,
                 "rss_max_mb": max(self._rss), "rss_end_mb": self._rss[-1]}
 
 
@@ -188,60 +189,79 @@ def _memory_per_session(rows: list[dict]) -> tuple[float, float] | None:
     return float(slope), float(base)
 
 
+def cpu_model(rows: list[dict]) -> dict:
+    """Server cores used = idle + per session x sessions + per frame x processed frames/s, fitted
+    over the rows by least squares; when the fit is not meaningful (fewer than 4 rows, or a
+    negative term), the all-in CPU per processed frame alone."""
+    X = np.array([[1.0, r["sessions"], r["processed"] / r["server"]["wall_s"]] for r in rows])
+    y = np.array([r["server"]["cpu_s"] / r["server"]["wall_s"] for r in rows])
+    if len(rows) >= 4 and np.linalg.matrix_rank(X) == 3:
+        idle, session, frame_s = np.linalg.lstsq(X, y, rcond=None)[0]
+        if min(idle, session, frame_s) >= 0:
+            return {"fit": True, "idle_cores": float(idle), "session_cores": float(session),
+                    "frame_ms": float(frame_s * 1e3)}
+    processed = sum(r["processed"] for r in rows)
+    frame_ms = 1e3 * sum(r["server"]["cpu_s"] for r in rows) / processed if processed else None
+    return {"fit": False, "idle_cores": 0.0, "session_cores": 0.0, "frame_ms": frame_ms}
+
+
 def what_limits_it(rows: list[dict], cores: int, load_before: float) -> str:
-    """A paragraph from the measured CPU per frame and stage timings."""
-    target = next((r for r in rows if "target" in r), None)
-    ref = target or max(rows, key=lambda r: r["sessions"] * r["fps"])
-    per_frame = [r["server"]["cpu_ms_per_frame"] for r in rows if r["server"]["cpu_ms_per_frame"]]
-    if not per_frame or ref["p95_ms"] is None:
+    """A paragraph from the measured server CPU, stage timings and memory."""
+    model = cpu_model(rows)
+    if not model["frame_ms"]:
         return "No frame was processed: nothing to analyse (see the failures)."
-    cpu_ms = float(np.median(per_frame))
-    stages = ref["stages_ms"]
-    decode = stages.get("decode", {}).get("median", 0.0)
-    track = stages.get("track", {}).get("median", 0.0)
-    fastest_track = min(r["stages_ms"].get("track", {}).get("median", np.inf) for r in rows)
-    client_cores = np.median([r["client_cpu_percent"] for r in rows]) / 100
-    server_cores = cores - client_cores
-    ceiling_fps = server_cores * 1e3 / cpu_ms  # frames/s all sessions together, CPU-bound
-    demand = ref["sessions"] * ref["fps"]
+    idle, session, frame_ms = model["idle_cores"], model["session_cores"], model["frame_ms"]
+    n, fps = TARGET["sessions"], TARGET["fps"]
+    calm = min(rows, key=lambda r: (r["sessions"], r["fps"]))  # the least contended row
+    decode = calm["stages_ms"].get("decode", {}).get("median", 0.0)
+    track = calm["stages_ms"].get("track", {}).get("median", 0.0)
+    client = float(np.median([r["client_cpu_percent"] for r in rows])) / 100
+    available = cores - client
+    demand = idle + n * session + n * fps * frame_ms / 1e3
+    fits = (available - idle) / (session + fps * frame_ms / 1e3)
     best = max(rows, key=lambda r: r["processed_fps"])
-    text = (
-        f"The server spends **{cpu_ms:.0f} ms of CPU per processed frame** (median over the rows; "
-        f"measured from the process's CPU time, so it includes decoding ({decode:.0f} ms median), "
-        f"tracking ({track:.0f} ms median wall time), TSDF fusion of one frame in "
-        f"{Settings().fuse_every} and of keyframes, map preview, the drone simulation when on, and "
-        f"the event loop). {ref['sessions']} sessions at {ref['fps']:g} fps ask for {demand:g} "
-        f"frames/s, i.e. **{demand * cpu_ms / 1e3:.2f} cores**; this machine has {cores}, of which "
-        f"the load tester itself took {client_cores:.2f}, leaving {server_cores:.2f} for the "
-        f"server: a CPU ceiling of about **{ceiling_fps:.0f} processed frames/s in total**, "
-        f"{ceiling_fps / TARGET['fps']:.1f} sessions at {TARGET['fps']:g} fps. The highest "
-        f"throughput measured was {best['processed_fps']:.1f} frames/s ({best['sessions']} x "
-        f"{best['fps']:g} fps). One session is tracked by one thread, so it cannot exceed "
-        f"~{1e3 / max(fastest_track, 1e-3):.0f} fps whatever the cores (its fastest median "
-        f"tracking time: {fastest_track:.0f} ms). ")
-    busiest = max(r["server"]["cpu_percent"] for r in rows) / 100
-    if track > 1.2 * cpu_ms:
-        text += (f"Tracking took longer on the clock ({track:.0f} ms) than the whole frame's CPU "
-                 f"({cpu_ms:.0f} ms): the server waited for a CPU that other processes held. ")
-    if busiest < 0.8 * server_cores and best["drop_rate"] > TARGET["drop_rate"]:
-        text += (f"The server never used more than {busiest:.2f} cores although it dropped "
-                 f"frames: the rest of the CPU went to other processes (load average "
-                 f"{load_before:.1f} before the run), or each session's serial pipeline "
-                 f"(one frame at a time) limits it before the cores do. ")
-    per_session = _memory_per_session(rows)
-    if per_session is not None:
-        text += (f"Memory grows by about {per_session[0]:.0f} MB per session (server at "
-                 f"{per_session[1]:.0f} MB with none: each session's map and tracker), "
-                 f"{per_session[1] + 8 * per_session[0]:.0f} MB for 8 sessions. ")
-    if target is not None and not target["target"]:
-        need = server_cores * 1e3 / demand
-        text += (f"To hold {TARGET['sessions']} x {TARGET['fps']:g} fps the CPU per frame must "
-                 f"fall to {need:.0f} ms ({cpu_ms / need:.1f}x less), or the server needs "
-                 f"{demand * cpu_ms / 1e3 + client_cores:.1f} cores with the load tester "
-                 f"beside it.")
-    elif target is not None:
-        spare = 100 * (1 - demand * cpu_ms / 1e3 / server_cores)
-        text += f"The target row passes with {spare:.0f} % of the server's CPU to spare."
+    if model["fit"]:
+        text = (f"**CPU.** Over the rows the server's CPU fits cores = {idle:.2f} + "
+                f"{session:.2f} x sessions + {frame_ms:.0f} ms x processed frames/s: each "
+                f"processed frame costs **{frame_ms:.0f} ms of CPU**, each live session "
+                f"{session:.2f} cores whatever its frame rate (drone simulation, flight map), the "
+                f"idle server {idle:.2f}. ")
+    else:
+        text = f"**CPU.** The server spends **{frame_ms:.0f} ms of CPU per processed frame**. "
+    text += (
+        f"A frame's CPU covers decoding ({decode:.0f} ms median) and tracking ({track:.0f} ms "
+        f"median, on the clock, {calm['sessions']} x {calm['fps']:g} fps), TSDF fusion of one "
+        f"frame in {Settings().fuse_every} and of keyframes, and the map preview. {n} sessions at "
+        f"{fps:g} fps need **{demand:.2f} cores**; this machine has {cores}, of which the load "
+        f"tester took {client:.2f}, leaving {available:.2f} for the server: enough for about "
+        f"**{fits:.1f} sessions at {fps:g} fps**. The most measured was "
+        f"{best['processed_fps']:.1f} processed frames/s in total ({best['sessions']} x "
+        f"{best['fps']:g} fps). One session's frames are tracked one at a time, so a session "
+        f"cannot exceed ~{1e3 / max(track, 1e-3):.0f} fps whatever the cores. ")
+    busiest = max(r["server"]["cpu_s"] / r["server"]["wall_s"] for r in rows)
+    if busiest < 0.8 * available and best["drop_rate"] > TARGET["drop_rate"]:
+        text += (f"**Contention.** The server never used more than {busiest:.2f} cores although "
+                 f"it dropped frames, and stage times grew with the sessions: other processes "
+                 f"held the rest of the CPU (load average {load_before:.1f} before the run on "
+                 f"{cores} cores), so these figures understate the server. ")
+    memory = _memory_per_session(rows)
+    if memory is not None:
+        text += (f"**Memory** grows by about {memory[0]:.0f} MB per session ({memory[1]:.0f} MB "
+                 f"with none): {memory[1] + 8 * memory[0]:.0f} MB for 8 sessions. ")
+    target = next((r for r in rows if "target" in r), None)
+    if demand > available:
+        frame_budget = 1e3 * (available - idle - n * session) / (n * fps)
+        text += f"**To hold {n} x {fps:g} fps** on {cores} cores "
+        text += (f"the CPU per frame must fall to {frame_budget:.0f} ms "
+                 f"({frame_ms / frame_budget:.1f}x less)" if frame_budget > 0
+                 else "the per-session cost alone must fall first")
+        text += f", or the server needs {demand + client:.1f} cores with the load tester beside it."
+    elif target is not None and not target["target"]:
+        text += (f"The CPU would suffice ({demand:.2f} of {available:.2f} cores), yet the target "
+                 f"row fails: latency or drops come from elsewhere (contention, one frame at a "
+                 f"time per session, the two-frames-in-flight window).")
+    else:
+        text += f"The CPU suffices: {demand:.2f} of {available:.2f} cores."
     return text
 
 
@@ -368,9 +388,9 @@ def main() -> None:
     console.print(analysis)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "capacity.md").write_text(markdown(rows, meta, analysis))
-    (args.out / "capacity.json").write_text(json.dumps({"meta": meta, "target": TARGET,
-                                                        "rows": rows, "analysis": analysis},
-                                                       indent=1))
+    report = {"meta": meta, "target": TARGET, "cpu_model": cpu_model(rows), "rows": rows,
+              "analysis": analysis}
+    (args.out / "capacity.json").write_text(json.dumps(report, indent=1))
     console.print(f"wrote {args.out / 'capacity.md'} and capacity.json")
     if any(r["failures"] for r in rows):
         for r in rows:

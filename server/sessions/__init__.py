@@ -1,9 +1,21 @@
 """Live sessions: one phone (or replaying client) streaming frames into its own tracker and map.
 
-No web code here: the transport hands decoded frames in and gets pose updates back.
+No web code here: the transport hands decoded frames and commands in and gets updates back.
 """
 
+from server.sessions.errors import SessionError
+from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate
 from server.sessions.manager import SessionManager
-from server.sessions.session import FrameData, MapUpdate, PoseUpdate, Session, SessionError
+from server.sessions.session import FrameData, MapUpdate, PoseUpdate, Session
 
-__all__ = ["FrameData", "MapUpdate", "PoseUpdate", "Session", "SessionError", "SessionManager"]
+__all__ = [
+    "CommandRefused",
+    "DroneNotice",
+    "DroneUpdate",
+    "FrameData",
+    "MapUpdate",
+    "PoseUpdate",
+    "Session",
+    "SessionError",
+    "SessionManager",
+]

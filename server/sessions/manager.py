@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hmac
 import logging
 import secrets
 import threading
@@ -11,6 +12,8 @@ from server.sessions.session import Session, SessionConfig, SessionError, hash_t
 from server.sessions.store import SessionStore, StoreError
 
 log = logging.getLogger(__name__)
+
+_NO_SESSION_HASH = hash_token(secrets.token_urlsafe(32))  # compared against for unknown ids
 
 
 class SessionManager:
@@ -33,6 +36,11 @@ class SessionManager:
                 self._saved[sid] = self.store.read_meta(sid)
             except StoreError as exc:
                 log.warning("skipping saved session: %s", exc)
+                continue
+            removed = self.store.remove_partial_files(sid)
+            if removed:
+                log.warning("session %s: removed %d partial files of an interrupted write: %s",
+                            sid, len(removed), ", ".join(removed))
         return len(self._saved)
 
     def create(self) -> tuple[Session, str]:
@@ -53,19 +61,19 @@ class SessionManager:
     def authorize(self, session_id: str, token: str | None) -> Session | dict:
         """The live session, or the saved meta of a closed one, that ``token`` opens.
 
-        Unknown ids and wrong tokens raise the same error, so a stranger learns nothing about
-        which sessions exist."""
+        Unknown ids and wrong tokens raise the same error after the same work (one hash, one
+        constant-time comparison of hashes), so a stranger learns nothing about which sessions
+        exist."""
         if token is None:
             raise SessionError("unauthorized", "this request needs the session's token")
         with self._lock:
-            live = self._live.get(session_id)
-            saved = self._saved.get(session_id)
-        if live is not None and live.check_token(token):
-            return live
-        if saved is not None and secrets.compare_digest(hash_token(token), saved["token_sha256"]):
-            return saved
-        # Spend the same work as a real comparison before refusing.
-        secrets.compare_digest(hash_token(token), "0" * 64)
+            found = self._live.get(session_id) or self._saved.get(session_id)
+        if isinstance(found, Session):
+            expected = found.token_hash
+        else:
+            expected = (found or {}).get("token_sha256", _NO_SESSION_HASH)
+        if hmac.compare_digest(hash_token(token), expected) and found is not None:
+            return found
         raise SessionError("not_found", "no session with this id for this token")
 
     def close(self, session_id: str) -> None:

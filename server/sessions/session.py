@@ -19,24 +19,18 @@ import numpy as np
 
 from server.config import RegistrationConfig
 from server.datasets.base import Trajectory
-from server.errors import DroneSimError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
 from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
+from server.simulation.config import SimulationConfig
+from server.sessions.errors import SessionError
+from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
 from server.sessions.store import SessionStore
 
 log = logging.getLogger(__name__)
-
-
-class SessionError(DroneSimError):
-    """A request a session cannot honour; ``code`` names the reason for the client."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 def hash_token(token: str) -> str:
@@ -52,6 +46,9 @@ class SessionConfig:
     preview_points: int = 4000  # most new points sent per fused frame
     snapshot_interval_s: float = 10.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    simulation: SimulationConfig | None = field(default_factory=SimulationConfig)  # None: no drone
+    drone_state_hz: float = 20.0  # drone_state messages per second
+    flight_map_interval_s: float = 1.0  # the drone's occupancy grid is rebuilt at most this often
 
 
 @dataclass
@@ -92,6 +89,10 @@ class MapUpdate:
     total_points: int
 
 
+# What a session hands its client, from its worker threads.
+Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice
+
+
 @dataclass
 class _FuseJob:
     seq: int
@@ -107,7 +108,7 @@ class Session:
     The tracking worker registers the newest frame and reports its pose at once; the mapping
     worker fuses frames into the TSDF behind it, so fusion never delays a pose. Keyframes are
     always fused; other frames are skipped when the mapper is behind. ``on_update`` receives
-    PoseUpdate and MapUpdate objects, from the worker threads."""
+    PoseUpdate, MapUpdate, DroneUpdate and DroneNotice objects, from the worker threads."""
 
     def __init__(self, session_id: str, token_hash: str, store: SessionStore,
                  config: SessionConfig | None = None, created_at: float | None = None,
@@ -124,7 +125,9 @@ class Session:
         self.tracker: Tracker | None = None
         self.map = tsdf or TSDFMap(TSDFConfig(voxel_m=self.config.voxel_m))
         self.preview = MapPreview()
-        self.on_update: Callable[[PoseUpdate | MapUpdate], None] | None = None
+        self.on_update: Callable[[Update], None] | None = None
+        self.flight: Flight | None = None  # the drone, from the first hello on
+        self._flight_map_at = -np.inf
         self._fuse_jobs: queue.Queue[_FuseJob | None] = queue.Queue(maxsize=4)
         self._mapper: threading.Thread | None = None
         self.fusion_skipped = 0
@@ -147,9 +150,11 @@ class Session:
         """Constant-time comparison of a presented token with this session's."""
         return token is not None and hmac.compare_digest(hash_token(token), self.token_hash)
 
-    def configure(self, intrinsics: Intrinsics, client_name: str = "") -> None:
+    def configure(self, intrinsics: Intrinsics, client_name: str = "",
+                  gravity: np.ndarray | None = None) -> None:
         """Set the camera from the client's hello. A reconnecting client must present the same
-        camera, as the map and trajectory were built with it."""
+        camera, as the map and trajectory were built with it. gravity: its direction in the
+        first camera's frame (sets the drone's up; +y when None); a reconnect keeps the first."""
         if self.closed:
             raise SessionError("session_closed", "this session is closed; create a new one")
         if self.intrinsics is not None and self.intrinsics != intrinsics:
@@ -158,13 +163,30 @@ class Session:
         if self.tracker is None:
             T_first = self._trajectory[-1][1] if self._trajectory else None
             self.tracker = Tracker(intrinsics, self.config.registration, T_world_first=T_first)
+        if self.flight is None and self.config.simulation is not None:
+            self.flight = Flight(self.config.simulation, intrinsics, gravity, self._publish,
+                                 self.config.drone_state_hz)
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
 
+    def _publish(self, update: Update) -> None:
+        on_update = self.on_update
+        if on_update is not None:
+            on_update(update)
+
+    def command(self, name: str, command_id: int, **fields) -> None:
+        """A pilot command for the drone (see ``Flight.command``); raises CommandRefused."""
+        if self.flight is None:
+            raise CommandRefused("bad_command", "no drone in this session: send a hello first"
+                                 if self.config.simulation else "the drone simulation is off")
+        self.flight.command(name, command_id, **fields)
+
     # ------------------------------------------------------------------ frames in
-    def start(self, on_update: Callable[[PoseUpdate], None] | None = None) -> None:
+    def start(self, on_update: Callable[[Update], None] | None = None) -> None:
         self.on_update = on_update
+        if self.flight is not None:
+            self.flight.start()
         if self._worker is None:
             self._worker = threading.Thread(target=self._run, name=f"track-{self.id}", daemon=True)
             self._mapper = threading.Thread(target=self._map, name=f"map-{self.id}", daemon=True)
@@ -226,6 +248,8 @@ class Session:
                 result.new_keyframe or self.processed % self.config.fuse_every == 0):
             self._queue_fusion(_FuseJob(frame.seq, frame.colour, depth, result.T_world_camera,
                                         result.new_keyframe))
+        if self.flight is not None and result.state is not TrackingState.LOST:
+            self.flight.camera_moved(frame.seq, result.T_world_camera, depth)
         with self._lock:
             self._trajectory.append((frame.timestamp, result.T_world_camera))
             self.processed += 1
@@ -266,6 +290,20 @@ class Session:
                 self._dirty = True
             if len(points) and self.on_update is not None:
                 self.on_update(MapUpdate(job.seq, points, colours, self.preview.total))
+            self._feed_flight_map()
+
+    def _feed_flight_map(self) -> None:
+        """Hand the drone a fresh occupancy grid, at most every flight_map_interval_s."""
+        if self.flight is None or (
+                time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s):
+            return
+        self._flight_map_at = time.monotonic()
+        try:
+            grid = self.map.occupancy(self.flight.config.voxel_m, self.flight.R_flight_world)
+        except Exception:
+            log.exception("session %s: occupancy for the drone failed", self.id)
+            return
+        self.flight.map_changed(*grid)
 
     # ------------------------------------------------------------------ results
     def trajectory(self) -> Trajectory:
@@ -289,6 +327,7 @@ class Session:
                 "trajectory_poses": len(self._trajectory),
                 "map": self.map.stats(),
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
+                "drone": None if self.flight is None else self.flight.summary(),
             }
 
     def snapshot(self) -> None:
@@ -322,6 +361,8 @@ class Session:
         with self._wake:
             self._stopping = True
             self._wake.notify()
+        if self.flight is not None:
+            self.flight.stop()
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._fuse_jobs.put(None)  # after every queued fusion

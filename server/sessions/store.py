@@ -15,7 +15,8 @@ from pathlib import Path
 
 from server.errors import DroneSimError
 
-SESSION_ID = re.compile(r"^[0-9a-f]{16}$")
+SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
+FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json")
 
 
 class StoreError(DroneSimError):
@@ -46,7 +47,7 @@ class SessionStore:
         self.root.mkdir(parents=True, exist_ok=True)
 
     def folder(self, session_id: str) -> Path:
-        if not SESSION_ID.match(session_id):
+        if not isinstance(session_id, str) or not SESSION_ID.fullmatch(session_id):
             raise StoreError("malformed session id")
         return self.root / session_id
 
@@ -62,13 +63,24 @@ class SessionStore:
 
     def file(self, session_id: str, name: str) -> Path:
         """Path of one of the session's files (``trajectory.tum``, ``map.npz``, ``map.ply``)."""
-        if name not in ("trajectory.tum", "map.npz", "map.ply", "meta.json"):
+        if name not in FILES:
             raise StoreError(f"unknown session file {name!r}")
         return self.folder(session_id) / name
 
     def saved_ids(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir()
-                      if SESSION_ID.match(p.name) and (p / "meta.json").is_file())
+                      if SESSION_ID.fullmatch(p.name) and (p / "meta.json").is_file())
+
+    def remove_partial_files(self, session_id: str) -> list[str]:
+        """Delete temp files that a write cut short by a crash left beside the session's files
+        (the files themselves are whole: each was renamed into place). Call only while the
+        session is not live. Returns the names removed."""
+        prefixes = tuple(f".{name}." for name in FILES)  # as the atomic writers name them
+        partial = [p for p in self.folder(session_id).iterdir()
+                   if p.is_file() and p.name.startswith(prefixes)]
+        for path in partial:
+            path.unlink(missing_ok=True)
+        return [p.name for p in partial]
 
     def delete(self, session_id: str) -> None:
         shutil.rmtree(self.folder(session_id), ignore_errors=True)

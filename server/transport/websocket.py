@@ -14,7 +14,16 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from server.errors import ConfigError
 from server.geometry import Intrinsics
-from server.sessions import FrameData, MapUpdate, PoseUpdate, Session, SessionError
+from server.sessions import (
+    CommandRefused,
+    DroneNotice,
+    DroneUpdate,
+    FrameData,
+    MapUpdate,
+    PoseUpdate,
+    Session,
+    SessionError,
+)
 from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
@@ -28,17 +37,25 @@ _SESSION_CODES = {
     "session_closed": "unauthorized",
 }
 _OUTBOX = 64  # updates waiting for a slow client; beyond this the oldest are skipped
+_MAX_SEQ = next(f["max"] for f in proto.MESSAGES["frame"]["fields"] if f["name"] == "seq")
 
 
 async def _send(ws: WebSocket, message: dict) -> None:
     await ws.send_bytes(proto.encode(message))
 
 
+def _error_message(error: proto.ProtocolError) -> dict:
+    """The error for the client; a seq that is itself invalid (e.g. negative) is left out, as the
+    error message could not carry it."""
+    seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= _MAX_SEQ else None
+    return proto.make_error(error.code, error.message, seq=seq)
+
+
 async def _refuse(ws: WebSocket, error: proto.ProtocolError) -> None:
     try:
-        await _send(ws, error.to_message())
+        await _send(ws, _error_message(error))
         await ws.close(code=error.close_code or 1000, reason=error.code)
-    except (RuntimeError, WebSocketDisconnect):
+    except (RuntimeError, OSError, WebSocketDisconnect):
         pass
 
 
@@ -94,10 +111,23 @@ async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int)
                                                          total_points=item.total_points))
                     chunk += 1
                 continue
+            if isinstance(item, DroneUpdate):
+                await _send(ws, _drone_state(item))
+                continue
+            if isinstance(item, DroneNotice):
+                await _send(ws, proto.make_drone_event(item.event, item.timestamp, item.position,
+                                                       item.message, item.command_id))
+                continue
             await _send(ws, proto.make_pose(item.seq, item.timestamp, item.T_world_camera, item.state,
                                             item.inliers, item.timings_ms, item.dropped, item.keyframe))
     except (WebSocketDisconnect, RuntimeError, asyncio.CancelledError):
         return
+
+
+def _drone_state(s: DroneUpdate) -> dict:
+    return proto.make_drone_state(s.timestamp, s.T_world_drone, s.velocity, s.mode, s.command_id,
+                                  T_camera_drone=s.T_camera_drone, camera_seq=s.camera_seq,
+                                  clearance=s.clearance, target=s.target, route=s.route)
 
 
 async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int) -> None:
@@ -120,17 +150,34 @@ async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int) -> 
             order.check(message)
             await _handle(ws, session, message, order, deliver)
             errors_in_a_row = 0
+        except _CommandError as exc:
+            error = proto.make_error(exc.code, exc.message, command_id=exc.command_id,
+                                     nearest=exc.nearest)
+            await _send(ws, error)  # refused commands do not count as client errors in a row
         except SessionError as exc:
             error = proto.ProtocolError(_SESSION_CODES.get(exc.code, "internal_error"), str(exc),
                                         seq=_seq(data))
             errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
         except proto.ProtocolError as exc:
             errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
+        except (WebSocketDisconnect, OSError):
+            raise
+        except Exception:  # a bug on one message: say so with a documented code, keep going
+            log.exception("session %s: failed on a client message", session.id)
+            error = proto.ProtocolError("internal_error", "the server failed on this message",
+                                        seq=_seq(data))
+            errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
         if errors_in_a_row < 0:
             return
         if order.closed:
             await ws.close(code=1000, reason="bye")
             return
+
+
+class _CommandError(Exception):
+    def __init__(self, code: str, message: str, command_id: int, nearest) -> None:
+        super().__init__(message)
+        self.code, self.message, self.command_id, self.nearest = code, message, command_id, nearest
 
 
 def _seq(data: bytes) -> int | None:
@@ -146,7 +193,7 @@ async def _report(ws: WebSocket, error: proto.ProtocolError, in_a_row: int, limi
     if error.fatal:
         await _refuse(ws, error)
         return -1
-    await _send(ws, error.to_message())
+    await _send(ws, _error_message(error))
     in_a_row += 1
     if in_a_row >= limit:
         await ws.close(code=proto.CLOSE_CODES["too_many_errors"], reason="too_many_errors")
@@ -163,7 +210,7 @@ async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver
             intrinsics = Intrinsics(fx, fy, cx, cy, int(width), int(height))
         except ConfigError as exc:
             raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
-        session.configure(intrinsics, message["client_name"])
+        session.configure(intrinsics, message["client_name"], message.get("gravity"))
         session.start(deliver)
         await _send(ws, proto.make_welcome(session.id, max_message_bytes=ws.app.state.settings.max_message_bytes))
     elif kind == "frame":
@@ -173,5 +220,8 @@ async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver
                           decode_ms=(time.perf_counter() - t0) * 1e3)
         session.submit(frame)
     elif kind == "command":
-        raise proto.ProtocolError("bad_command", "the drone simulation is not available yet",
-                                  seq=None)
+        fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}
+        try:
+            await asyncio.to_thread(session.command, message["name"], message["id"], **fields)
+        except CommandRefused as exc:
+            raise _CommandError(exc.code, str(exc), message["id"], exc.nearest) from None

@@ -1,0 +1,315 @@
+"""The session's drone: a simulator flying in the session's map, advanced in real time.
+
+The simulator works in a gravity-aligned flight frame (z up); the session's world frame is the
+first camera's frame, whose axes need not be level. This module owns the rotation between the
+two, keeps the flight map fed from the TSDF, turns the pilot's commands (world targets, tapped
+pixels, sticks) into simulator calls, and publishes the drone's state in the world frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from server.geometry import Intrinsics, invert
+from server.sessions.errors import SessionError
+from server.simulation.config import SimulationConfig
+from server.simulation.drone import DroneCommandError, DroneSimulator
+from server.simulation.flight_map import FlightMap
+from server.simulation.planner import PlanningError
+
+log = logging.getLogger(__name__)
+
+_PIXEL_WINDOW = 3  # half-size of the window a tapped pixel's depth is read from, px
+_RECENT_FRAMES = 8  # frames kept for goto_pixel
+_TAP_SLACK_M = 0.6  # a tapped target may move this far to the nearest reachable point, m
+
+
+def flight_frame(gravity_world: np.ndarray | None) -> np.ndarray:
+    """R_flight_world (3x3): flight z is against gravity, flight x the first camera's optical
+    axis made level. gravity_world: gravity's direction in the world (= first camera) frame;
+    None means +y, a camera held upright and level."""
+    g = np.array([0.0, 1.0, 0.0]) if gravity_world is None else np.asarray(gravity_world, float)
+    up = -g / np.linalg.norm(g)
+    for forward in (np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])):
+        x = forward - forward.dot(up) * up
+        if np.linalg.norm(x) > 1e-3:  # the camera looked straight up or down: use its x axis
+            break
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(up, x), up])
+
+
+class CommandRefused(SessionError):
+    """A pilot command that cannot be carried out. ``nearest``: a reachable point close to the
+    asked target (world frame, metres), when there is one."""
+
+    def __init__(self, code: str, message: str, nearest: np.ndarray | None = None) -> None:
+        super().__init__(code, message)
+        self.nearest = nearest
+
+
+@dataclass
+class DroneUpdate:
+    """The drone's state for the client, in the world frame (metres, seconds)."""
+
+    timestamp: float  # simulation time
+    T_world_drone: np.ndarray
+    T_camera_drone: np.ndarray | None  # for the latest processed frame's camera
+    camera_seq: int | None
+    velocity: np.ndarray  # (3,) world frame, m/s
+    mode: str
+    clearance: float
+    target: np.ndarray | None
+    route: np.ndarray | None  # (N, 3) remaining route, world frame
+    command_id: int | None
+
+
+@dataclass
+class DroneNotice:
+    """Something that happened to the drone (collision, arrival, ...), world frame."""
+
+    event: str
+    timestamp: float
+    position: np.ndarray
+    message: str
+    command_id: int | None
+
+
+@dataclass
+class _CameraFrame:
+    T_world_camera: np.ndarray
+    depth: np.ndarray  # (H, W) metres at the colour image's size, 0 = none
+
+
+class Flight:
+    """One session's drone. ``camera_moved`` and ``map_changed`` come from the session's
+    workers, ``command`` from the transport; a thread of its own advances the simulation in
+    real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``."""
+
+    def __init__(self, config: SimulationConfig, K: Intrinsics, gravity_world: np.ndarray | None,
+                 publish: Callable[[DroneUpdate | DroneNotice], None], state_hz: float = 20.0,
+                 spawn_ahead_m: float = 0.8) -> None:
+        self.config = config
+        self.K = K
+        self.R_flight_world = flight_frame(gravity_world)
+        self.publish = publish
+        self.state_period_s = 1.0 / state_hz
+        self.spawn_ahead_m = spawn_ahead_m
+        self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
+        self.sim = DroneSimulator(config, self.flight_map)
+        self._lock = threading.Lock()  # the simulator and flight map are used by one thread at once
+        self._frames: OrderedDict[int, _CameraFrame] = OrderedDict()
+        self._camera: tuple[int, np.ndarray] | None = None  # latest (seq, T_world_camera)
+        self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def spawned(self) -> bool:
+        return self.sim.spawned
+
+    # ------------------------------------------------------------------ frames
+    def _to_flight(self, p_world: np.ndarray) -> np.ndarray:
+        return self.R_flight_world @ np.asarray(p_world, dtype=np.float64)
+
+    def _to_world(self, p_flight: np.ndarray) -> np.ndarray:
+        return np.asarray(p_flight, dtype=np.float64) @ self.R_flight_world
+
+    def T_world_flight(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R_flight_world.T
+        return T
+
+    # ------------------------------------------------------------------ inputs
+    def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
+        """A processed frame: its pose (and depth, for tapped pixels). Tracking-thread side."""
+        with self._lock:
+            self._camera = (seq, T_world_camera)
+            self._frames[seq] = _CameraFrame(T_world_camera, depth)
+            while len(self._frames) > _RECENT_FRAMES:
+                self._frames.popitem(last=False)
+
+    def map_changed(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray) -> None:
+        """A new occupancy grid in the flight frame (``TSDFMap.occupancy(voxel_m,
+        R_grid_world=R_flight_world)``); the flight thread applies it."""
+        with self._lock:
+            self._pending_map = (origin, occupied, observed)
+
+    def command(self, name: str, command_id: int, *, target=None, pixel=None, seq=None,
+                sticks=None, speed=None) -> None:
+        """Carry out a pilot command (names and fields as the protocol's ``command``).
+        Raises CommandRefused (code bad_command or unreachable_target)."""
+        if not self.spawned and name != "sticks":
+            raise CommandRefused("bad_command", "the drone appears once the map has its first "
+                                 "frames; wait for the drone_event 'spawned'")
+        if name == "goto_pixel":
+            target = self._pixel_target(pixel, seq)
+        with self._lock:
+            try:
+                if name == "goto":
+                    self._goto(np.asarray(target, dtype=np.float64), speed, command_id)
+                elif name == "goto_pixel":
+                    self._goto_near(target, speed, command_id)
+                elif name == "sticks":
+                    if self.spawned:  # sticks stream from the page before the drone exists
+                        self.sim.command_sticks(self._sticks(sticks), command_id=command_id)
+                elif name == "hold":
+                    self.sim.command_hold(command_id=command_id)
+                elif name == "land":
+                    self.sim.command_land(command_id=command_id)
+                elif name == "takeoff":
+                    self.sim.command_takeoff(command_id=command_id)
+                else:
+                    raise CommandRefused("bad_command", f"unknown drone command {name!r}")
+            except DroneCommandError as exc:
+                raise CommandRefused("bad_command", str(exc)) from None
+
+    @staticmethod
+    def _sticks(sticks) -> np.ndarray:
+        values = np.asarray(sticks, dtype=np.float64).reshape(-1)
+        if values.size != 4 or not np.all(np.isfinite(values)):
+            raise CommandRefused("bad_command", "sticks must be 4 finite numbers in -1..1")
+        return np.clip(values, -1.0, 1.0)
+
+    def _goto(self, target_world: np.ndarray, speed: float | None, command_id: int) -> None:
+        if not np.all(np.isfinite(target_world)):
+            raise CommandRefused("bad_command", "the target must be three finite numbers")
+        try:
+            self.sim.command_goto(self._to_flight(target_world), speed=speed,
+                                  command_id=command_id)
+        except PlanningError as exc:
+            nearest = None if exc.nearest is None else self._to_world(exc.nearest)
+            code = "bad_command" if exc.reason == "not_finite" else "unreachable_target"
+            raise CommandRefused(code, str(exc), nearest) from None
+
+    def _goto_near(self, target_world: np.ndarray, speed: float | None, command_id: int) -> None:
+        """A tap means 'over there': when the exact point is too close to something, fly to the
+        nearest reachable point if it is within _TAP_SLACK_M."""
+        try:
+            self._goto(target_world, speed, command_id)
+        except CommandRefused as exc:
+            if exc.nearest is None or np.linalg.norm(exc.nearest - target_world) > _TAP_SLACK_M:
+                raise
+            self._goto(exc.nearest, speed, command_id)
+
+    def _pixel_target(self, pixel, seq: int | None) -> np.ndarray:
+        """The world point a tapped pixel shows, standoff_m back towards the camera."""
+        with self._lock:
+            if seq is None and self._frames:
+                seq = next(reversed(self._frames))
+            frame = self._frames.get(seq)
+        if frame is None:
+            raise CommandRefused("bad_command", f"frame {seq} is not among the last "
+                                 f"{_RECENT_FRAMES} processed frames; tap again")
+        u, v = float(pixel[0]), float(pixel[1])
+        h, w = frame.depth.shape
+        if not (0 <= u < w and 0 <= v < h):
+            raise CommandRefused("bad_command", f"pixel ({u:.0f}, {v:.0f}) is outside the "
+                                 f"{w}x{h} image")
+        r = _PIXEL_WINDOW
+        window = frame.depth[max(0, int(v) - r):int(v) + r + 1, max(0, int(u) - r):int(u) + r + 1]
+        valid = window[(window > 0) & np.isfinite(window)]
+        if valid.size == 0:
+            raise CommandRefused("bad_command", f"no depth at pixel ({u:.0f}, {v:.0f}); tap "
+                                 "a surface the camera measured")
+        z = float(np.median(valid))
+        K = self.K
+        ray = np.array([(u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0])
+        distance = z * np.linalg.norm(ray)
+        back_off = min(self.config.standoff_m, 0.8 * distance)
+        p_camera = ray / np.linalg.norm(ray) * (distance - back_off)
+        T = frame.T_world_camera
+        return T[:3, :3] @ p_camera + T[:3, 3]
+
+    # ------------------------------------------------------------------ the flight thread
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="flight", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        last = time.monotonic()
+        while not self._stop.wait(self.state_period_s):
+            now = time.monotonic()
+            # A starved thread slows the drone down rather than letting it jump.
+            dt, last = min(now - last, 0.25), now
+            try:
+                notices = self._tick(dt)
+            except Exception:  # the drone must never take the session down
+                log.exception("flight step failed")
+                continue
+            for notice in notices:
+                self.publish(notice)
+            if self.spawned:
+                self.publish(self.state())
+
+    def _tick(self, dt: float) -> list[DroneNotice]:
+        with self._lock:
+            events = []
+            pending, self._pending_map = self._pending_map, None
+            if pending is not None:
+                changed = self.flight_map.update(*pending)
+                if self.spawned:
+                    self.sim.on_map_update(changed)
+                elif self._camera is not None:
+                    self._spawn()
+            if self.spawned:
+                events = self.sim.advance(dt)
+        return [self._notice(e) for e in events]
+
+    def _spawn(self) -> None:
+        """Hover spawn_ahead_m in front of the camera, facing away from it, in observed free
+        space; next to the camera when the space ahead is not known yet."""
+        T = self._camera[1]
+        forward = self.R_flight_world @ T[:3, 2]
+        yaw = float(np.arctan2(forward[1], forward[0]))
+        for near in (T[:3, 3] + self.spawn_ahead_m * T[:3, 2], T[:3, 3]):
+            try:
+                self.sim.spawn(self._to_flight(near), yaw_rad=yaw)
+                return
+            except DroneCommandError:
+                continue
+
+    def _notice(self, event) -> DroneNotice:
+        return DroneNotice(event.kind, event.time_s, self._to_world(event.position),
+                           event.message, event.command_id)
+
+    def state(self) -> DroneUpdate:
+        with self._lock:
+            s = self.sim.status()
+            camera = self._camera
+        T_world_flight = self.T_world_flight()
+        T_world_drone = T_world_flight @ s.T_flight_drone
+        T_camera_drone = None if camera is None else invert(camera[1]) @ T_world_drone
+        route = None if s.route is None or len(s.route) == 0 else self._to_world(s.route)
+        return DroneUpdate(
+            timestamp=s.time_s,
+            T_world_drone=T_world_drone,
+            T_camera_drone=T_camera_drone,
+            camera_seq=None if camera is None else camera[0],
+            velocity=self._to_world(s.velocity),
+            mode=getattr(s.mode, "value", s.mode),
+            clearance=float(s.clearance),
+            target=None if s.target is None else self._to_world(s.target),
+            route=route,
+            command_id=s.command_id,
+        )
+
+    def summary(self) -> dict:
+        """For the session's status endpoint."""
+        if not self.spawned:
+            return {"spawned": False}
+        s = self.state()
+        return {"spawned": True, "mode": s.mode, "position": s.T_world_drone[:3, 3].tolist(),
+                "clearance_m": s.clearance}

@@ -1,0 +1,109 @@
+"""The session's drone (server.sessions.flight): frames, tapped pixels, commands, spawning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from server.geometry import Intrinsics, exp_se3
+from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight, flight_frame
+from server.simulation import scenes
+from server.simulation.config import SimulationConfig
+
+K = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
+
+
+def test_flight_frame_puts_up_against_gravity_and_x_along_the_view():
+    R = flight_frame(None)  # camera upright and level: gravity is +y
+    np.testing.assert_allclose(R @ [0, -1, 0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(R @ [0, 0, 1], [1, 0, 0], atol=1e-12)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        g = rng.normal(size=3) * rng.uniform(0.1, 10)
+        R = flight_frame(g)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(R @ (-g / np.linalg.norm(g)), [0, 0, 1], atol=1e-12)
+    R = flight_frame([0.0, 0.0, 1.0])  # looking straight down: still a valid frame
+    np.testing.assert_allclose(R @ [0, 0, -1], [0, 0, 1], atol=1e-12)
+
+
+def make_flight(gravity=None, published=None) -> Flight:
+    out = [] if published is None else published
+    return Flight(SimulationConfig(), K, gravity, out.append, state_hz=50.0)
+
+
+def test_a_tapped_pixel_is_the_surface_point_it_shows_standoff_back():
+    flight = make_flight()
+    T = exp_se3(np.array([0.1, -0.2, 0.05, 0.3, -0.1, 0.5]))
+    depth = np.full((480, 640), 2.0, np.float32)  # a wall 2 m ahead
+    flight.camera_moved(7, T, depth)
+    u, v = 100.0, 400.0
+    ray = np.array([(u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0])
+    expected_camera = ray * 2.0 - 0.4 * ray / np.linalg.norm(ray)
+    got = flight._pixel_target((u, v), 7)
+    np.testing.assert_allclose(got, T[:3, :3] @ expected_camera + T[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(flight._pixel_target((u, v), None), got)  # latest frame
+
+    with pytest.raises(CommandRefused, match="not among the last"):
+        flight._pixel_target((u, v), 3)
+    depth[380:420, 80:120] = 0.0
+    flight.camera_moved(8, T, depth)
+    with pytest.raises(CommandRefused, match="no depth"):
+        flight._pixel_target((u, v), 8)
+    with pytest.raises(CommandRefused, match="outside"):
+        flight._pixel_target((700.0, 10.0), 8)
+
+
+def test_commands_before_the_drone_spawns_are_refused_clearly():
+    flight = make_flight()
+    with pytest.raises(CommandRefused, match="spawned") as info:
+        flight.command("goto", 1, target=[1.0, 0.0, 0.0])
+    assert info.value.code == "bad_command"
+    flight.command("sticks", 2, sticks=[0.0, 0.0, 0.0, 0.0])  # sticks are ignored, not refused
+
+
+def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_frame():
+    """The phone's first frame is rolled and pitched; the drone's map and physics are in the
+    gravity frame, everything it reports in the world (first camera) frame."""
+    gravity = np.array([0.3, 0.9, 0.2])
+    published = []
+    flight = make_flight(gravity, published)
+    R = flight.R_flight_world
+    scene = scenes.room_with_door()
+    fm = scene.flight_map
+    # Hand over the scene's grid as the session would: an occupancy grid in the flight frame.
+    observed = np.ones(fm.shape, dtype=bool)
+    flight.map_changed(fm.origin, fm.blocked & observed, observed)
+    # A camera standing where the scene's start is, looking along flight +x.
+    T = np.eye(4)
+    T[:3, :3] = R.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera axes in flight
+    T[:3, 3] = R.T @ (scene.start - [0.8, 0.0, 0.0])
+    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
+    for _ in range(3):
+        flight._tick(0.02)
+    assert flight.spawned
+    goal_world = R.T @ scene.goal
+    flight.command("goto", 5, target=goal_world)
+    for _ in range(int(15 / 0.02)):
+        notices = flight._tick(0.02)
+        published += notices
+        if any(n.event == "arrived" for n in notices):
+            break
+    events = [n.event for n in published if isinstance(n, DroneNotice)]
+    assert "arrived" in events and "collision" not in events
+    state = flight.state()
+    assert isinstance(state, DroneUpdate) and state.mode == "hover"
+    assert np.linalg.norm(state.T_world_drone[:3, 3] - goal_world) < 0.15
+    # Level flight: the drone's up is the world's up (against gravity).
+    up_world = -gravity / np.linalg.norm(gravity)
+    assert state.T_world_drone[:3, :3] @ [0, 0, 1] @ up_world > 0.99
+    np.testing.assert_allclose(state.T_camera_drone, np.linalg.inv(T) @ state.T_world_drone,
+                               atol=1e-9)
+
+    # A goal inside the door's wall is refused with a reachable point nearby, in world terms.
+    with pytest.raises(CommandRefused) as info:
+        flight.command("goto", 6, target=R.T @ np.array([2.0, 0.5, 1.0]))
+    assert info.value.code == "unreachable_target"
+    if info.value.nearest is not None:
+        assert fm.distance((R @ info.value.nearest)[None])[0] >= SimulationConfig().radius_m

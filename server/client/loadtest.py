@@ -231,6 +231,8 @@ class _Client:
         except websockets.ConnectionClosed as exc:
             r.close_code = exc.rcvd.code if exc.rcvd else None
             r.failures.append(f"connection closed early ({self._close_name(r.close_code)})")
+        except proto.ProtocolError as exc:
+            r.failures.append(f"invalid server message: {exc}")
         except (OSError, asyncio.TimeoutError) as exc:
             r.failures.append(f"websocket: {type(exc).__name__} {exc}")
         r.unanswered = len(self.in_flight)
@@ -258,7 +260,8 @@ class _Client:
         await ws.send(proto.encode(hello))
         welcome = proto.decode(await asyncio.wait_for(ws.recv(), cfg.grace_s))
         if welcome["type"] != "welcome":
-            r.failures.append(f"expected welcome, got {welcome['type']}")
+            said = f" {welcome['name']}: {welcome['message']}" if welcome["type"] == "error" else ""
+            r.failures.append(f"expected welcome, got {welcome['type']}{said}")
             return
         max_in_flight = min(cfg.max_in_flight, welcome["max_in_flight"])
         receiver = asyncio.create_task(self._receive(ws))

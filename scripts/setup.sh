@@ -12,4 +12,20 @@ if ! ldconfig -p | grep -q libusb-1.0.so.0; then
   $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
 fi
 
+# The web client's browser tests drive Debian's chromium with Playwright (Playwright's own
+# browser download does not work here); npm installs the page's modules.
+WEB_PACKAGES=()
+[ -x /usr/bin/chromium ] || WEB_PACKAGES+=(chromium chromium-driver)
+command -v npm >/dev/null || WEB_PACKAGES+=(nodejs npm)
+if [ ${#WEB_PACKAGES[@]} -gt 0 ]; then
+  $SUDO apt-get update -qq
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${WEB_PACKAGES[@]}" >/dev/null
+fi
+
 python3 -m pip install -q --disable-pip-version-check -e ".[dev]"
+
+# The page's JavaScript modules (three, @msgpack/msgpack) at the locked versions; the server
+# serves them from client_web/node_modules, so the page needs no internet.
+if [ ! -d client_web/node_modules/three ] || [ client_web/package-lock.json -nt client_web/node_modules/.package-lock.json ]; then
+  (cd client_web && npm ci --no-audit --no-fund --loglevel=error)
+fi

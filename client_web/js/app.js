@@ -245,14 +245,11 @@ class App {
   }
 
   #renderLoop() {
-    let last = performance.now();
     let lastHud = 0;
     const frame = (now) => {
-      const dt = Math.min(0.1, (now - last) / 1000);
-      last = now;
       const view = document.body.classList;
-      if (!view.contains("layout-map") && !this.source?.session) this.ar.render(dt);
-      if (!view.contains("layout-ar")) this.map.render(dt);
+      if (!view.contains("layout-map") && !this.source?.session) this.ar.tick(now);
+      if (!view.contains("layout-ar")) this.map.tick(now);
       if (now - lastHud > 250) {
         lastHud = now;
         this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
@@ -323,6 +320,8 @@ class App {
       session: this.client.session?.id ?? null,
       streaming: this.streamer?.running ?? false,
       sent: this.client.counts.sent,
+      counts: { ...this.client.counts },
+      statusLog: this.client.statusLog.map(({ state, message }) => ({ state, message })),
       skipped: this.streamer?.skipped ?? 0,
       inFlight: this.client.inFlight.size,
       latencyMs: this.client.latencyMs,

@@ -71,6 +71,8 @@ export class ARView {
     this.groundHeight = null; // height of the floor along `up`, metres (from the map)
     this.xrAnchor = null; // live mode: (seq) => Matrix4 XR pose of that frame's GL camera
     this.lastDraw = { droneVisible: false };
+    this.dirty = true; // something changed since the last draw
+    this.lastRender = 0;
     this.#listen();
     new ResizeObserver(() => this.layout()).observe(container);
   }
@@ -81,6 +83,7 @@ export class ARView {
     this.colourSize = [...colourSize];
     this.image.width = colourSize[0];
     this.image.height = colourSize[1];
+    this.container.style.setProperty("--ar-aspect", `${colourSize[0]} / ${colourSize[1]}`);
     this.camera.projectionMatrix.fromArray(projectionFromIntrinsics(intrinsics, ...colourSize, 0.03, 200));
     this.camera.projectionMatrixInverse.copy(this.camera.projectionMatrix).invert();
     this.layout();
@@ -108,7 +111,17 @@ export class ARView {
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
     this.renderer.setSize(sw, sh);
     this.routeMaterial.resolution.set(sw, sh);
-    this.render(0);
+    this.dirty = true;
+  }
+
+  /** Draw when something changed, and at most every `minMs` while the rotors spin. Cheap to
+   * call every animation frame: an unchanged view is not redrawn (phones' batteries, and
+   * software rendering in tests). */
+  tick(now, minMs = 33) {
+    const spinning = this.drone.visible && this.droneState?.mode !== "landed";
+    if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
+    this.render(Math.min(0.1, (now - this.lastRender) / 1000));
+    this.lastRender = now;
   }
 
   /** Show a processed frame: its image (ImageBitmap or canvas source) and camera pose. */
@@ -119,14 +132,17 @@ export class ARView {
     }
     const Twc = matrixFromRowMajor(T_world_camera);
     this.frame = { seq, T_world_camera: Twc, T_camera_world: Twc.clone().invert() };
+    this.dirty = true;
   }
 
   setDroneState(state) {
     this.droneState = state;
+    this.dirty = true;
   }
 
   clearDrone() {
     this.droneState = null;
+    this.dirty = true;
   }
 
   /** T_camera_drone (OpenCV camera of the shown frame) as a Matrix4, or null. */
@@ -162,6 +178,7 @@ export class ARView {
     this.#placeGroundMarker(s, frame);
     this.#placeRoute(s, frame);
     this.renderer.render(this.scene, this.camera);
+    this.dirty = false;
   }
 
   /** world point -> root frame (three camera of the shown frame). */

@@ -36,7 +36,8 @@ export class SessionClient extends EventTarget {
     this.pending = []; // commands waiting for the connection
     this.attempt = 0;
     this.nextCommandId = 1;
-    this.counts = { sent: 0, poses: 0, errors: 0, reconnects: 0, bytesSent: 0 };
+    this.counts = { sent: 0, poses: 0, errors: 0, reconnects: 0, bytesSent: 0, maxInFlight: 0 };
+    this.statusLog = []; // [{state, message, at}] for the HUD's history and the tests
     this.saved = this.#load();
   }
 
@@ -78,6 +79,8 @@ export class SessionClient extends EventTarget {
 
   #status(state, message = "") {
     this.state = state;
+    this.statusLog.push({ state, message, at: performance.now() });
+    if (this.statusLog.length > 100) this.statusLog.shift();
     this.dispatchEvent(new CustomEvent("status", { detail: { state, message } }));
   }
 
@@ -229,6 +232,7 @@ export class SessionClient extends EventTarget {
     this.saved.nextSeq = seq + 1;
     this.#save();
     this.inFlight.set(seq, performance.now());
+    this.counts.maxInFlight = Math.max(this.counts.maxInFlight, this.inFlight.size);
     this.#send(message);
     this.counts.sent += 1;
     return seq;

@@ -84,10 +84,9 @@ export class MapView {
     this.route.visible = false;
     this.scene.add(this.route);
 
-    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
-    this.controls.enableDamping = true;
-    this.controls.screenSpacePanning = true;
-    this.fitted = false;
+    this.#makeControls();
+    this.dirty = true;
+    this.lastRender = 0;
     this.raycaster = new THREE.Raycaster();
     this.#listen();
     new ResizeObserver(() => this.layout()).observe(container);
@@ -102,12 +101,17 @@ export class MapView {
   setUp(up) {
     this.up.copy(up);
     this.camera.up.copy(up);
-    this.controls.dispose();
+    this.#makeControls();
+    this.#recolour();
+  }
+
+  #makeControls() {
+    this.controls?.dispose();
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.enableDamping = true;
     this.controls.screenSpacePanning = true;
+    this.controls.addEventListener("change", () => (this.dirty = true));
     this.fitted = false;
-    this.#recolour();
   }
 
   layout() {
@@ -117,6 +121,7 @@ export class MapView {
     this.renderer.setSize(w, h);
     this.camera.aspect = w / h;
     this.camera.updateProjectionMatrix();
+    this.dirty = true;
   }
 
   clear() {
@@ -149,6 +154,7 @@ export class MapView {
       this.#upload(this.positions.count - n);
     }
     if (!this.fitted && this.positions.count > 500) this.fit();
+    this.dirty = true;
   }
 
   /** Height of the floor along `up`: a low percentile of the map's heights, or null. */
@@ -174,9 +180,11 @@ export class MapView {
     g.setDrawRange(0, this.trajectory.count);
     this.cameraMarker.matrix.copy(m);
     this.cameraMarker.visible = true;
+    this.dirty = true;
   }
 
   setDroneState(s) {
+    this.dirty = true;
     if (!s) {
       this.drone.visible = this.droneHalo.visible = this.route.visible = this.target.visible = false;
       return;
@@ -220,12 +228,19 @@ export class MapView {
     this.controls.target.copy(centre);
     this.controls.update();
     this.fitted = true;
+    this.dirty = true;
   }
 
-  render(dt = 0) {
-    this.controls.update();
-    this.drone.userData.update(dt, this.drone.userData.spinning);
+  /** Draw when something changed (new points, poses, drone state, the user orbiting), at most
+   * every `minMs` for data updates; call it every animation frame. */
+  tick(now, minMs = 50) {
+    this.controls.update(); // damping: fires "change" while the view still moves
+    const spinning = this.drone.visible && this.drone.userData.spinning;
+    if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
+    this.drone.userData.update(Math.min(0.1, (now - this.lastRender) / 1000), spinning);
     this.renderer.render(this.scene, this.camera);
+    this.lastRender = now;
+    this.dirty = false;
   }
 
   /** The map point under a client point (the nearest cloud point near the ray), or null. */
@@ -295,6 +310,7 @@ export class MapView {
     }
     this.#colourRange(0, this.positions.count);
     this.#upload(0);
+    this.dirty = true;
   }
 
   #colourRange(start, end) {

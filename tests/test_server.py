@@ -185,3 +185,28 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
     assert status["frames_processed"] + status["frames_dropped"] <= 300
     assert poses and poses[-1]["dropped"] > 0
     assert rss_end - rss_start < 300, f"server memory grew by {rss_end - rss_start:.0f} MB"
+
+
+def test_a_bye_still_gets_answers_for_the_frames_in_flight(live_server, shared_data):
+    ds = open_dataset(shared_data / "synthetic_room0")
+    server = live_server()
+    sid, token = server.create_session()
+    K = ds.intrinsics
+
+    async def send_two_and_leave() -> tuple[list[dict], int]:
+        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}",
+                                      max_size=None) as ws:
+            await ws.send(proto.encode(proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy),
+                                                        (K.width, K.height))))
+            assert proto.decode(await ws.recv())["type"] == "welcome"
+            for i in range(2):
+                f = ds[i]
+                await ws.send(proto.encode(proto.make_frame(i, f.timestamp, f.colour, f.depth)))
+            await ws.send(proto.encode(proto.make_bye("done")))
+            received = [proto.decode(data) async for data in ws]
+            return received, ws.close_code
+
+    received, close_code = asyncio.run(send_two_and_leave())
+    assert close_code == 1000
+    poses = [m for m in received if m["type"] == "pose"]
+    assert poses and poses[-1]["seq"] == 1  # acknowledges both frames

@@ -139,6 +139,7 @@ class Session:
         self._fusions = 0
         self._lock = threading.Lock()  # guards the trajectory and counters
         self._inbox: FrameData | None = None
+        self._busy = False  # the worker holds a frame
         self._wake = threading.Condition()
         self._stopping = False
         self._worker: threading.Thread | None = None
@@ -211,6 +212,18 @@ class Session:
             self._inbox = frame
             self._wake.notify()
 
+    def drain(self, timeout_s: float = 5.0) -> bool:
+        """Wait until every submitted frame has been processed (or dropped); False on timeout.
+        A client saying bye still gets the answers to the frames it sent."""
+        deadline = time.monotonic() + timeout_s
+        with self._wake:
+            while self._inbox is not None or self._busy:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._wake.wait(remaining)
+        return True
+
     # ------------------------------------------------------------------ worker
     def _run(self) -> None:
         while True:
@@ -220,6 +233,7 @@ class Session:
                     if self._snapshot_due():
                         break
                 frame, self._inbox = self._inbox, None
+                self._busy = frame is not None
                 stopping = self._stopping
             if frame is not None:
                 try:
@@ -229,6 +243,9 @@ class Session:
                     update = None
                 if update is not None and self.on_update is not None:
                     self.on_update(update)
+                with self._wake:
+                    self._busy = False
+                    self._wake.notify_all()  # for drain()
             if self._snapshot_due():
                 self.snapshot()
             if stopping and frame is None:

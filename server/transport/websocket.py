@@ -87,7 +87,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
 
     sender = asyncio.create_task(_send_updates(ws, outbox, settings.preview_points))
     try:
-        await _receive(ws, session, deliver, settings.max_message_bytes)
+        await _receive(ws, session, deliver, settings.max_message_bytes, outbox)
     except WebSocketDisconnect:
         pass
     finally:
@@ -124,13 +124,23 @@ async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int)
         return
 
 
+async def _close_after_answers(ws: WebSocket, session: Session, outbox: asyncio.Queue) -> None:
+    """After a bye: answer the frames in flight (bounded), then close normally."""
+    await asyncio.to_thread(session.drain, 5.0)
+    deadline = time.monotonic() + 2.0
+    while not outbox.empty() and time.monotonic() < deadline:
+        await asyncio.sleep(0.01)
+    await ws.close(code=1000, reason="bye")
+
+
 def _drone_state(s: DroneUpdate) -> dict:
     return proto.make_drone_state(s.timestamp, s.T_world_drone, s.velocity, s.mode, s.command_id,
                                   T_camera_drone=s.T_camera_drone, camera_seq=s.camera_seq,
                                   clearance=s.clearance, target=s.target, route=s.route)
 
 
-async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int) -> None:
+async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int,
+                   outbox: asyncio.Queue) -> None:
     order = proto.ClientOrder()
     errors_in_a_row = 0
     limit = proto.LIMITS["max_consecutive_errors"]
@@ -170,7 +180,7 @@ async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int) -> 
         if errors_in_a_row < 0:
             return
         if order.closed:
-            await ws.close(code=1000, reason="bye")
+            await _close_after_answers(ws, session, outbox)
             return
 
 

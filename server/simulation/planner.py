@@ -40,6 +40,7 @@ from server.simulation.flight_map import FlightMap
 
 log = logging.getLogger(__name__)
 
+
 class Reason(str, Enum):
     """Why no route was found; compares equal to its string value."""
 
@@ -267,7 +268,7 @@ def _smooth(flight_map, pts, floor_m, step_m, max_arm_m=1.0):
         avail_out = lengths[k] * (1.0 if k == len(pts) - 2 else 0.5)
         d = min(avail_in, avail_out, max_arm_m)
         keep = min(floor_m, seg_clear[k - 1], seg_clear[k]) - 1e-9
-        for _ in range(6):
+        for _ in range(6 if np.dot(u1, u2) > -0.999 else 0):  # a U-turn has no blend
             blend = _bezier(pts[k], u1, u2, d, step_m)
             if flight_map.distance(blend[0]).min() >= keep:
                 break

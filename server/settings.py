@@ -4,6 +4,7 @@ and validated at start-up, so that a bad value stops the server with a clear mes
 from __future__ import annotations
 
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -19,7 +20,8 @@ class Settings(BaseSettings):
     data_dir: Path = Path("data")  # sessions' maps and trajectories live here
     tls: bool = False  # serve HTTPS with a self-signed certificate kept in data_dir/tls
     max_sessions: int = Field(16, ge=1)  # live sessions at once; more get 503
-    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024)  # refused before decoding
+    # Refused before decoding; at most uvicorn's ws_max_size (16 MiB), which refuses larger first.
+    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
     session_ttl_s: float = Field(300.0, gt=0)  # a disconnected session is closed after this
     snapshot_interval_s: float = Field(10.0, gt=0)  # periodic atomic snapshot of map + trajectory
     fuse_every: int = Field(3, ge=1)  # integrate every n-th tracked frame (and every keyframe)
@@ -28,10 +30,23 @@ class Settings(BaseSettings):
     demo: bool = False  # start a session that replays the bundled demo sequence
     demo_fps: float = Field(15.0, gt=0, le=60)
     cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
+    create_rate_per_min: float = Field(30.0, ge=0)  # sessions one client IP may create; 0: no limit
+    create_burst: int = Field(20, ge=1)  # ...of which this many at once
 
     @field_validator("data_dir")
     @classmethod
     def _data_dir_usable(cls, v: Path) -> Path:
         if v.exists() and not v.is_dir():
             raise ValueError(f"data_dir {v} exists and is not a folder")
+        return v
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _exact_origins(cls, v: list[str]) -> list[str]:
+        for origin in v:
+            parts = urlsplit(origin)
+            if "*" in origin or parts.scheme not in ("http", "https") or not parts.netloc or (
+                    parts.path or parts.query or parts.fragment):
+                raise ValueError(f"cors origin {origin!r} must be exactly scheme://host[:port] "
+                                 "(no wildcard, no path): a wildcard lets any page call the API")
         return v

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
+import re
 
 from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
@@ -16,10 +18,23 @@ from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.settings import Settings
 from server.transport import routes_client, routes_sessions, websocket
+from server.transport.deps import RateLimiter
 
 log = logging.getLogger(__name__)
 
-_STATUS = {"unauthorized": 401, "not_found": 404, "server_full": 503}
+_STATUS = {"unauthorized": 401, "not_found": 404, "rate_limited": 429, "server_full": 503}
+
+
+class RedactTokens(logging.Filter):
+    """Blank out ``token=...`` in log lines: uvicorn logs each WebSocket's path with its query."""
+
+    _TOKEN = re.compile(r"(token=)[^&\s\"']+")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if "token=" in message:
+            record.msg, record.args = self._TOKEN.sub(r"\1[redacted]", message), ()
+        return True
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -52,6 +67,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.manager = manager
     app.state.connections = set()
     app.state.demo = None
+    app.state.create_limiter = RateLimiter(settings.create_rate_per_min, settings.create_burst)
+    for name in ("uvicorn.error", "uvicorn.access"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RedactTokens) for f in logger.filters):
+            logger.addFilter(RedactTokens())
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"], allow_headers=["Authorization"])
@@ -61,8 +81,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:
+        retry = getattr(exc, "retry_after_s", None)
         return JSONResponse({"error": {"code": exc.code, "message": str(exc)}},
-                            status_code=_STATUS.get(exc.code, 400))
+                            status_code=_STATUS.get(exc.code, 400),
+                            headers={"Retry-After": str(math.ceil(retry))} if retry else None)
 
     @app.exception_handler(StoreError)
     async def store_error(request: Request, exc: StoreError) -> JSONResponse:

@@ -5,22 +5,23 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from fastapi import APIRouter, Request, Response, status
+from fastapi import APIRouter, Depends, Request, Response, status
 
 from server.evaluation.trajectory import write_tum
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import Session
-from server.transport.deps import ManagerDep, SessionDep
+from server.transport.deps import ManagerDep, SessionDep, creation_allowed
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
 PLY = "application/octet-stream"
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post("", status_code=status.HTTP_201_CREATED, dependencies=[Depends(creation_allowed)])
 def create_session(request: Request, manager: ManagerDep) -> dict:
     """Create a live session. The token is shown only here: keep it, every other call needs it
-    (``Authorization: Bearer <token>``, or ``?token=`` on the WebSocket)."""
+    (``Authorization: Bearer <token>``, or ``?token=`` on the WebSocket). A client creating
+    sessions too fast gets 429 with Retry-After; a full server 503."""
     session, token = manager.create()
     scheme = "wss" if request.url.scheme == "https" else "ws"
     return {
@@ -32,8 +33,12 @@ def create_session(request: Request, manager: ManagerDep) -> dict:
 
 @router.get("/{session_id}")
 def session_status(session: SessionDep) -> dict:
-    """Statistics of a live or closed session."""
-    return session.status() if isinstance(session, Session) else session["status"] | {"closed": True}
+    """Statistics of a live or closed session. ``tracking_lost``: the latest frame was lost (the
+    pose holds the last good one and the map takes no frames until tracking recovers)."""
+    if not isinstance(session, Session):
+        return session["status"] | {"closed": True, "tracking_lost": False}
+    lost = session.tracker is not None and session.tracker.lost
+    return session.status() | {"tracking_lost": bool(lost)}
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)

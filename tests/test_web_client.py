@@ -44,6 +44,7 @@ CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swi
 PHONE = {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True,
          "device_scale_factor": 1}
 DESKTOP = {"viewport": {"width": 1280, "height": 800}}
+REPLAY_PATH = "/?mode=demo-small"  # the page with the small demo preselected
 
 
 # ---- fixtures and helpers ------------------------------------------------------------------
@@ -63,22 +64,24 @@ def browser():
 
 @pytest.fixture(scope="module")
 def demo_ready():
-    """The bundled demo sequence, generated once and cached (~/.cache/dronesim)."""
+    """The small demo preset (320x240, 90 frames) that the replays below stream, generated once
+    and cached (~/.cache/dronesim): a quarter of the full demo's work per frame."""
     from server.datasets.demo import demo_sequence_path
+    from server.transport.routes_client import DEMO_PRESETS
 
-    return demo_sequence_path(progress=False)
+    return demo_sequence_path(DEMO_PRESETS["small"], progress=False)
 
 
 class Page:
     """A page of the app with its console errors collected."""
 
-    def __init__(self, browser, server, **context) -> None:
+    def __init__(self, browser, server, path: str = "/", **context) -> None:
         self.context = browser.new_context(**context)
         self.page = self.context.new_page()
         self.errors: list[str] = []
         self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
         self.page.on("console", lambda m: m.type == "error" and self.errors.append(f"console: {m.text}"))
-        self.page.goto(f"{server.url}/")
+        self.page.goto(f"{server.url}{path}")
         self.page.wait_for_function("window.dronesim && window.dronesim.protocol && window.dronesim.pilot",
                                     timeout=20_000)
 
@@ -108,8 +111,8 @@ class Page:
 def open_page(browser, demo_ready):
     pages = []
 
-    def open_(server, **context) -> Page:
-        page = Page(browser, server, **context)
+    def open_(server, path: str = "/", **context) -> Page:
+        page = Page(browser, server, path, **context)
         pages.append(page)
         return page
 
@@ -196,6 +199,38 @@ def start_replay(page: Page, min_poses: int, tap: bool) -> dict:
     page.wait("document.querySelector('[data-field=tracking]').textContent === 'tracking ok'", 30,
               "the HUD to show tracking ok")
     return page.snapshot()
+
+
+# ---- what the server serves for the page -----------------------------------------------------
+
+
+def test_the_server_serves_the_page_its_modules_protocol_and_demo(live_server, demo_ready):
+    import httpx
+
+    server = live_server()
+    with httpx.Client(base_url=server.url, timeout=60) as http:
+        page = http.get("/")
+        assert page.status_code == 200 and "importmap" in page.text and "/app/js/app.js" in page.text
+        for path in ("/app/js/app.js", "/vendor/three/build/three.module.js",
+                     "/vendor/three/examples/jsm/controls/OrbitControls.js",
+                     "/vendor/@msgpack/msgpack/dist.esm/index.mjs"):
+            r = http.get(path)
+            assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript"), path
+        assert http.get("/protocol.json").content == (ROOT / "shared" / "protocol.json").read_bytes()
+        for path in ("/app/package.json", "/app/node_modules/three/package.json", "/app/js/../../README.md",
+                     "/app/js/%2e%2e/%2e%2e/README.md", "/vendor/three/../../package.json",
+                     "/vendor/left-pad/index.js", "/api/demo/files/../rgb.txt", "/api/demo/files/rgb.txt"):
+            assert http.get(path).status_code == 404, path
+
+        index = http.get("/api/demo", params={"preset": "small"}).json()
+        assert index["colour_size"] == [320, 240] and index["depth_scale"] == 5000.0
+        assert len(index["frames"]) == 90 and index["intrinsics"] == [262.5, 262.5, 159.5, 119.5]
+        assert np.linalg.norm(index["gravity"]) == pytest.approx(1.0)
+        frame = index["frames"][0]
+        colour, depth = http.get(frame["colour"]).content, http.get(frame["depth"]).content
+        assert colour[:3] == b"\xff\xd8\xff" and depth[:8] == b"\x89PNG\r\n\x1a\n"
+        assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+        assert http.get("/api/demo", params={"preset": "huge"}).status_code == 404
 
 
 # ---- unit tests of the live mode's packing, in the browser ----------------------------------
@@ -465,7 +500,7 @@ def test_message_validation_matches_the_server(live_server, open_page):
 
 def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open_page):
     server = live_server()
-    page = open_page(server, **PHONE)
+    page = open_page(server, REPLAY_PATH, **PHONE)
     page.page.tap("#btn-stream")
 
     # Before the drone spawns: the first picture, no drone paint on it.
@@ -507,7 +542,8 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
         time.sleep(1.5)
     assert spot is not None, "the drone never came into the camera's view"
     shot = page.screenshot("phone-ar-drone.png")
-    radius = max(25.0, 0.2 * 525 / spot[2] * s["ar"]["stage"]["width"] / s["ar"]["colourSize"][0])
+    css_per_px = s["ar"]["stage"]["width"] / s["ar"]["colourSize"][0]
+    radius = max(25.0, 0.2 * s["ar"]["intrinsics"][0] / spot[2] * css_per_px)  # ~ the drone's size
     near = count_near(drone_mask(shot), spot[:2], radius)
     assert near >= 20, f"only {near} drone-coloured pixels within {radius:.0f} px of {spot[:2]}"
     page.page.evaluate("document.querySelector('.ar-overlay').style.visibility = 'hidden'")
@@ -542,7 +578,7 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
 
 def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     server = live_server()
-    page = open_page(server, **DESKTOP)
+    page = open_page(server, REPLAY_PATH, **DESKTOP)
     s = start_replay(page, 30, tap=False)
     session = s["session"]
     assert s["sent"] >= 30 and s["counts"]["maxInFlight"] <= 2
@@ -577,18 +613,23 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     cx, cy = stick["x"] + stick["width"] / 2, stick["y"] + stick["height"] / 2
     before = len(page.snapshot()["commands"])
     page.page.mouse.move(cx, cy)
-    page.page.mouse.down()
-    page.page.mouse.move(cx, cy - stick["height"] * 0.3, steps=4)
     t0 = time.time()
-    time.sleep(1.0)
+    page.page.mouse.down()
+    page.page.mouse.move(cx + stick["width"] * 0.12, cy - stick["height"] * 0.12, steps=3)
+    time.sleep(0.8)
     page.page.mouse.up()
-    held_s = time.time() - t0
+    held_s = time.time() - t0  # an upper bound: the events reach the page a little later
     time.sleep(0.3)
-    sticks = [c for c in page.snapshot()["commands"][before:] if c["name"] == "sticks"]
-    assert 10 * held_s * 0.7 <= len(sticks) - 1 <= 20 * held_s * 1.3 + 2, (len(sticks), held_s)
-    assert max(c["fields"]["sticks"][2] for c in sticks) > 0.3  # pitch forward
+    s = page.snapshot()
+    sticks = [c for c in s["commands"][before:] if c["name"] == "sticks"]
+    assert 10 * (held_s - 0.3) <= len(sticks) - 1 <= 20 * held_s + 2, (len(sticks), held_s)
+    assert max(c["fields"]["sticks"][2] for c in sticks) > 0.15  # pitch: forward
+    assert max(c["fields"]["sticks"][3] for c in sticks) > 0.15  # roll: to the right
     assert sticks[-1]["fields"]["sticks"] == [0, 0, 0, 0]
-    page.wait("window.dronesim.seen.lastDrone.mode === 'manual'", 5, "manual flight")
+    ids = {c["id"] for c in sticks}
+    page.wait(f"window.dronesim.seen.modeLog.some((m) => m.mode === 'manual' && {sorted(ids)}.includes(m.command_id))"
+              f" || window.dronesim.seen.events.some((e) => e.event === 'collision' && {sorted(ids)}.includes(e.command_id))",
+              5, "manual flight (or a collision) from the sticks")
     page.page.click("#btn-hold")
     page.wait("window.dronesim.seen.lastDrone.mode === 'hover'", 5, "hover after hold")
 
@@ -628,4 +669,18 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
 
     page.page.click("#btn-land")
     page.wait("['landing', 'landed'].includes(window.dronesim.seen.lastDrone.mode)", 5, "landing")
+
+    # A reload reopens the same session (sessionStorage): the map so far comes back from the
+    # session's downloads, and frames go on with higher seqs (no bad_sequence).
+    last_seq = page.snapshot()["lastPose"]["seq"]
+    page.page.reload()
+    page.page.wait_for_function("window.dronesim && window.dronesim.pilot", timeout=20_000)
+    page.page.click("#btn-stream")
+    page.wait("window.dronesim.seen.poses >= 3 && window.dronesim.seen.mapPoints >= 1000", 40,
+              "poses and the restored map after a reload")
+    s = page.snapshot()
+    assert s["session"] == session
+    assert s["mapPoints"] >= s["chunkPoints"] + 1000, "the earlier map was not restored"
+    assert s["lastPose"]["seq"] > last_seq and not [e for e in s["errors"] if e["name"] == "bad_sequence"]
+    page.screenshot("desktop-after-reload.png")
     assert not page.errors, page.errors

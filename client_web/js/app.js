@@ -8,6 +8,7 @@ import { upFromGravity } from "./geometry.js";
 import { Hud } from "./hud.js";
 import { MapView } from "./map_view.js";
 import { Pilot } from "./pilot.js";
+import { parsePly, parseTumPositions } from "./ply.js";
 import { mapChunkArrays, Protocol } from "./protocol.js";
 import { LiveSource, liveSupport } from "./sources/live.js";
 import { ReplaySequence, ReplaySource } from "./sources/replay.js";
@@ -35,12 +36,15 @@ class App {
     this.hud.connection(State.IDLE);
     const params = new URLSearchParams(window.location.search);
     if (params.get("view")) this.setView(params.get("view"));
+    const mode = params.get("mode"); // preselect a capture mode: demo, demo-small, folder, live
+    const radio = mode && document.querySelector(`input[name="mode"][value="${CSS.escape(mode)}"]`);
+    if (radio && !radio.disabled) radio.checked = true;
     if (params.get("autostart")) this.start({ mode: params.get("autostart"), fps: Number(params.get("fps") || 15) });
   }
 
   #emptySeen() {
-    return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, events: [], errors: [], chunks: 0,
-      mapPoints: 0, serverDropped: 0, shownSeq: null };
+    return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
+      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, shownSeq: null };
   }
 
   // ---- session and streaming --------------------------------------------------------------------
@@ -60,10 +64,12 @@ class App {
         source = new LiveSource(this.ar, $("#overlay-root"));
         source.onEnd = () => this.stopStreaming("AR ended");
         this.hud.toast("starting AR…");
+        this.setView("ar"); // the camera fills the screen; the Map button overlays the map
         source.info = await source.start();
       } else {
-        if (mode === "demo") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
-        const sequence = mode === "folder" ? await ReplaySequence.fromFiles(files) : await ReplaySequence.fromServer();
+        if (mode !== "folder") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
+        const sequence = mode === "folder" ? await ReplaySequence.fromFiles(files)
+          : await ReplaySequence.fromServer(mode === "demo-small" ? "/api/demo?preset=small" : "/api/demo");
         source = new ReplaySource(sequence);
         source.prefetch(0);
       }
@@ -78,6 +84,7 @@ class App {
       const up = upFromGravity(info.gravity);
       this.ar.setUp(up);
       this.map.setUp(up);
+      if (resumed && this.map.pointCount === 0) this.#restoreMap();
       this.streamer = new Streamer(this.client, source, { fps });
       this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
       this.streamer.addEventListener("failure", (e) => this.hud.toast(`capture failed: ${e.detail.message}`, "error", 8000));
@@ -89,6 +96,23 @@ class App {
       throw exc;
     } finally {
       button.disabled = false;
+    }
+  }
+
+  /** A page reopened into a running session: the map and trajectory made so far, from the
+   * session's downloads (map_chunk messages only bring new points). */
+  async #restoreMap() {
+    try {
+      const [{ blob: ply }, { blob: tum }] = await Promise.all([this.client.download("map.ply"),
+        this.client.download("trajectory.tum")]);
+      const { points, colours } = parsePly(await ply.arrayBuffer());
+      this.map.addPoints(points, colours);
+      for (const p of parseTumPositions(await tum.text())) this.map.addTrajectoryPoint(p);
+      this.seen.mapPoints = this.map.pointCount;
+      this.hud.points(this.map.pointCount);
+      this.ar.setGroundHeight(this.map.groundHeight());
+    } catch (exc) {
+      console.info("no earlier map to show", exc.message);
     }
   }
 
@@ -135,12 +159,17 @@ class App {
       const { points, colours } = mapChunkArrays(chunk);
       this.map.addPoints(points, colours, chunk.reset === true);
       this.seen.chunks += 1;
+      this.seen.chunkPoints += chunk.count;
       this.seen.mapPoints = this.map.pointCount;
       this.hud.points(this.map.pointCount);
       this.ar.setGroundHeight(this.map.groundHeight());
     });
     c.addEventListener("drone_state", ({ detail: state }) => {
       this.seen.droneStates += 1;
+      if (this.seen.lastDrone?.mode !== state.mode) {
+        this.seen.modeLog.push({ mode: state.mode, command_id: state.command_id ?? null });
+        if (this.seen.modeLog.length > 100) this.seen.modeLog.shift();
+      }
       this.seen.lastDrone = state;
       this.ar.setDroneState(state);
       this.map.setDroneState(state);

@@ -293,11 +293,12 @@ export class SessionClient extends EventTarget {
     this.#save();
   }
 
-  /** The fused map as a PLY file (Blob), with the token as Authorization header. */
-  async downloadMap() {
+  /** A session download (map.ply, mesh.ply, trajectory.tum) as a Blob, with the token as
+   * Authorization header. */
+  async download(name) {
     const { id, token } = this.saved ?? {};
     if (!id) throw new Error("no session yet: start streaming first");
-    const response = await fetch(`${this.baseUrl}/api/sessions/${id}/map.ply`, {
+    const response = await fetch(`${this.baseUrl}/api/sessions/${id}/${name}`, {
       headers: { Authorization: `Bearer ${token}` },
     });
     if (!response.ok) {
@@ -307,9 +308,14 @@ export class SessionClient extends EventTarget {
       } catch {
         /* not json */
       }
-      throw new Error(`map download failed: HTTP ${response.status} ${why}`);
+      throw new Error(`${name} download failed: HTTP ${response.status} ${why}`);
     }
-    return { blob: await response.blob(), filename: `${id}-map.ply` };
+    return { blob: await response.blob(), filename: `${id}-${name}` };
+  }
+
+  /** The fused map as a PLY file. */
+  downloadMap() {
+    return this.download("map.ply");
   }
 }
 

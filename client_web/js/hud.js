@@ -11,6 +11,9 @@ export class Hud {
     this.banner = root.querySelector("#banner");
     this.toasts = root.querySelector("#toasts");
     this.poseTimes = [];
+    // Banner and toasts sit just below the HUD, whose height changes with the screen.
+    const hud = root.querySelector("#hud");
+    new ResizeObserver(() => document.documentElement.style.setProperty("--hud-h", `${hud.offsetHeight}px`)).observe(hud);
   }
 
   #set(name, text, state) {

@@ -171,15 +171,21 @@ export class MapView {
   addCameraPose(T_world_camera) {
     const m = matrixFromRowMajor(T_world_camera);
     const p = new THREE.Vector3().setFromMatrixPosition(m);
-    this.trajectory.append([p.x, p.y, p.z]);
+    this.addTrajectoryPoint(p.toArray());
+    this.cameraMarker.matrix.copy(m);
+    this.cameraMarker.visible = true;
+  }
+
+  /** Extend the camera trajectory by a position [x, y, z], world frame, metres. */
+  addTrajectoryPoint(p) {
+    this.trajectory.append(p);
     const g = this.trajectoryLine.geometry;
     if (g.getAttribute("position")?.array !== this.trajectory.array) {
       g.setAttribute("position", new THREE.BufferAttribute(this.trajectory.array, 3));
     }
     g.getAttribute("position").needsUpdate = true;
     g.setDrawRange(0, this.trajectory.count);
-    this.cameraMarker.matrix.copy(m);
-    this.cameraMarker.visible = true;
+    g.boundingSphere = null;
     this.dirty = true;
   }
 

@@ -7,8 +7,8 @@ and the bundled demo sequence that the page's replay mode streams.
 | ``/app/{path}`` | the page's own files (``client_web/``: js, css, icons) |
 | ``/vendor/{package}/{path}`` | the npm packages the page imports (three, @msgpack/msgpack) |
 | ``/protocol.json`` | ``shared/protocol.json``, unchanged: the page validates against it |
-| ``/api/demo`` | the demo sequence's index: camera, sizes, depth scale and frame file URLs |
-| ``/api/demo/files/{path}`` | one colour JPEG or depth PNG of the demo sequence |
+| ``/api/demo?preset=`` | a demo sequence's index: camera, sizes, depth scale and frame file URLs |
+| ``/api/demo/files/{path}?preset=`` | one colour JPEG or depth PNG of that sequence |
 
 The page needs no internet: everything it loads comes from here. Files are looked up under a
 fixed root and a path that leaves it (``..``, absolute, links) is a 404.
@@ -25,7 +25,7 @@ import numpy as np
 from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse
 
-from server.datasets.demo import demo_sequence_path
+from server.datasets.demo import DemoSpec, demo_sequence_path
 from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
 
 log = logging.getLogger(__name__)
@@ -52,8 +52,15 @@ MEDIA_TYPES = {
 # The page is small and changes with the server: revalidate every time (ETag / Last-Modified).
 NO_CACHE = {"Cache-Control": "no-cache"}
 
+# The demo sequences the page can replay: the bundled default (640x480, 150 frames), and a
+# small one (320x240, 90 frames: a quarter of the bytes, for slow links and quick tests).
+DEMO_PRESETS = {
+    "default": DemoSpec(),
+    "small": DemoSpec(frames=90, width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5),
+}
+
 _demo_lock = threading.Lock()
-_demo_index: dict | None = None
+_demo_indexes: dict[str, tuple[Path, dict]] = {}
 
 
 def _file(root: Path, relative: str, headers: dict | None = None) -> FileResponse:
@@ -108,7 +115,7 @@ def _gravity(folder: Path) -> list[float] | None:
     return [float(v) for v in down]
 
 
-def build_demo_index(folder: Path, files_url: str = "/api/demo/files") -> dict:
+def build_demo_index(folder: Path, files_url: str = "/api/demo/files", query: str = "") -> dict:
     """The page's view of a TUM-layout sequence: camera, sizes, depth scale, gravity and one
     ``{timestamp, colour, depth}`` entry (file URLs) per associated colour/depth pair."""
     K, depth_scale = tum_intrinsics(folder, None, None)
@@ -116,11 +123,12 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files") -> dict:
     depth_stamps, depth_names = read_file_list(folder / "depth.txt")
     idx_rgb, idx_depth = associate(rgb_stamps, depth_stamps, 0.02)
     frames = [
-        {"timestamp": float(rgb_stamps[i]), "colour": f"{files_url}/{rgb_names[i]}",
-         "depth": f"{files_url}/{depth_names[j]}"}
+        {"timestamp": float(rgb_stamps[i]), "colour": f"{files_url}/{rgb_names[i]}{query}",
+         "depth": f"{files_url}/{depth_names[j]}{query}"}
         for i, j in zip(idx_rgb, idx_depth, strict=True)
     ]
-    fps = (len(frames) - 1) / (frames[-1]["timestamp"] - frames[0]["timestamp"]) if len(frames) > 1 else 15.0
+    span = frames[-1]["timestamp"] - frames[0]["timestamp"]
+    fps = (len(frames) - 1) / span if len(frames) > 1 and span > 0 else 15.0
     return {
         "name": folder.name,
         "intrinsics": [K.fx, K.fy, K.cx, K.cy],
@@ -134,29 +142,34 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files") -> dict:
     }
 
 
-def _demo() -> tuple[Path, dict]:
-    """The demo folder and its index; the first call generates the sequence (cached on disk)."""
-    global _demo_index
+def _demo(preset: str) -> tuple[Path, dict]:
+    """A demo preset's folder and index; the first call generates the sequence (cached on
+    disk, ~/.cache/dronesim)."""
+    spec = DEMO_PRESETS.get(preset)
+    if spec is None:
+        raise HTTPException(404, f"no demo preset {preset!r}; presets: {', '.join(DEMO_PRESETS)}")
     with _demo_lock:
-        folder = demo_sequence_path(progress=False)
-        if _demo_index is None or _demo_index["folder"] != str(folder):
-            _demo_index = {"folder": str(folder), "index": build_demo_index(folder)}
-        return folder, _demo_index["index"]
+        if preset not in _demo_indexes:
+            folder = demo_sequence_path(spec, progress=False)
+            query = "" if preset == "default" else f"?preset={preset}"
+            _demo_indexes[preset] = (folder, build_demo_index(folder, query=query))
+        return _demo_indexes[preset]
 
 
 @router.get("/api/demo", tags=["client"])
-async def demo_index() -> dict:
-    """The bundled demo sequence (generated on first use, then cached): intrinsics, image sizes,
+async def demo_index(preset: str = "default") -> dict:
+    """A bundled demo sequence (generated on first use, then cached): intrinsics, image sizes,
     depth scale, gravity in the first camera frame, and per frame the URLs of its colour JPEG
-    and 16-bit depth PNG, for the page's replay mode."""
-    _, index = await asyncio.to_thread(_demo)
+    and 16-bit depth PNG, for the page's replay mode. ``preset``: default (640x480, 150
+    frames) or small (320x240, 90 frames)."""
+    _, index = await asyncio.to_thread(_demo, preset)
     return index
 
 
 @router.get("/api/demo/files/{path:path}", tags=["client"])
-async def demo_file(path: str) -> FileResponse:
-    """One file of the demo sequence: ``rgb/<t>.jpg`` or ``depth/<t>.png``."""
+async def demo_file(path: str, preset: str = "default") -> FileResponse:
+    """One file of a demo sequence: ``rgb/<t>.jpg`` or ``depth/<t>.png``."""
     if path.split("/", 1)[0] not in DEMO_FOLDERS:
         raise HTTPException(404, "no such file")
-    folder, _ = await asyncio.to_thread(_demo)
+    folder, _ = await asyncio.to_thread(_demo, preset)
     return _file(folder, path, {"Cache-Control": "public, max-age=86400"})

@@ -15,6 +15,7 @@ import { ReplaySequence, ReplaySource } from "./sources/replay.js";
 import { Streamer } from "./streamer.js";
 
 const $ = (selector) => document.querySelector(selector);
+const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
 const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
 
 class App {
@@ -86,6 +87,13 @@ class App {
       this.map.setUp(up);
       if (resumed && this.map.pointCount === 0) this.#restoreMap();
       this.streamer = new Streamer(this.client, source, { fps });
+      // A replay reopened into its session goes on where it was: the camera does not jump.
+      const place = JSON.parse(sessionStorage.getItem(REPLAY_KEY) ?? "null");
+      if (resumed && source.kind === "replay" && place?.session === id && place.name === source.sequence.name) {
+        this.streamer.tick = place.tick;
+      }
+      this.streamer.addEventListener("sent", () => sessionStorage.setItem(REPLAY_KEY, JSON.stringify(
+        { session: id, name: source.sequence?.name, tick: this.streamer.tick })));
       this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
       this.streamer.addEventListener("failure", (e) => this.hud.toast(`capture failed: ${e.detail.message}`, "error", 8000));
       this.streamer.start();
@@ -194,7 +202,7 @@ class App {
     this.hud.pose(pose);
     this.map.addCameraPose(pose.T_world_camera);
     const bitmap = this.streamer?.takeImage(pose.seq) ?? null;
-    this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera);
+    this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state);
     bitmap?.close?.();
     s.shownSeq = pose.seq;
   }

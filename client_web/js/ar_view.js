@@ -37,7 +37,10 @@ export class ARView {
     this.renderer.domElement.className = "ar-overlay";
     this.tapMarker = document.createElement("div");
     this.tapMarker.className = "tap-marker";
-    this.stage.append(this.image, this.renderer.domElement, this.tapMarker);
+    this.lostHint = document.createElement("div");
+    this.lostHint.className = "lost-hint";
+    this.lostHint.textContent = "Tracking lost: point the camera at a place it has seen";
+    this.stage.append(this.image, this.renderer.domElement, this.tapMarker, this.lostHint);
     container.append(this.stage);
 
     this.scene = new THREE.Scene();
@@ -124,8 +127,10 @@ export class ARView {
     this.lastRender = now;
   }
 
-  /** Show a processed frame: its image (ImageBitmap or canvas source) and camera pose. */
-  showFrame(bitmap, seq, T_world_camera) {
+  /** Show a processed frame: its image (ImageBitmap or canvas source), camera pose and
+   * tracking state (when lost, the pose is the last good one: the overlay is dimmed). */
+  showFrame(bitmap, seq, T_world_camera, state = "ok") {
+    this.container.classList.toggle("tracking-lost", state === "lost");
     if (bitmap) {
       this.ctx.drawImage(bitmap, 0, 0, this.image.width, this.image.height);
       this.container.classList.add("has-image");

@@ -70,6 +70,8 @@ export class LiveSource {
     this.binding = new XRWebGLBinding(this.session, this.gl);
     this.space = renderer.xr.getReferenceSpace();
     this.session.addEventListener("end", () => this.#ended());
+    // Taps on the page (sticks, buttons, the AR view) are the page's, not XR select input.
+    this.overlayRoot.addEventListener("beforexrselect", (e) => e.preventDefault());
     this.arView.xrAnchor = (seq) => this.anchors.get(seq) ?? null;
     this.arView.container.classList.add("xr");
     this.info = await new Promise((resolve, reject) => {
@@ -142,11 +144,14 @@ export class LiveSource {
     }
   }
 
-  /** The camera image, downscaled to colourSize, as top-down RGBA ImageData. */
+  /** The camera image, downscaled to colourSize, as top-down RGBA ImageData: the camera
+   * texture is blitted into a small renderbuffer and read there (a full-size read of a 1920 px
+   * camera image at 15 fps would cost ~170 MB/s); if the blit fails, it is read at full size. */
   #readCamera(view) {
     const gl = this.gl;
     const texture = this.binding.getCameraImage(view.camera);
     const [w, h] = this.colourSize;
+    const [cw, ch] = [view.camera.width, view.camera.height];
     const previous = gl.getParameter(gl.FRAMEBUFFER_BINDING);
     this.readFb ??= gl.createFramebuffer();
     this.smallFb ??= gl.createFramebuffer();
@@ -157,20 +162,35 @@ export class LiveSource {
       gl.bindFramebuffer(gl.FRAMEBUFFER, this.smallFb);
       gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.RENDERBUFFER, this.smallRb);
     }
+    gl.getError(); // clear earlier errors: the next check is about the blit
     gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.readFb);
     gl.framebufferTexture2D(gl.READ_FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
     gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, this.smallFb);
-    gl.blitFramebuffer(0, 0, view.camera.width, view.camera.height, 0, 0, w, h, gl.COLOR_BUFFER_BIT, gl.LINEAR);
-    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.smallFb);
-    const pixels = new Uint8Array(w * h * 4);
-    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    gl.blitFramebuffer(0, 0, cw, ch, 0, 0, w, h, gl.COLOR_BUFFER_BIT, gl.LINEAR);
+    let image;
+    if (gl.getError() === gl.NO_ERROR) {
+      gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.smallFb);
+      const pixels = new Uint8Array(w * h * 4);
+      gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+      image = new ImageData(flipRows(pixels, w, h), w, h); // GL rows are bottom-up
+    } else {
+      const pixels = new Uint8Array(cw * ch * 4);
+      gl.readPixels(0, 0, cw, ch, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+      const full = new OffscreenCanvas(cw, ch);
+      full.getContext("2d").putImageData(new ImageData(flipRows(pixels, cw, ch), cw, ch), 0, 0);
+      const small = new OffscreenCanvas(w, h).getContext("2d");
+      small.drawImage(full, 0, 0, w, h);
+      image = small.getImageData(0, 0, w, h);
+    }
     gl.bindFramebuffer(gl.FRAMEBUFFER, previous);
     this.arView.renderer.resetState(); // three.js tracks GL state: tell it we touched it
-    return new ImageData(flipRows(pixels, w, h), w, h); // GL rows are bottom-up
+    return image;
   }
 
   async #pack(rgba, depthInfo, timestamp) {
     const [dw, dh] = this.depthSize;
+    // "luminance-alpha" and "unsigned-short" are uint16, "float32" float; all times rawValueToMeters.
+    // Copied here, inside the XR frame: the depth buffer is only valid during it.
     const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depthInfo.data) : new Uint16Array(depthInfo.data);
     const values = resampleDepth(raw, depthInfo.width, depthInfo.height, dw, dh, depthInfo.normDepthBufferFromNormView.matrix);
     const [colour, depth, bitmap] = await Promise.all([

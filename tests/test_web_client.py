@@ -20,185 +20,31 @@ Screenshots go to ``test-artifacts/web/``.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
 import zlib
 from pathlib import Path
 
+import browser
 import cv2
 import numpy as np
 import pytest
+from browser import (
+    DESKTOP,
+    PHONE,
+    REPLAY_PATH,
+    ROOT,
+    count_near,
+    drone_mask,
+    expected_drone_screen_point,
+    start_replay,
+    wait_for_approach,
+)
 
 from server.transport import protocol as proto
 
-sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (dev extras)")
-
-ROOT = Path(__file__).resolve().parents[1]
-ARTIFACTS = ROOT / "test-artifacts" / "web"
-CHROMIUM = Path(os.environ.get("DRONESIM_CHROMIUM", "/usr/bin/chromium"))
-# Software WebGL (SwiftShader): headless machines have no GPU.
-CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                 "--ignore-gpu-blocklist", "--disable-dev-shm-usage"]
-PHONE = {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True,
-         "device_scale_factor": 1}
-DESKTOP = {"viewport": {"width": 1280, "height": 800}}
-REPLAY_PATH = "/?mode=demo-small"  # the page with the small demo preselected
-
-
-# ---- fixtures and helpers ------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.exists():
-        pytest.skip(f"no chromium at {CHROMIUM}: apt-get install chromium (scripts/setup.sh)")
-    if not (ROOT / "client_web" / "node_modules" / "three").is_dir():
-        pytest.fail("client_web/node_modules is missing: run `npm ci` in client_web (scripts/setup.sh)")
-    with sync_api.sync_playwright() as p:
-        chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        yield chromium
-        chromium.close()
-
-
-@pytest.fixture(scope="module")
-def demo_ready():
-    """The small demo preset (320x240, 90 frames) that the replays below stream, generated once
-    and cached (~/.cache/dronesim): a quarter of the full demo's work per frame."""
-    from server.datasets.demo import demo_sequence_path
-    from server.transport.routes_client import DEMO_PRESETS
-
-    return demo_sequence_path(DEMO_PRESETS["small"], progress=False)
-
-
-class Page:
-    """A page of the app with its console errors collected."""
-
-    def __init__(self, browser, server, path: str = "/", **context) -> None:
-        self.context = browser.new_context(**context)
-        self.page = self.context.new_page()
-        self.errors: list[str] = []
-        self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
-        self.page.on("console", lambda m: m.type == "error" and self.errors.append(f"console: {m.text}"))
-        self.page.goto(f"{server.url}{path}")
-        self.page.wait_for_function("window.dronesim && window.dronesim.protocol && window.dronesim.pilot",
-                                    timeout=20_000)
-
-    def snapshot(self) -> dict:
-        return self.page.evaluate("window.dronesim.snapshot()")
-
-    def wait(self, js: str, timeout_s: float = 30.0, what: str = "") -> None:
-        try:
-            self.page.wait_for_function(js, timeout=timeout_s * 1000, polling=100)
-        except sync_api.TimeoutError:
-            s = self.snapshot()
-            brief = {k: s.get(k) for k in ("connection", "poses", "states", "sent", "droneStates",
-                                           "mapPoints", "errors", "events", "commands")}
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what or js}; page saw "
-                                 f"{json.dumps(brief, default=str)[:2000]}") from None
-
-    def screenshot(self, name: str) -> np.ndarray:
-        ARTIFACTS.mkdir(parents=True, exist_ok=True)
-        data = self.page.screenshot(path=str(ARTIFACTS / name))
-        return cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-
-    def close(self) -> None:
-        self.context.close()
-
-
-@pytest.fixture
-def open_page(browser, demo_ready):
-    pages = []
-
-    def open_(server, path: str = "/", **context) -> Page:
-        page = Page(browser, server, path, **context)
-        pages.append(page)
-        return page
-
-    yield open_
-    for page in pages:
-        page.close()
-
-
-def drone_mask(rgb: np.ndarray) -> np.ndarray:
-    """Pixels of the drone's magenta paint (0xff00cc, lit or in shade)."""
-    r, g, b = (rgb[..., i].astype(int) for i in range(3))
-    return (r > 130) & (b > 95) & (g < 90) & (r - g > 90) & (b - g > 60)
-
-
-def count_near(mask: np.ndarray, xy, radius: float) -> int:
-    h, w = mask.shape
-    x, y = xy
-    x0, x1 = max(0, int(x - radius)), min(w, int(x + radius) + 1)
-    y0, y1 = max(0, int(y - radius)), min(h, int(y + radius) + 1)
-    return int(mask[y0:y1, x0:x1].sum())
-
-
-def expected_drone_screen_point(snap: dict):
-    """Where the drone's centre must appear (CSS px), computed here from the last drone_state
-    (T_camera_drone, or T_world_drone through the shown frame's pose) and the intrinsics: the
-    page's own projection is not trusted. None when the centre is not in front of the camera
-    and inside the picture."""
-    drone, pose, ar = snap["lastDrone"], snap["lastPose"], snap["ar"]
-    if drone is None or pose is None or ar["shownSeq"] is None:
-        return None
-    if "T_camera_drone" in drone and drone.get("camera_seq", ar["shownSeq"]) == ar["shownSeq"]:
-        T_cd = np.array(drone["T_camera_drone"]).reshape(4, 4)
-    else:
-        T_wc = np.array(pose["T_world_camera"]).reshape(4, 4)
-        T_cd = np.linalg.inv(T_wc) @ np.array(drone["T_world_drone"]).reshape(4, 4)
-    x, y, z = T_cd[:3, 3]
-    fx, fy, cx, cy = ar["intrinsics"]
-    W, H = ar["colourSize"]
-    if z < 0.25:
-        return None
-    u, v = fx * x / z + cx, fy * y / z + cy
-    if not (30 <= u <= W - 30 and 30 <= v <= H - 30):
-        return None
-    st = ar["stage"]
-    return (st["left"] + (u + 0.5) / W * st["width"], st["top"] + (v + 0.5) / H * st["height"], z)
-
-
-def drone_position(snap: dict) -> np.ndarray:
-    return np.array(snap["lastDrone"]["T_world_drone"]).reshape(4, 4)[:3, 3]
-
-
-def wait_for_approach(page: Page, command_id: int, timeout_s: float = 25.0) -> dict:
-    """Follow the drone after a goto: the target from the first drone_state that carries the
-    command's id (or of the goto the page sends instead when the server says the target is
-    unreachable and offers the nearest point), and its distance to it shrinking. Returns the
-    distances seen."""
-    deadline = time.time() + timeout_s
-    target, d0, d_min, ids = None, None, math.inf, {command_id}
-    while time.time() < deadline:
-        s = page.snapshot()
-        for error in s["errors"]:
-            if error.get("command_id") in ids and error["name"] != "unreachable_target":
-                raise AssertionError(f"the server refused the command: {error}")
-        # the page retries unreachable targets at the nearest reachable point: a later goto
-        ids |= {c["id"] for c in s["commands"] if c["name"] == "goto" and c["id"] > command_id}
-        drone = s["lastDrone"]
-        arrived = any(e["event"] == "arrived" and e.get("command_id") in ids for e in s["events"])
-        if drone and drone.get("command_id") in ids and "target" in drone:
-            target = np.array(drone["target"])
-            d = float(np.linalg.norm(drone_position(s) - target))
-            d0 = d if d0 is None else d0
-            d_min = min(d_min, d)
-        if d0 is not None and (arrived or d_min <= d0 - min(0.15, 0.5 * d0) or d_min < 0.1):
-            return {"start": d0, "closest": d_min, "arrived": arrived, "target": target.tolist()}
-        time.sleep(0.2)
-    raise AssertionError(f"the drone did not approach its target within {timeout_s} s "
-                         f"(ids {ids}, first distance {d0}, closest {d_min}; last drone state "
-                         f"{json.dumps(page.snapshot()['lastDrone'], default=str)[:600]})")
-
-
-def start_replay(page: Page, min_poses: int, tap: bool) -> dict:
-    (page.page.tap if tap else page.page.click)("#btn-stream")
-    page.wait(f"window.dronesim.seen.poses >= {min_poses}", 90, f"{min_poses} poses")
-    page.wait("document.querySelector('[data-field=tracking]').textContent === 'tracking ok'", 30,
-              "the HUD to show tracking ok")
-    return page.snapshot()
+# The browser fixtures, for pytest to find in this module.
+chromium, demo_ready, open_page = browser.chromium, browser.demo_ready, browser.open_page
 
 
 # ---- what the server serves for the page -----------------------------------------------------
@@ -210,16 +56,20 @@ def test_the_server_serves_the_page_its_modules_protocol_and_demo(live_server, d
     server = live_server()
     with httpx.Client(base_url=server.url, timeout=60) as http:
         page = http.get("/")
-        assert page.status_code == 200 and "importmap" in page.text and "/app/js/app.js" in page.text
+        assert page.status_code == 200
+        assert "importmap" in page.text and "/app/js/app.js" in page.text
         for path in ("/app/js/app.js", "/vendor/three/build/three.module.js",
                      "/vendor/three/examples/jsm/controls/OrbitControls.js",
                      "/vendor/@msgpack/msgpack/dist.esm/index.mjs"):
             r = http.get(path)
-            assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript"), path
-        assert http.get("/protocol.json").content == (ROOT / "shared" / "protocol.json").read_bytes()
-        for path in ("/app/package.json", "/app/node_modules/three/package.json", "/app/js/../../README.md",
-                     "/app/js/%2e%2e/%2e%2e/README.md", "/vendor/three/../../package.json",
-                     "/vendor/left-pad/index.js", "/api/demo/files/../rgb.txt", "/api/demo/files/rgb.txt"):
+            assert r.status_code == 200, path
+            assert r.headers["content-type"].startswith("text/javascript"), path
+        protocol_json = (ROOT / "shared" / "protocol.json").read_bytes()
+        assert http.get("/protocol.json").content == protocol_json
+        for path in ("/app/package.json", "/app/node_modules/three/package.json",
+                     "/app/js/../../README.md", "/app/js/%2e%2e/%2e%2e/README.md",
+                     "/vendor/three/../../package.json", "/vendor/left-pad/index.js",
+                     "/api/demo/files/../rgb.txt", "/api/demo/files/rgb.txt"):
             assert http.get(path).status_code == 404, path
 
         index = http.get("/api/demo", params={"preset": "small"}).json()
@@ -247,7 +97,10 @@ PACKING_JS = """async () => {
   const rgba = new Uint8ClampedArray(W * H * 4);
   for (let y = 0; y < H; y++) for (let x = 0; x < W; x++) {
     const i = 4 * (y * W + x);
-    rgba[i] = 2.5 * x; rgba[i + 1] = 3.4 * y; rgba[i + 2] = 128 + 80 * Math.sin(x / 9) * Math.cos(y / 7); rgba[i + 3] = 255;
+    rgba[i] = 2.5 * x;
+    rgba[i + 1] = 3.4 * y;
+    rgba[i + 2] = 128 + 80 * Math.sin(x / 9) * Math.cos(y / 7);
+    rgba[i + 3] = 255;
   }
   out.pattern = Array.from(rgba);
   const jpeg = await P.encodeJpeg(new ImageData(rgba, W, H), 0.92);
@@ -267,22 +120,25 @@ PACKING_JS = """async () => {
   // a whole hello and frame, as the live mode sends them (depth at half resolution)
   const half = P.resampleDepth(depth, W, H, W / 2, H / 2, null);
   const K = [80.0, 80.0, 47.5, 35.5];
-  out.hello = protocol.hello({ clientName: 'web/test', intrinsics: K, colourSize: [W, H], depthSize: [W / 2, H / 2],
-    depthScale: 1000, gravity: [0, 1, 0] });
-  const frameDepth = await P.packDepth(half.map((v) => (Number.isFinite(v) && v > 0 && v < 60 ? v : 0)));
-  out.frameBytes = Array.from(protocol.encode(protocol.frame({ seq: 7, timestamp: 12.5, colour: jpeg, ...frameDepth })));
+  out.hello = protocol.hello({ clientName: 'web/test', intrinsics: K, colourSize: [W, H],
+    depthSize: [W / 2, H / 2], depthScale: 1000, gravity: [0, 1, 0] });
+  const valid = (v) => (Number.isFinite(v) && v > 0 && v < 60 ? v : 0);
+  const frameDepth = await P.packDepth(half.map(valid));
+  const frame = protocol.frame({ seq: 7, timestamp: 12.5, colour: jpeg, ...frameDepth });
+  out.frameBytes = Array.from(protocol.encode(frame));
   out.helloBytes = Array.from(protocol.encode(out.hello));
-  out.halfDepth = Array.from(half, (v) => (Number.isFinite(v) && v > 0 && v < 60 ? v : 0));
+  out.halfDepth = Array.from(half, valid);
 
   // intrinsics from projection matrices
   const cam = new THREE.PerspectiveCamera(60, 640 / 480, 0.1, 100);
   out.symmetric = P.intrinsicsFromProjection(cam.projectionMatrix.elements, 640, 480);
   const off = new THREE.Matrix4().makePerspective(-0.08, 0.05, 0.06, -0.045, 0.1, 100);
   out.offCentre = P.intrinsicsFromProjection(off.elements, 640, 480);
-  out.roundTripK = P.intrinsicsFromProjection(P.projectionFromIntrinsics([500, 505, 300.25, 250.75], 640, 480), 640, 480);
+  const K2 = [500, 505, 300.25, 250.75];
+  out.roundTripK = P.intrinsicsFromProjection(P.projectionFromIntrinsics(K2, 640, 480), 640, 480);
   out.scaled = P.scaleIntrinsics([525, 525, 319.5, 239.5], [640, 480], [160, 120]);
   // the AR overlay's camera draws a camera-frame point (OpenCV) where the pinhole model puts it
-  const proj = new THREE.Matrix4().fromArray(P.projectionFromIntrinsics([500, 505, 300.25, 250.75], 640, 480));
+  const proj = new THREE.Matrix4().fromArray(P.projectionFromIntrinsics(K2, 640, 480));
   out.overlay = [[0.3, -0.2, 1.7], [-1.1, 0.7, 3.0], [0, 0, 0.5]].map(([x, y, z]) => {
     const ndc = new THREE.Vector3(x, -y, -z).applyMatrix4(proj);
     return [(ndc.x + 1) / 2 * 640 - 0.5, (1 - ndc.y) / 2 * 480 - 0.5];
@@ -296,7 +152,7 @@ PACKING_JS = """async () => {
   // depth resampling through normDepthBufferFromNormView: identity and a quarter turn
   const src = new Uint16Array([1, 2, 3, 4, 5, 6]); // 3 x 2
   out.resampleIdentity = Array.from(P.resampleDepth(src, 3, 2, 3, 2, null));
-  const turn = [0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1, 0, 1, 0, 0, 1]; // (u, v) -> (1 - v, u), column-major
+  const turn = [0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1, 0, 1, 0, 0, 1]; // (u, v) -> (1 - v, u)
   out.resampleTurned = Array.from(P.resampleDepth(src, 3, 2, 2, 3, turn));
   out.depthSizePortrait = P.depthSizeFor([480, 640], 256, 192);
   return out;
@@ -312,7 +168,7 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
     jpeg = bytes(out["jpeg"])
     assert jpeg[:3] == b"\xff\xd8\xff" and jpeg.rstrip(b"\x00")[-2:] == b"\xff\xd9"
     assert b"\xff\xc0" in jpeg and b"\xff\xc2" not in jpeg, "not a baseline JPEG"
-    decoded = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    decoded = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
     pattern = np.array(out["pattern"], np.uint8).reshape(H, W, 4)[..., :3]
     assert decoded.shape == (H, W, 3)
     assert np.abs(decoded.astype(int) - pattern).mean() < 4.0
@@ -327,7 +183,8 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
     metres = np.array([float(v) for v in out["depthMetres"]], np.float32).astype(np.float64)
     with np.errstate(invalid="ignore"):
         expected = np.floor(metres * 1000 + 0.5)
-        expected = np.where(np.isfinite(expected) & (expected > 0) & (expected <= 65535), expected, 0)
+        valid = np.isfinite(expected) & (expected > 0) & (expected <= 65535)
+        expected = np.where(valid, expected, 0)
     np.testing.assert_array_equal(units, expected.astype(np.uint16))
     assert list(units[:12]) == [0, 500, 1235, 2000, 0, 0, 65535, 0, 0, 4000, 0, 1]
     np.testing.assert_array_equal(np.array(out["roundTrip"], np.uint16), units)
@@ -349,9 +206,11 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
     cx, cy = 0.08 / 0.13 * 640 - 0.5, 0.06 / 0.105 * 480 - 0.5
     assert out["offCentre"] == pytest.approx([fx, fy, cx, cy], abs=1e-3)
     assert out["roundTripK"] == pytest.approx([500, 505, 300.25, 250.75], abs=1e-3)
-    hello_640 = {"intrinsics": [525, 525, 319.5, 239.5], "colour_size": [640, 480], "depth_size": [160, 120]}
+    hello_640 = {"intrinsics": [525, 525, 319.5, 239.5], "colour_size": [640, 480],
+                 "depth_size": [160, 120]}
     assert out["scaled"] == pytest.approx(proto.depth_intrinsics(hello_640))
-    for (u, v), (x, y, z) in zip(out["overlay"], [(0.3, -0.2, 1.7), (-1.1, 0.7, 3.0), (0, 0, 0.5)], strict=True):
+    points = [(0.3, -0.2, 1.7), (-1.1, 0.7, 3.0), (0, 0, 0.5)]
+    for (u, v), (x, y, z) in zip(out["overlay"], points, strict=True):
         assert (u, v) == pytest.approx((500 * x / z + 300.25, 505 * y / z + 250.75), abs=1e-3)
 
     # gravity in the camera frame (OpenCV: y down, z forward)
@@ -376,14 +235,16 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
     state = proto.make_drone_state(2.0, np.eye(4), (0.1, 0, 0), "goto", 4, T_camera_drone=np.eye(4),
                                    camera_seq=3, clearance=0.8, target=(1, 2, 3),
                                    route=np.arange(12.0).reshape(4, 3))
-    chunk = proto.make_map_chunk(np.ones((2, 3), np.float32), np.ones((2, 3), np.uint8), 0, total_points=2)
+    chunk = proto.make_map_chunk(np.ones((2, 3), np.float32), np.ones((2, 3), np.uint8), 0,
+                                 total_points=2)
     error = proto.make_error("bad_depth", "all zero", seq=3)
     C, S = proto.CLIENT_TO_SERVER, proto.SERVER_TO_CLIENT
     cases = [
         (hello, C, True), (frame, C, True), (pose, S, False), (state, S, False), (chunk, S, False),
         (error, S, False),
         ({"type": "command", "id": 1, "name": "goto", "target": [1, 2, 3]}, C, True),
-        ({"type": "command", "id": 2, "name": "goto_pixel", "pixel": [10.5, 20], "seq": 3}, C, True),
+        ({"type": "command", "id": 2, "name": "goto_pixel", "pixel": [10.5, 20], "seq": 3}, C,
+         True),
         ({"type": "command", "id": 3, "name": "sticks", "sticks": [0, 0.5, -1, 1]}, C, True),
         ({"type": "command", "id": 4, "name": "land"}, C, True),
         ({"type": "bye"}, C, True),
@@ -396,7 +257,7 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         ({"type": "command", "id": 9, "name": "goto", "target": [1, 2, "__nan__"]}, C, True),
         ({"type": "command", "id": 10, "name": "goto", "target": [1, 2]}, C, True),
         ({"type": "command", "id": 11, "name": "hold", "colour": "red"}, C, True),  # strict: extra
-        ({"type": "command", "id": 11, "name": "hold", "colour": "red"}, C, False),  # receiver: fine
+        ({"type": "command", "id": 11, "name": "hold", "colour": "red"}, C, False),  # receiver
         ({**frame, "seq": -1}, C, True),
         ({**frame, "depth_format": "raw"}, C, True),
         ({**frame, "colour": "not bytes"}, C, True),
@@ -467,12 +328,18 @@ CODEC_JS = """async ([fromServer]) => {
   const { Protocol } = await import('/app/js/protocol.js');
   const protocol = await Protocol.load('/protocol.json');
   const decoded = protocol.decode(new Uint8Array(fromServer), 'server_to_client');
-  const command = protocol.encode(protocol.command(12, 'goto_pixel', { pixel: [320, 240.5], seq: 41 }));
+  const command = protocol.encode(
+    protocol.command(12, 'goto_pixel', { pixel: [320, 240.5], seq: 41 }));
   let tooBig = null;
-  try { protocol.decode(new Uint8Array(protocol.limits.max_message_bytes + 1)); } catch (e) { tooBig = e.code; }
+  try {
+    protocol.decode(new Uint8Array(protocol.limits.max_message_bytes + 1));
+  } catch (e) {
+    tooBig = e.code;
+  }
   let trailing = null;
   try { protocol.decode(new Uint8Array([...command, 0xc0])); } catch (e) { trailing = e.code; }
-  return { decoded: { ...decoded, route: Array.from(decoded.route) }, command: Array.from(command), tooBig, trailing };
+  decoded.route = Array.from(decoded.route);
+  return { decoded, command: Array.from(command), tooBig, trailing };
 }"""
 
 
@@ -481,21 +348,26 @@ def test_message_validation_matches_the_server(live_server, open_page):
     cases = _validation_cases()
     expected = [_python_verdict(m, d, s) for m, d, s in cases]
     got = page.page.evaluate(VALIDATE_JS, [[_to_js(m), d, s] for m, d, s in cases])
-    mismatches = [(cases[i][0].get("type"), e, g) for i, (e, g) in enumerate(zip(expected, got, strict=True)) if e != g]
+    mismatches = [(case[0].get("type"), e, g)
+                  for case, e, g in zip(cases, expected, got, strict=True) if e != g]
     assert not mismatches, mismatches
     assert expected.count("ok") >= 13 and len(set(expected)) >= 7  # the cases do test something
 
     # both directions of the codec: the server's encoding decodes in the page, and back
-    state = proto.make_drone_state(2.0, np.eye(4), (0.1, 0, 0), "goto", 4, route=np.arange(6.0).reshape(2, 3))
+    state = proto.make_drone_state(2.0, np.eye(4), (0.1, 0, 0), "goto", 4,
+                                   route=np.arange(6.0).reshape(2, 3))
     out = page.page.evaluate(CODEC_JS, [list(proto.encode(state))])
     assert out["decoded"]["mode"] == "goto" and out["decoded"]["route"] == [0, 1, 2, 3, 4, 5]
     command = proto.decode(bytes(out["command"]), direction=proto.CLIENT_TO_SERVER)
-    assert command == {"type": "command", "id": 12, "name": "goto_pixel", "pixel": [320, 240.5], "seq": 41}
+    assert command == {"type": "command", "id": 12, "name": "goto_pixel", "pixel": [320, 240.5],
+                       "seq": 41}
     assert out["tooBig"] == "message_too_big" and out["trailing"] == "malformed_message"
     assert not page.errors, page.errors
 
 
 # ---- the page against a live server -----------------------------------------------------------
+
+SPAWNED = "window.dronesim.seen.events.some((e) => e.event === 'spawned')"
 
 
 def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open_page):
@@ -506,14 +378,18 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     # Before the drone spawns: the first picture, no drone paint on it.
     page.page.evaluate("""() => new Promise((resolve) => {
       const c = window.dronesim.client;
-      const done = () => { c.removeEventListener('pose', done); requestAnimationFrame(() => requestAnimationFrame(resolve)); };
+      const done = () => {
+        c.removeEventListener('pose', done);
+        requestAnimationFrame(() => requestAnimationFrame(resolve)); // drawn on screen
+      };
       if (window.dronesim.seen.poses > 0) done(); else c.addEventListener('pose', done);
     })""")
     first = page.screenshot("phone-first-frame.png")
     seen_first = page.snapshot()
     if seen_first["droneStates"] == 0:  # the picture above was taken before any drone state
         st = seen_first["ar"]["stage"]
-        area = drone_mask(first)[int(st["top"]):int(st["top"] + st["height"]), int(st["left"]):int(st["left"] + st["width"])]
+        rows = slice(int(st["top"]), int(st["top"] + st["height"]))
+        area = drone_mask(first)[rows, int(st["left"]):int(st["left"] + st["width"])]
         assert area.sum() < 10, f"{area.sum()} drone-coloured pixels before the drone exists"
 
     # Streaming: >= 30 frames, poses back, tracking ok in the HUD, never more than 2 in flight.
@@ -524,15 +400,15 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     assert s["sent"] >= 30 and s["poses"] >= 30 and s["states"].get("ok", 0) >= 15, s["states"]
     assert s["counts"]["maxInFlight"] <= 2
     assert s["connection"] == "open" and not [e for e in s["errors"] if e["fatal"]]
-    assert "fps" in page.page.inner_text("[data-field=fps]") and "ms" in page.page.inner_text("[data-field=latency]")
+    assert "fps" in page.page.inner_text("[data-field=fps]")
+    assert "ms" in page.page.inner_text("[data-field=latency]")
 
     # The drone in the AR view: its colour where its pose projects, gone without the overlay.
-    page.wait("window.dronesim.seen.events.some((e) => e.event === 'spawned') && window.dronesim.seen.lastDrone",
-              30, "the drone to spawn")
+    page.wait(SPAWNED + " && window.dronesim.seen.lastDrone", 30, "the drone to spawn")
     spot = None
     for _ in range(6):
         page.page.tap("#btn-stream")  # stop: the picture holds still
-        page.wait("!window.dronesim.streamer.running && window.dronesim.client.inFlight.size === 0", 15)
+        page.wait("!window.dronesim.streamer.running && !window.dronesim.client.inFlight.size", 15)
         time.sleep(0.5)  # drone states for the last shown frame
         s = page.snapshot()
         spot = expected_drone_screen_point(s)
@@ -550,15 +426,16 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     page.page.evaluate("document.querySelector('.ar-overlay').style.visibility = 'hidden'")
     bare = page.screenshot("phone-ar-without-overlay.png")
     page.page.evaluate("document.querySelector('.ar-overlay').style.visibility = ''")
-    assert count_near(drone_mask(bare), spot[:2], radius) <= 3, "the scene itself has the drone's colour"
+    assert count_near(drone_mask(bare), spot[:2], radius) <= 3, "the scene has the drone's colour"
     hud = page.page.inner_text("#hud")
     assert "drone hover" in hud or "drone goto" in hud or "drone manual" in hud, hud
 
     # Tap the picture: goto_pixel with the shown frame's seq; the drone flies towards the point.
     st, (W, H) = s["ar"]["stage"], s["ar"]["colourSize"]
     u, v = W * 0.5, H * 0.45
-    page.page.touchscreen.tap(st["left"] + (u + 0.5) / W * st["width"], st["top"] + (v + 0.5) / H * st["height"])
-    page.wait("window.dronesim.pilot.log.some((c) => c.name === 'goto_pixel')", 5, "a goto_pixel command")
+    x, y = st["left"] + (u + 0.5) / W * st["width"], st["top"] + (v + 0.5) / H * st["height"]
+    page.page.touchscreen.tap(x, y)
+    page.wait("window.dronesim.pilot.log.some((c) => c.name === 'goto_pixel')", 5, "goto_pixel")
     command = next(c for c in page.snapshot()["commands"] if c["name"] == "goto_pixel")
     assert command["fields"]["seq"] == s["ar"]["shownSeq"]
     assert command["fields"]["pixel"] == pytest.approx([u, v], abs=1.0)
@@ -570,10 +447,12 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     page.page.set_viewport_size({"width": 844, "height": 390})
     time.sleep(0.5)
     page.screenshot("phone-landscape.png")
-    for selector in ("#stick-left", "#stick-right", "#btn-stream", "#btn-land", ".ar-stage", ".map-canvas"):
+    for selector in ("#stick-left", "#stick-right", "#btn-stream", "#btn-land", ".ar-stage",
+                     ".map-canvas"):
         box = page.page.locator(selector).bounding_box()
         assert box and box["width"] > 20 and box["height"] > 20, selector
-        assert box["x"] >= 0 and box["y"] >= 0 and box["x"] + box["width"] <= 845 and box["y"] + box["height"] <= 391, selector
+        assert box["x"] >= 0 and box["x"] + box["width"] <= 845, selector
+        assert box["y"] >= 0 and box["y"] + box["height"] <= 391, selector
     assert not page.errors, page.errors
 
 
@@ -589,9 +468,7 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     time.sleep(0.3)
     box = page.page.locator("#map-view").bounding_box()
     page.screenshot("desktop.png")
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    data = page.page.locator("#map-view").screenshot(path=str(ARTIFACTS / "desktop-map.png"))
-    rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    rgb = page.screenshot("desktop-map.png", "#map-view")
     background = np.array([0x11, 0x15, 0x1C])
     drawn = np.abs(rgb.astype(int) - background).sum(axis=2) > 40
     assert drawn.sum() > 3000, f"only {drawn.sum()} drawn pixels in the {box} map view"
@@ -601,15 +478,15 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     # A lost connection reconnects into the same session and streaming goes on.
     poses = page.snapshot()["poses"]
     page.page.evaluate("window.dronesim.client.ws.close()")
-    page.wait(f"window.dronesim.client.counts.reconnects >= 1 && window.dronesim.client.state === 'open' "
-              f"&& window.dronesim.seen.poses >= {poses + 5}", 40, "a reconnection and 5 more poses")
+    page.wait("window.dronesim.client.counts.reconnects >= 1 && window.dronesim.client.isOpen "
+              f"&& window.dronesim.seen.poses >= {poses + 5}", 40, "a reconnection, 5 more poses")
     s = page.snapshot()
     assert s["session"] == session
     assert "reconnecting" in [e["state"] for e in s["statusLog"]]
     assert page.page.inner_text("[data-field=connection]") == "connected"
 
     # Sticks: 10-20 Hz while held, zeros on release; the drone flies by hand, then holds.
-    page.wait("window.dronesim.seen.events.some((e) => e.event === 'spawned')", 30, "the drone to spawn")
+    page.wait(SPAWNED, 30, "the drone to spawn")
     stick = page.page.locator("#stick-right").bounding_box()
     cx, cy = stick["x"] + stick["width"] / 2, stick["y"] + stick["height"] / 2
     before = len(page.snapshot()["commands"])
@@ -628,8 +505,11 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     assert max(c["fields"]["sticks"][3] for c in sticks) > 0.15  # roll: to the right
     assert sticks[-1]["fields"]["sticks"] == [0, 0, 0, 0]
     ids = {c["id"] for c in sticks}
-    page.wait(f"window.dronesim.seen.modeLog.some((m) => m.mode === 'manual' && {sorted(ids)}.includes(m.command_id))"
-              f" || window.dronesim.seen.events.some((e) => e.event === 'collision' && {sorted(ids)}.includes(e.command_id))",
+    ids = sorted(ids)
+    page.wait("window.dronesim.seen.modeLog.some("
+              f"(m) => m.mode === 'manual' && {ids}.includes(m.command_id)) || "
+              "window.dronesim.seen.events.some("
+              f"(e) => e.event === 'collision' && {ids}.includes(e.command_id))",
               5, "manual flight (or a collision) from the sticks")
     page.page.click("#btn-hold")
     page.wait("window.dronesim.seen.lastDrone.mode === 'hover'", 5, "hover after hold")
@@ -648,7 +528,9 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
         const s = p.clone().project(map.camera);
         if (Math.abs(s.x) > 0.85 || Math.abs(s.y) > 0.85 || s.z > 1) continue;
         const score = Math.abs(d - 1.3) + h;
-        if (!best || score < best.score) best = { score, x: rect.left + (s.x + 1) / 2 * rect.width, y: rect.top + (1 - s.y) / 2 * rect.height };
+        if (best && score >= best.score) continue;
+        best = { score, x: rect.left + (s.x + 1) / 2 * rect.width,
+          y: rect.top + (1 - s.y) / 2 * rect.height };
       }
       return best;
     }""")
@@ -682,12 +564,14 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     s = page.snapshot()
     assert s["session"] == session
     assert s["mapPoints"] >= s["chunkPoints"] + 1000, "the earlier map was not restored"
-    assert s["lastPose"]["seq"] > last_seq and not [e for e in s["errors"] if e["name"] == "bad_sequence"]
+    assert s["lastPose"]["seq"] > last_seq
+    assert not [e for e in s["errors"] if e["name"] == "bad_sequence"]
     page.screenshot("desktop-after-reload.png")
     assert not page.errors, page.errors
 
 
-def test_replay_of_a_tum_folder_picked_in_the_setup_dialog(live_server, open_page, demo_ready, tmp_path):
+def test_replay_of_a_tum_folder_picked_in_the_setup_dialog(live_server, open_page, demo_ready,
+                                                           tmp_path):
     # A TUM-layout folder as a phone user would pick it: PNG colour (re-encoded to JPEG by the
     # page), 16-bit PNG depth at 5000 units per metre, intrinsics.json; the first 24 frames.
     folder = tmp_path / "room_small"

@@ -323,6 +323,13 @@ class App {
       liveOption.querySelector("input").disabled = true;
     }
     this.liveSupport = support;
+    // First visit: say what Start will do. A phone with WebXR AR starts in the live mode.
+    const chosen = new URLSearchParams(window.location.search).get("mode");
+    if (support.supported && !chosen) document.querySelector('input[name="mode"][value="live"]').checked = true;
+    if (!this.client.session) {
+      this.hud.toast(support.supported ? "Press Start for live AR (Setup: replay instead)."
+        : `Live AR is not available here: ${support.reason} Press Start to replay the demo.`, "info", 9000);
+    }
     $("#folder-input").addEventListener("change", () => {
       document.querySelector('input[name="mode"][value="folder"]').checked = true;
     });

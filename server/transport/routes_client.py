@@ -27,14 +27,23 @@ from fastapi.responses import FileResponse
 
 from server.datasets.demo import DemoSpec, demo_sequence_path
 from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
+from server.transport.protocol import PROTOCOL_PATH  # the very file the server validates with
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["client"])
 
-ROOT = Path(__file__).resolve().parents[2]
-CLIENT_DIR = ROOT / "client_web"
+
+def _client_dir() -> Path:
+    """client_web/ beside the server package (a checkout), else in the working directory (an
+    installed package run from the project folder, as the Docker image does)."""
+    for base in (Path(__file__).resolve().parents[2], Path.cwd()):
+        if (base / "client_web" / "index.html").is_file():
+            return base / "client_web"
+    return Path(__file__).resolve().parents[2] / "client_web"
+
+
+CLIENT_DIR = _client_dir()
 VENDOR_DIR = CLIENT_DIR / "node_modules"
-PROTOCOL_PATH = ROOT / "shared" / "protocol.json"
 VENDOR_PACKAGES = ("three", "@msgpack/msgpack")  # the only npm packages served
 APP_FOLDERS = ("js", "css", "assets")  # the page's own files; never package.json or node_modules
 DEMO_FOLDERS = ("rgb", "depth")
@@ -101,7 +110,7 @@ def vendor_file(path: str) -> FileResponse:
 
 @router.get("/protocol.json", tags=["client"])
 def protocol_definition() -> FileResponse:
-    """The wire protocol (``shared/protocol.json``), as the server itself uses it."""
+    """The wire protocol (``shared/protocol.json``): the definition the server itself uses."""
     return _file(PROTOCOL_PATH.parent, PROTOCOL_PATH.name, NO_CACHE)
 
 
@@ -153,6 +162,7 @@ def _demo(preset: str) -> tuple[Path, dict]:
             folder = demo_sequence_path(spec, progress=False)
             query = "" if preset == "default" else f"?preset={preset}"
             _demo_indexes[preset] = (folder, build_demo_index(folder, query=query))
+            log.info("demo preset %s for the page's replay: %s", preset, folder)
         return _demo_indexes[preset]
 
 

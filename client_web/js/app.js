@@ -40,7 +40,9 @@ class App {
     const mode = params.get("mode"); // preselect a capture mode: demo, demo-small, folder, live
     const radio = mode && document.querySelector(`input[name="mode"][value="${CSS.escape(mode)}"]`);
     if (radio && !radio.disabled) radio.checked = true;
-    if (params.get("autostart")) this.start({ mode: params.get("autostart"), fps: Number(params.get("fps") || 15) });
+    if (params.get("autostart")) {
+      this.start({ mode: params.get("autostart"), fps: Number(params.get("fps") || 15) }).catch(() => {});
+    }
   }
 
   #emptySeen() {
@@ -130,7 +132,7 @@ class App {
 
   resume() {
     if (this.streamer) this.streamer.start();
-    else this.start(this.#dialogChoice());
+    else this.start(this.#dialogChoice()).catch(() => {}); // shown in the banner
   }
 
   #resetViews() {
@@ -185,6 +187,7 @@ class App {
     });
     c.addEventListener("drone_event", ({ detail: event }) => {
       this.seen.events.push(event);
+      if (this.seen.events.length > 200) this.seen.events.shift();
       const where = event.position.map((v) => v.toFixed(2)).join(", ");
       if (event.event === "collision") this.hud.showBanner(`Collision! ${event.message} (at ${where} m)`, "error", 5000);
       else if (event.event === "blocked") this.hud.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
@@ -209,6 +212,7 @@ class App {
 
   #serverError(error) {
     this.seen.errors.push(error);
+    if (this.seen.errors.length > 200) this.seen.errors.shift();
     if (error.seq !== undefined) this.streamer?.dropImagesUpTo(error.seq);
     if (error.name === "unreachable_target" && error.nearest && this.tapCommands.has(error.command_id)) {
       this.tapCommands.delete(error.command_id);

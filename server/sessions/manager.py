@@ -26,6 +26,7 @@ class SessionManager:
         self.max_sessions = max_sessions
         self._live: dict[str, Session] = {}
         self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
+        self._closing: set[str] = set()  # live sessions being stopped and saved
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
@@ -77,14 +78,27 @@ class SessionManager:
         raise SessionError("not_found", "no session with this id for this token")
 
     def close(self, session_id: str) -> None:
-        """Stop a live session and keep its map and trajectory on disk."""
+        """Stop a live session and keep its map and trajectory on disk.
+
+        While it stops and saves (seconds for a large map) it stays reachable with its token,
+        marked closed, so that its owner never sees it vanish; a session deleted meanwhile
+        stays deleted."""
         with self._lock:
-            session = self._live.pop(session_id, None)
-        if session is None:
-            return
-        session.stop(save=True)
-        with self._lock:
-            self._saved[session_id] = session.meta()
+            session = self._live.get(session_id)
+            if session is None or session_id in self._closing:
+                return
+            self._closing.add(session_id)
+            session.closed = True  # a hello now gets "closed"; frames no longer arrive
+        try:
+            session.stop(save=True)
+        finally:
+            with self._lock:
+                self._closing.discard(session_id)
+                deleted = self._live.pop(session_id, None) is None
+                if not deleted:
+                    self._saved[session_id] = session.meta()
+        if deleted:
+            self.store.delete(session_id)  # the final snapshot wrote after the delete
 
     def delete(self, session_id: str) -> None:
         """Stop a session if live and remove all its data."""

@@ -1,0 +1,387 @@
+"""Faults: a killed or stopped server, a client that drops off and comes back (or never does),
+and a camera that sees nothing trackable. Nothing a session built may be lost or half-written.
+
+The kill tests run ``python -m server serve`` as a subprocess (a signal must hit a whole
+server); the others use the in-process ``live_server`` fixture.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import open3d as o3d
+import pytest
+import websockets
+
+from server.datasets import open_dataset
+from server.evaluation.trajectory import read_tum
+from server.mapping.tsdf import TSDFMap
+from server.registration import Tracker
+from server.transport import protocol as P
+
+REPO = Path(__file__).resolve().parents[1]
+UNASKED = {"map_chunk", "drone_state", "drone_event"}
+
+
+def auth(token: str) -> dict:
+    return {"Authorization": f"Bearer {token}"}
+
+
+class ServerProcess:
+    """``python -m server serve`` on a free loopback port, settings from DRONESIM_* variables."""
+
+    def __init__(self, data_dir: Path, log: Path, **settings) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        env = {**os.environ, **{f"DRONESIM_{k.upper()}": str(v) for k, v in settings.items()}}
+        self.log = log
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "server", "serve", "--port", str(self.port), "--data-dir",
+             str(data_dir)], cwd=REPO, env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT)
+        self.url, self.ws_url = f"http://127.0.0.1:{self.port}", f"ws://127.0.0.1:{self.port}"
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{self.url}/healthz").status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"server did not start: {log.read_text()[-2000:]}")
+            time.sleep(0.1)
+
+    def create_session(self) -> tuple[str, str]:
+        body = httpx.post(f"{self.url}/api/sessions").raise_for_status().json()
+        return body["id"], body["token"]
+
+    def signal(self, sig: int, timeout: float = 60) -> int:
+        self.proc.send_signal(sig)
+        return self.proc.wait(timeout)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(30)
+
+
+@pytest.fixture
+def server_process(tmp_path):
+    started = []
+
+    def start(data_dir: Path, **settings) -> ServerProcess:
+        server = ServerProcess(data_dir, tmp_path / "server.log", **settings)
+        started.append(server)
+        return server
+
+    yield start
+    for server in started:
+        server.stop()
+
+
+@pytest.fixture(scope="module")
+def room(shared_data):
+    return open_dataset(shared_data / "synthetic_room0")
+
+
+class Stream:
+    """One WebSocket of a session: hello, then frames one at a time (each waits for its pose)."""
+
+    def __init__(self, ws_url: str, sid: str, token: str, dataset) -> None:
+        self.url = f"{ws_url}/ws/sessions/{sid}?token={token}"
+        self.dataset = dataset
+        self.poses: list[dict] = []
+        self.map_points = 0  # total_points of the last map chunk
+        self.ws = None
+
+    async def open(self, attempts: int = 50) -> None:
+        """Connect and say hello; a socket of ours that the server has not yet seen drop gets
+        session_in_use (4008) for a moment: try again."""
+        K = self.dataset.intrinsics
+        for _ in range(attempts):
+            self.ws = await websockets.connect(self.url, max_size=None)
+            await self.ws.send(P.encode(P.make_hello("faults", (K.fx, K.fy, K.cx, K.cy),
+                                                     (K.width, K.height))))
+            try:
+                welcome = await self._answer()
+            except websockets.ConnectionClosed as closed:
+                if closed.rcvd and closed.rcvd.code == P.CLOSE_CODES["session_in_use"]:
+                    await asyncio.sleep(0.1)
+                    continue
+                raise
+            assert welcome["type"] == "welcome", welcome
+            return
+        raise AssertionError("the session stayed in use")
+
+    async def _answer(self) -> dict:
+        while True:
+            msg = P.decode(await asyncio.wait_for(self.ws.recv(), 60))
+            if msg["type"] == "map_chunk":
+                self.map_points = msg["total_points"]
+            if msg["type"] not in UNASKED:
+                return msg
+
+    async def send(self, seq: int, colour=None, depth=None, index: int | None = None) -> dict:
+        """Frame ``index`` (default: seq) of the dataset, or the given images, as ``seq`` -> its
+        pose."""
+        f = self.dataset[(seq if index is None else index) % len(self.dataset)]
+        colour = f.colour if colour is None else colour
+        depth = f.depth if depth is None else depth
+        await self.ws.send(P.encode(P.make_frame(seq, f.timestamp, colour, depth)))
+        pose = await self._answer()
+        assert pose["type"] == "pose" and pose["seq"] == seq, pose
+        self.poses.append(pose)
+        return pose
+
+    async def send_range(self, seqs) -> None:
+        for seq in seqs:
+            await self.send(seq)
+
+    def abort(self) -> None:
+        """Drop the connection like a phone leaving the Wi-Fi: no close frame, no bye."""
+        self.ws.transport.abort()
+
+    def matrices(self) -> np.ndarray:
+        return np.array([P.pose_matrix(p) for p in self.poses])
+
+
+def offline_poses(dataset, n: int) -> np.ndarray:
+    """The tracker in-process on the first n frames as the wire carries them."""
+    tracker, hello, poses = Tracker(dataset.intrinsics), None, []
+    for i in range(n):
+        f = dataset[i]
+        hello = hello or P.make_hello("t", (1, 1, 1, 1), (f.colour.shape[1], f.colour.shape[0]))
+        msg = P.decode(P.encode(P.make_frame(i, f.timestamp, f.colour, f.depth)))
+        poses.append(tracker.track(*P.decode_frame_images(msg, hello)).T_world_camera)
+    return np.array(poses)
+
+
+def assert_session_files_whole(folder: Path) -> dict:
+    """Every file of a saved session parses; no temp file of an interrupted write is left."""
+    names = sorted(p.name for p in folder.iterdir())
+    assert not [n for n in names if n.startswith(".")], names
+    meta = json.loads((folder / "meta.json").read_text())
+    trajectory = read_tum(folder / "trajectory.tum")
+    cloud = o3d.io.read_point_cloud(str(folder / "map.ply"))
+    assert len(cloud.points) > 1000 and cloud.has_colors()
+    assert TSDFMap.load(folder / "map.npz").stats()["frames_integrated"] > 0
+    return {"meta": meta, "trajectory": trajectory, "map_points": len(cloud.points)}
+
+
+# ---- the server dies ---------------------------------------------------------------------------
+
+
+def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
+        server_process, room, tmp_path):
+    data_dir = tmp_path / "data"
+    server = server_process(data_dir, snapshot_interval_s=1.0)
+    sid, token = server.create_session()
+    folder = data_dir / "sessions" / sid
+    stream = Stream(server.ws_url, sid, token, room)
+
+    async def stream_then_kill():
+        await stream.open()
+        await stream.send_range(range(15))
+        deadline = time.monotonic() + 60  # until a snapshot with a map is on disk
+        seq = 15
+        while not (folder / "map.ply").is_file() and time.monotonic() < deadline:
+            await stream.send(seq)
+            seq += 1
+        await stream.send_range(range(seq, seq + 10))
+        f = room[seq + 10]  # one more in flight as the server dies
+        await stream.ws.send(P.encode(P.make_frame(seq + 10, f.timestamp, f.colour, f.depth)))
+        assert server.signal(signal.SIGKILL) == -signal.SIGKILL
+
+    asyncio.run(stream_then_kill())
+    received = stream.matrices()
+    (folder / ".map.npz.k1ll3d.npz").write_bytes(b"PK\x03\x04 half a zip")  # a write cut short
+
+    again = server_process(data_dir)
+    saved = assert_session_files_whole(folder)
+    n = len(saved["trajectory"])
+    assert 15 <= n <= len(received)
+    # The snapshot's poses are the ones the client was sent, in order (9 decimals on disk).
+    np.testing.assert_allclose(saved["trajectory"].poses[:, :3, 3], received[:n, :3, 3], atol=1e-6)
+    status = httpx.get(f"{again.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["closed"] is True and n <= status["frames_processed"] <= len(received)
+    tum = httpx.get(f"{again.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
+    assert tum.status_code == 200 and tum.content == (folder / "trajectory.tum").read_bytes()
+    ply = httpx.get(f"{again.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert ply.status_code == 200 and ply.content == (folder / "map.ply").read_bytes()
+    mesh = httpx.get(f"{again.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60)
+    assert mesh.status_code == 200 and mesh.content.startswith(b"ply")
+    assert "partial files of an interrupted write" in server.log.read_text()
+
+
+def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room, tmp_path):
+    data_dir = tmp_path / "data"
+    server = server_process(data_dir, snapshot_interval_s=3600)  # only the shutdown saves
+    sid, token = server.create_session()
+    stream = Stream(server.ws_url, sid, token, room)
+
+    async def stream_then_terminate():
+        await stream.open()
+        await stream.send_range(range(25))
+        code = server.signal(signal.SIGTERM)
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            while True:
+                await stream._answer()
+        return code, closed.value.rcvd.code
+
+    code, close_code = asyncio.run(stream_then_terminate())
+    assert code in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after a clean shutdown
+    assert close_code in (1012, P.CLOSE_CODES["server_shutdown"])
+    log = server.log.read_text()
+    assert "Application shutdown complete" in log and "Traceback" not in log
+    assert token not in log  # uvicorn logs the WebSocket path: the token is redacted
+    saved = assert_session_files_whole(data_dir / "sessions" / sid)
+    assert saved["meta"]["closed"] is True and saved["meta"]["status"]["frames_processed"] == 25
+    assert len(saved["trajectory"]) == 25
+    np.testing.assert_allclose(saved["trajectory"].poses[:, :3, 3], stream.matrices()[:, :3, 3],
+                               atol=1e-6)
+
+
+# ---- the client drops off ----------------------------------------------------------------------
+
+
+def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_session(
+        live_server, room):
+    server = live_server(session_ttl_s=30)
+    sid, token = server.create_session()
+    stream = Stream(server.ws_url, sid, token, room)
+
+    def status() -> dict:
+        return httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+
+    async def drop_and_return():
+        await stream.open()
+        await stream.send_range(range(15))
+        points_before = stream.map_points
+        stream.abort()
+        await asyncio.sleep(0.5)
+        before = status()
+        await stream.open()  # same token, same camera
+        await stream.send_range(range(15, 30))
+        await stream.ws.send(P.encode(P.make_bye("done")))
+        await stream.ws.wait_closed()
+        return before, points_before
+
+    before, points_before = asyncio.run(drop_and_return())
+    assert before["closed"] is False and before["frames_processed"] == 15
+    after = status()
+    assert after["closed"] is False and after["frames_processed"] == 30
+    assert after["map"]["frames_integrated"] > before["map"]["frames_integrated"] > 0
+    assert stream.map_points > points_before > 0
+    # One trajectory across both sockets, as if the phone had never left.
+    np.testing.assert_allclose(stream.matrices()[:, :3, 3], offline_poses(room, 30)[:, :3, 3],
+                               atol=1e-6)
+    tum = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
+    assert len(tum.text.strip().splitlines()) == 1 + 30  # header line + poses
+
+
+def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_server, room):
+    server = live_server(session_ttl_s=1.0)
+    sid, token = server.create_session()
+    stream = Stream(server.ws_url, sid, token, room)
+
+    async def stream_and_vanish():
+        await stream.open()
+        await stream.send_range(range(12))
+        stream.abort()
+
+    asyncio.run(stream_and_vanish())
+    deadline = time.monotonic() + 30
+    while httpx.get(f"{server.url}/healthz").json()["live_sessions"] and (
+            time.monotonic() < deadline):
+        # While it closes, its owner still finds it (marked closed), never a 404.
+        r = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token))
+        assert r.status_code == 200, r.text
+        time.sleep(0.1)
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["closed"] is True and status["frames_processed"] == 12
+    saved = assert_session_files_whole(server.settings.data_dir / "sessions" / sid)
+    assert len(saved["trajectory"]) == 12 and saved["meta"]["closed"] is True
+
+    async def come_back_too_late():
+        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}") as ws:
+            msg = P.decode(await ws.recv())
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                await ws.recv()
+            return msg, closed.value.rcvd.code
+
+    msg, code = asyncio.run(come_back_too_late())
+    assert msg["name"] == "unauthorized" and "closed" in msg["message"]
+    assert code == P.CLOSE_CODES["unauthorized"]
+    ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert ply.status_code == 200 and ply.content.startswith(b"ply")
+
+
+# ---- the camera sees nothing trackable ---------------------------------------------------------
+
+
+def test_a_session_lost_for_long_keeps_its_map_and_says_so(live_server, room):
+    server = live_server()
+    sid, token = server.create_session()
+    stream = Stream(server.ws_url, sid, token, room)
+    K = room.intrinsics
+    wall_colour = np.full((K.height, K.width, 3), 128, np.uint8)  # a blank wall...
+    wall_depth = np.full((K.height, K.width), 1.2, np.float32)  # ...as a constant depth plane
+
+    def settled_status() -> dict:
+        """Status once the mapping thread has caught up (frames_integrated stops changing)."""
+        last = None
+        for _ in range(100):
+            status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+            if last is not None and status["map"] == last["map"]:
+                return status
+            last = status
+            time.sleep(0.3)
+        raise AssertionError("the map kept changing")
+
+    def map_ply() -> o3d.geometry.PointCloud:
+        r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+        path = server.settings.data_dir / "download.ply"
+        path.write_bytes(r.content)
+        return o3d.io.read_point_cloud(str(path))
+
+    async def go():
+        await stream.open()
+        await stream.send_range(range(20))
+        good = await asyncio.to_thread(settled_status)
+        cloud_before = await asyncio.to_thread(map_ply)
+        for seq in range(20, 60):
+            await stream.send(seq, wall_colour, wall_depth)
+        lost = await asyncio.to_thread(settled_status)
+        cloud_after = await asyncio.to_thread(map_ply)
+        for k, seq in enumerate(range(60, 65)):  # the room again, where the camera left it
+            await stream.send(seq, index=20 + k)
+        return good, lost, cloud_before, cloud_after
+
+    good, lost, cloud_before, cloud_after = asyncio.run(go())
+    assert not good["tracking_lost"]
+    states = [p["state"] for p in stream.poses[20:60]]
+    assert states.count("lost") >= 38, states
+    assert lost["tracking_lost"] is True
+    assert lost["tracking_states"]["lost"] >= 38
+    assert lost["map"]["frames_integrated"] == good["map"]["frames_integrated"]
+    # The pose holds the last good one while lost.
+    poses = stream.matrices()
+    for i in range(20, 60):
+        if stream.poses[i]["state"] == "lost":
+            np.testing.assert_allclose(poses[i], poses[i - 1], atol=1e-9)
+    before, after = (np.asarray(c.points) for c in (cloud_before, cloud_after))
+    assert len(after) == len(before)  # the same points (extraction may list them in any order)
+    np.testing.assert_array_equal(after[np.lexsort(after.T)], before[np.lexsort(before.T)])
+    # Back in the room, tracking recovers and says so.
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert stream.poses[-1]["state"] in ("ok", "weak") and status["tracking_lost"] is False

@@ -156,3 +156,25 @@ def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
     assert np.linalg.norm(got - expected) < 0.6, (got, expected)
 
     assert out["landed"]["event"] == "landed"
+
+
+def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server):
+    """`serve --demo`: the server replays its own demo sequence and a tour pilot flies the drone."""
+    import httpx
+
+    server = live_server(demo=True, demo_fps=10.0)
+    deadline = time.monotonic() + 120
+    status = {}
+    while time.monotonic() < deadline:
+        demo = server.app.state.demo
+        if demo is not None:
+            status = httpx.get(f"{server.url}/api/sessions/{demo['id']}",
+                               headers={"Authorization": f"Bearer {demo['token']}"}).json()
+            drone = status.get("drone") or {}
+            if drone.get("events", {}).get("arrived", 0) >= 2 and status["frames_processed"] > 20:
+                break
+        time.sleep(0.5)
+    assert status.get("frames_processed", 0) > 20, status
+    assert status["map"]["frames_integrated"] > 5
+    assert status["drone"]["events"].get("arrived", 0) >= 2, status["drone"]
+    assert status["drone"]["events"].get("collision", 0) == 0

@@ -206,3 +206,12 @@ def test_a_narrow_door_is_found_on_the_map_own_cells():
         plan_path(scene.flight_map, scene.start, scene.goal, 0.22)
     assert caught.value.reason == "unreachable"
     assert caught.value.nearest[0] < 1.9
+
+
+def test_a_route_shorter_than_one_path_step_takes_a_short_time():
+    scene = scenes.box_in_the_way()
+    for d in (1e-6, 1e-3, 0.01, 0.03):
+        goal = scene.start + [d, 0.0, 0.0]
+        route = plan_path(scene.flight_map, scene.start, goal, 0.17)
+        assert 0 < route.duration_s < 1.0, (d, route.duration_s)
+        np.testing.assert_allclose(route.sample(route.duration_s)[0], goal, atol=1e-9)

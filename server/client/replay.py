@@ -32,6 +32,7 @@ class ReplayStats:
     errors: list[dict] = field(default_factory=list)
     map_points: int = 0
     welcome: dict | None = None
+    drone_events: list[dict] = field(default_factory=list)
 
 
 async def replay(
@@ -48,13 +49,15 @@ async def replay(
     ssl=None,
     drop_when_busy: bool = True,
     preencode: bool = False,
+    pilot: Callable[[dict], dict | None] | None = None,
 ) -> ReplayStats:
     """Stream ``dataset`` to the session at ``ws_url`` and collect what comes back.
 
     drop_when_busy: a frame captured while ``max_in_flight`` frames await answers is dropped
     (a camera); False waits for an answer instead, so that every frame is sent (tests).
     preencode: JPEG/PNG-encode every frame before streaming, so that the client's encoding time
-    (a phone's own work) does not sit in the measured latency (benchmarks)."""
+    (a phone's own work) does not sit in the measured latency (benchmarks).
+    pilot: sees every message from the server and may answer with a ``command`` to send."""
     stats = ReplayStats()
     K = dataset.intrinsics
     n = len(dataset) if max_frames is None else max_frames
@@ -65,7 +68,10 @@ async def replay(
         return proto.make_frame(i, frame.timestamp, frame.colour, frame.depth,
                                 depth_format=depth_format, depth_scale=1000.0)
 
-    cache = {i: frame_message(i) for i in range(min(n, len(dataset)))} if preencode else {}
+    def encode_all() -> dict[int, dict]:
+        return {i: frame_message(i) for i in range(min(n, len(dataset)))}
+
+    cache = await asyncio.to_thread(encode_all) if preencode else {}
     answered = asyncio.Event()
     async with websockets.connect(f"{ws_url}?token={token}", max_size=None, ssl=ssl) as ws:
         await ws.send(proto.encode(proto.make_hello(
@@ -93,6 +99,10 @@ async def replay(
                     stats.errors.append(msg)
                     if msg.get("seq") is not None:
                         in_flight.pop(msg["seq"], None)
+                elif msg["type"] == "drone_event":
+                    stats.drone_events.append(msg)
+                if pilot is not None and (command := pilot(msg)) is not None:
+                    await ws.send(proto.encode(command))
                 answered.set()
 
         receiver = asyncio.create_task(receive())
@@ -109,7 +119,8 @@ async def replay(
                     continue
                 if not loop_sequence and i >= len(dataset):
                     break
-                message = cache.get(i % len(dataset)) or frame_message(i)
+                # Encoding runs off the event loop: the loop may be a server's (the demo).
+                message = cache.get(i % len(dataset)) or await asyncio.to_thread(frame_message, i)
                 message = {**message, "seq": i}
                 in_flight[i] = time.monotonic()
                 await ws.send(proto.encode(message))

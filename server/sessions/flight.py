@@ -104,9 +104,12 @@ class Flight:
         self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
         self.sim = DroneSimulator(config, self.flight_map)
         self._lock = threading.Lock()  # the simulator and flight map are used by one thread at once
+        # Camera frames have their own lock: tracking never waits for planning or physics.
+        self._frames_lock = threading.Lock()
         self._frames: OrderedDict[int, _CameraFrame] = OrderedDict()
         self._camera: tuple[int, np.ndarray] | None = None  # latest (seq, T_world_camera)
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.event_counts: dict[str, int] = {}  # drone events so far, by kind
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -129,7 +132,7 @@ class Flight:
     # ------------------------------------------------------------------ inputs
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
         """A processed frame: its pose (and depth, for tapped pixels). Tracking-thread side."""
-        with self._lock:
+        with self._frames_lock:
             self._camera = (seq, T_world_camera)
             self._frames[seq] = _CameraFrame(T_world_camera, depth)
             while len(self._frames) > _RECENT_FRAMES:
@@ -200,7 +203,7 @@ class Flight:
 
     def _pixel_target(self, pixel, seq: int | None) -> np.ndarray:
         """The world point a tapped pixel shows, standoff_m back towards the camera."""
-        with self._lock:
+        with self._frames_lock:
             if seq is None and self._frames:
                 seq = next(reversed(self._frames))
             frame = self._frames.get(seq)
@@ -262,16 +265,22 @@ class Flight:
                 changed = self.flight_map.update(*pending)
                 if self.spawned:
                     self.sim.on_map_update(changed)
-                elif self._camera is not None:
-                    self._spawn()
+                elif (camera := self._latest_camera()) is not None:
+                    self._spawn(camera[1])
             if self.spawned:
                 events = self.sim.advance(dt)
+        for e in events:
+            kind = getattr(e.kind, "value", e.kind)
+            self.event_counts[kind] = self.event_counts.get(kind, 0) + 1
         return [self._notice(e) for e in events]
 
-    def _spawn(self) -> None:
+    def _latest_camera(self) -> tuple[int, np.ndarray] | None:
+        with self._frames_lock:
+            return self._camera
+
+    def _spawn(self, T: np.ndarray) -> None:
         """Hover spawn_ahead_m in front of the camera, facing away from it, in observed free
         space; next to the camera when the space ahead is not known yet."""
-        T = self._camera[1]
         forward = self.R_flight_world @ T[:3, 2]
         yaw = float(np.arctan2(forward[1], forward[0]))
         for near in (T[:3, 3] + self.spawn_ahead_m * T[:3, 2], T[:3, 3]):
@@ -288,7 +297,7 @@ class Flight:
     def state(self) -> DroneUpdate:
         with self._lock:
             s = self.sim.status()
-            camera = self._camera
+        camera = self._latest_camera()
         T_world_flight = self.T_world_flight()
         T_world_drone = T_world_flight @ s.T_flight_drone
         T_camera_drone = None if camera is None else invert(camera[1]) @ T_world_drone
@@ -312,4 +321,4 @@ class Flight:
             return {"spawned": False}
         s = self.state()
         return {"spawned": True, "mode": s.mode, "position": s.T_world_drone[:3, 3].tolist(),
-                "clearance_m": s.clearance}
+                "clearance_m": s.clearance, "events": dict(self.event_counts)}

@@ -306,7 +306,10 @@ def _time(path, tangents, kvecs, stops, max_speed, max_accel, max_climb):
     for i in range(len(v) - 2, -1, -1):
         v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + steps[i]))
     speeds = np.array(v)
-    dt = np.where(ds > 0, 2 * ds / np.maximum(speeds[:-1] + speeds[1:], 1e-12), 0.0)
+    # Between two standstills (consecutive stops) the segment takes an accelerate-decelerate
+    # time instead of an unbounded one.
+    mean2 = speeds[:-1] + speeds[1:]
+    dt = np.where(mean2 > 1e-9, 2 * ds / np.maximum(mean2, 1e-9), 2 * np.sqrt(ds / a))
     return speeds, np.concatenate([[0.0], np.cumsum(dt)])
 
 
@@ -400,6 +403,10 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
     corners = _shortcut(flight_map, raw, clear_raw, required, wanted, 0.9 * lattice.cell_m)
     step = min(0.02, 0.5 * flight_map.voxel_m)
     path, tangents, kvecs, stops = _smooth(flight_map, corners, required, step)
+    if len(path) == 2:  # shorter than one step: a midpoint lets the speed rise and fall again
+        path = np.stack([path[0], path.mean(axis=0), path[1]])
+        tangents, kvecs = tangents[[0, 0, 1]], np.zeros((3, 3))
+        stops = np.array([stops[0], False, stops[1]])
     speeds, times = _time(path, tangents, kvecs, stops, max_speed_m_s, max_accel_m_s2,
                           max_climb_rate_m_s)
     length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))

@@ -9,6 +9,7 @@ import logging
 from fastapi import FastAPI
 
 from server.client.replay import replay
+from server.client.tour import TourPilot
 from server.datasets import open_dataset
 from server.datasets.demo import demo_sequence_path
 
@@ -34,8 +35,11 @@ async def run_demo(app: FastAPI) -> None:
         ssl = ssl_module.create_default_context()
         ssl.check_hostname, ssl.verify_mode = False, ssl_module.CERT_NONE
     try:
-        stats = await replay(ws_url, token, dataset, fps=settings.demo_fps, client_name="demo", ssl=ssl)
-        log.warning("demo session %s: %d frames sent, %d poses, %d map points streamed",
-                    session.id, stats.sent, len(stats.poses), stats.map_points)
+        stats = await replay(ws_url, token, dataset, fps=settings.demo_fps, client_name="demo",
+                             ssl=ssl, pilot=TourPilot())
+        arrivals = sum(e["event"] == "arrived" for e in stats.drone_events)
+        log.warning("demo session %s: %d frames sent, %d poses, %d map points streamed, "
+                    "the drone reached %d targets", session.id, stats.sent, len(stats.poses),
+                    stats.map_points, arrivals)
     except Exception:
         log.exception("demo replay failed")

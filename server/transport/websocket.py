@@ -36,7 +36,7 @@ _SESSION_CODES = {
     "intrinsics_changed": "bad_intrinsics",
     "session_closed": "unauthorized",
 }
-_OUTBOX = 64  # updates waiting for a slow client; beyond this the oldest are skipped
+_OUTBOX = 256  # updates waiting for a slow client; beyond this the oldest are skipped
 _MAX_SEQ = next(f["max"] for f in proto.MESSAGES["frame"]["fields"] if f["name"] == "seq")
 
 
@@ -75,15 +75,10 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         return
     app.state.connections.add(session_id)
     loop = asyncio.get_running_loop()
-    outbox: asyncio.Queue[PoseUpdate | dict] = asyncio.Queue(maxsize=_OUTBOX)
+    outbox = _Outbox()
 
-    def deliver(item: PoseUpdate | dict) -> None:  # any thread
-        def put() -> None:
-            if outbox.full():
-                outbox.get_nowait()
-            outbox.put_nowait(item)
-
-        loop.call_soon_threadsafe(put)
+    def deliver(item) -> None:  # any thread
+        loop.call_soon_threadsafe(outbox.put, item)
 
     sender = asyncio.create_task(_send_updates(ws, outbox, settings.preview_points))
     try:
@@ -96,7 +91,38 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         sender.cancel()
 
 
-async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int) -> None:
+class _Outbox:
+    """Updates waiting for the client, in order. Drone states are coalesced (only the newest
+    waits), so 20 Hz of them never crowd out poses; beyond _OUTBOX waiting items (a client that
+    stopped reading) the oldest are skipped. Event-loop thread only."""
+
+    _DRONE = object()  # queued in place of the newest drone state
+
+    def __init__(self) -> None:
+        self.queue: asyncio.Queue = asyncio.Queue()
+        self.drone: DroneUpdate | None = None
+
+    def put(self, item) -> None:
+        if isinstance(item, DroneUpdate):
+            queued, self.drone = self.drone is not None, item
+            if queued:
+                return
+            item = self._DRONE
+        if self.queue.qsize() >= _OUTBOX and self.queue.get_nowait() is self._DRONE:
+            self.drone = None
+        self.queue.put_nowait(item)
+
+    async def get(self):
+        item = await self.queue.get()
+        if item is self._DRONE:
+            item, self.drone = self.drone, None
+        return item
+
+    def empty(self) -> bool:
+        return self.queue.empty()
+
+
+async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int) -> None:
     chunk = 0
     try:
         while True:
@@ -124,7 +150,7 @@ async def _send_updates(ws: WebSocket, outbox: asyncio.Queue, chunk_points: int)
         return
 
 
-async def _close_after_answers(ws: WebSocket, session: Session, outbox: asyncio.Queue) -> None:
+async def _close_after_answers(ws: WebSocket, session: Session, outbox: _Outbox) -> None:
     """After a bye: answer the frames in flight (bounded), then close normally."""
     await asyncio.to_thread(session.drain, 5.0)
     deadline = time.monotonic() + 2.0
@@ -140,7 +166,7 @@ def _drone_state(s: DroneUpdate) -> dict:
 
 
 async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int,
-                   outbox: asyncio.Queue) -> None:
+                   outbox: _Outbox) -> None:
     order = proto.ClientOrder()
     errors_in_a_row = 0
     limit = proto.LIMITS["max_consecutive_errors"]

@@ -51,6 +51,7 @@ NEAR_CHUNK_STEPS = 16  # near obstacles, steps checked together in one query
 # at the same place (the stop itself happens every time).
 COLLISION_REPEAT_S = 1.0
 COLLISION_REPEAT_M = 0.05
+ROUTE_CLIMB_SHARE = 0.7  # routes climb and descend at this share of max_climb_rate_m_s
 
 
 class DroneMode(str, Enum):
@@ -493,7 +494,9 @@ class DroneSimulator:
         return plan_path(self.flight_map, self._quad.position, goal, cfg.radius_m,
                          margin_m=cfg.planning_margin_m, max_speed_m_s=speed,
                          max_accel_m_s2=cfg.route_accel_m_s2,
-                         max_climb_rate_m_s=cfg.max_climb_rate_m_s)
+                         # Headroom below the controller's own limit, so it can catch up
+                         # at the end of a descent instead of overshooting into the floor.
+                         max_climb_rate_m_s=ROUTE_CLIMB_SHARE * cfg.max_climb_rate_m_s)
 
     def _start_route(self, route) -> None:
         cfg = self.config

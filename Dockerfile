@@ -1,3 +1,9 @@
+# The page's JavaScript modules (three, @msgpack/msgpack), at the locked versions.
+FROM node:20-slim AS web
+WORKDIR /web
+COPY client_web/package.json client_web/package-lock.json ./
+RUN npm ci --no-audit --no-fund --omit=dev
+
 FROM python:3.11-slim
 # open3d needs libusb and OpenGL/OpenMP runtime libraries to import.
 RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 \
@@ -7,6 +13,7 @@ COPY pyproject.toml README.md ./
 COPY server ./server
 COPY shared ./shared
 COPY client_web ./client_web
+COPY --from=web /web/node_modules ./client_web/node_modules
 RUN pip install --no-cache-dir .
 ENV DRONESIM_HOST=0.0.0.0 DRONESIM_PORT=8000 DRONESIM_DATA_DIR=/data
 VOLUME /data

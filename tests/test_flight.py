@@ -102,8 +102,11 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
                                atol=1e-9)
 
     # A goal inside the door's wall is refused with a reachable point nearby, in world terms.
+    in_wall = R.T @ np.array([2.0, 0.5, 1.0])
     with pytest.raises(CommandRefused) as info:
-        flight.command("goto", 6, target=R.T @ np.array([2.0, 0.5, 1.0]))
+        flight.command("goto", 6, target=in_wall)
     assert info.value.code == "unreachable_target"
+    message = str(info.value)  # in the world frame the client knows, with the reason in words
+    assert "({:.2f}, {:.2f}, {:.2f}) m".format(*in_wall) in message and "obstacle" in message
     if info.value.nearest is not None:
         assert fm.distance((R @ info.value.nearest)[None])[0] >= SimulationConfig().radius_m

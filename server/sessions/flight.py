@@ -31,6 +31,19 @@ _RECENT_FRAMES = 8  # frames kept for goto_pixel
 _TAP_SLACK_M = 0.6  # a tapped target may move this far to the nearest reachable point, m
 
 
+_REFUSALS = {  # PlanningError reasons, for the pilot
+    "goal_blocked": "inside or too close to an obstacle, or in space the camera has not seen",
+    "outside_map": "outside the mapped space",
+    "unreachable": "no collision-free route reaches it",
+    "start_blocked": "the drone has no room to move",
+    "not_finite": "not three finite numbers",
+}
+
+
+def _xyz(p: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v:.2f}" for v in p) + ") m"
+
+
 def flight_frame(gravity_world: np.ndarray | None) -> np.ndarray:
     """R_flight_world (3x3): flight z is against gravity, flight x the first camera's optical
     axis made level. gravity_world: gravity's direction in the world (= first camera) frame;
@@ -187,9 +200,14 @@ class Flight:
             self.sim.command_goto(self._to_flight(target_world), speed=speed,
                                   command_id=command_id)
         except PlanningError as exc:
+            # The planner speaks in flight-frame coordinates; the client knows the world's.
             nearest = None if exc.nearest is None else self._to_world(exc.nearest)
             code = "bad_command" if exc.reason == "not_finite" else "unreachable_target"
-            raise CommandRefused(code, str(exc), nearest) from None
+            why = _REFUSALS.get(getattr(exc.reason, "value", exc.reason), str(exc))
+            message = f"target {_xyz(target_world)}: {why}"
+            if nearest is not None:
+                message += f"; nearest reachable point {_xyz(nearest)}"
+            raise CommandRefused(code, message, nearest) from None
 
     def _goto_near(self, target_world: np.ndarray, speed: float | None, command_id: int) -> None:
         """A tap means 'over there': when the exact point is too close to something, fly to the

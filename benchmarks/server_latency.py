@@ -44,9 +44,22 @@ def free_port() -> int:
 
 def start_server(data_dir: Path) -> tuple[subprocess.Popen, int]:
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "server", "serve", "--port", str(port),
-                             "--data-dir", str(data_dir), "--no-demo"], cwd=REPO,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "server",
+            "serve",
+            "--port",
+            str(port),
+            "--data-dir",
+            str(data_dir),
+            "--no-demo",
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 60
     while time.time() < deadline:
         try:
@@ -60,9 +73,17 @@ def start_server(data_dir: Path) -> tuple[subprocess.Popen, int]:
 
 def run_once(port: int, dataset, fps: float, frames: int) -> dict:
     body = httpx.post(f"http://127.0.0.1:{port}/api/sessions").json()
-    stats = asyncio.run(replay(f"ws://127.0.0.1:{port}/ws/sessions/{body['id']}", body["token"],
-                               dataset, fps=fps, max_frames=frames, client_name="bench",
-                               preencode=True))
+    stats = asyncio.run(
+        replay(
+            f"ws://127.0.0.1:{port}/ws/sessions/{body['id']}",
+            body["token"],
+            dataset,
+            fps=fps,
+            max_frames=frames,
+            client_name="bench",
+            preencode=True,
+        )
+    )
     summary = latency_summary(stats)
     stages: dict[str, list[float]] = {}
     for pose in stats.poses:
@@ -76,8 +97,12 @@ def run_once(port: int, dataset, fps: float, frames: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "synthetic_room0"))
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "synthetic_room0")
+    )
     parser.add_argument("--frames", type=int, default=None, help="frames per run (default: all)")
     parser.add_argument("--fps", type=float, nargs="+", default=[30.0, 15.0])
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
@@ -96,24 +121,54 @@ def main() -> None:
             proc.terminate()
             proc.wait(timeout=60)
 
-    table = Table(title=f"server latency, one session, {dataset.name} "
-                        f"{dataset.intrinsics.width}x{dataset.intrinsics.height}, fusion on")
-    for col in ("fps", "sent", "poses", "client drop", "server drop", "errors", "p50 ms", "p95 ms",
-                "p99 ms", "target p95", "stages (median ms)"):
+    table = Table(
+        title=f"server latency, one session, {dataset.name} "
+        f"{dataset.intrinsics.width}x{dataset.intrinsics.height}, fusion on"
+    )
+    for col in (
+        "fps",
+        "sent",
+        "poses",
+        "client drop",
+        "server drop",
+        "errors",
+        "p50 ms",
+        "p95 ms",
+        "p99 ms",
+        "target p95",
+        "stages (median ms)",
+    ):
         table.add_column(col, justify="right")
     for r in rows:
-        target = f"<= {TARGET_P95_MS_AT_15:.0f} " + ("PASS" if r["p95_ms"] <= TARGET_P95_MS_AT_15 else "FAIL") \
-            if r["fps"] == 15 else "-"
-        stages = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items()
-                           if not k.startswith("track_"))
-        table.add_row(f"{r['fps']:g}", str(r["sent"]), str(r["poses"]), str(r["client_dropped"]),
-                      str(r["server_dropped"]), str(r["errors"]), f"{r['p50_ms']:.1f}",
-                      f"{r['p95_ms']:.1f}", f"{r['p99_ms']:.1f}", target, stages)
+        target = (
+            f"<= {TARGET_P95_MS_AT_15:.0f} "
+            + ("PASS" if r["p95_ms"] <= TARGET_P95_MS_AT_15 else "FAIL")
+            if r["fps"] == 15
+            else "-"
+        )
+        stages = ", ".join(
+            f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items() if not k.startswith("track_")
+        )
+        table.add_row(
+            f"{r['fps']:g}",
+            str(r["sent"]),
+            str(r["poses"]),
+            str(r["client_dropped"]),
+            str(r["server_dropped"]),
+            str(r["errors"]),
+            f"{r['p50_ms']:.1f}",
+            f"{r['p95_ms']:.1f}",
+            f"{r['p99_ms']:.1f}",
+            target,
+            stages,
+        )
     console.print(table)
     args.out.mkdir(parents=True, exist_ok=True)
-    header = (f"\n## {dataset.name}, {datetime.datetime.now():%Y-%m-%d %H:%M}\n\n"
-              f"machine: {platform.platform()}, {os.cpu_count()} cores; command: "
-              f"`python {' '.join(sys.argv)}`\n\n")
+    header = (
+        f"\n## {dataset.name}, {datetime.datetime.now():%Y-%m-%d %H:%M}\n\n"
+        f"machine: {platform.platform()}, {os.cpu_count()} cores; command: "
+        f"`python {' '.join(sys.argv)}`\n\n"
+    )
     with open(args.out / "server_latency.md", "a") as f:
         f.write(header)
         Console(file=f, width=200, force_terminal=False).print(table)

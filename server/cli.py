@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.console import Console
@@ -51,15 +51,17 @@ def _intrinsics_for(path: Path, fx: float, fy: float, cx: float, cy: float):
 
 @app.command()
 def track(
-    dataset: Annotated[str, typer.Argument(help="sequence folder (TUM or Redwood layout), or 'demo'")],
+    dataset: Annotated[
+        str, typer.Argument(help="sequence folder (TUM or Redwood layout), or 'demo'")
+    ],
     out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
-    frames: Annotated[Optional[int], typer.Option(help="only the first N frames")] = None,
+    frames: Annotated[int | None, typer.Option(help="only the first N frames")] = None,
     dense: Annotated[bool, typer.Option(help="dense point-to-plane refinement")] = True,
-    fx: Optional[float] = None,
-    fy: Optional[float] = None,
-    cx: Optional[float] = None,
-    cy: Optional[float] = None,
-    depth_scale: Annotated[Optional[float], typer.Option(help="depth units per metre")] = None,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+    depth_scale: Annotated[float | None, typer.Option(help="depth units per metre")] = None,
 ) -> None:
     """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture and metrics."""
     from server.config import RegistrationConfig
@@ -75,11 +77,20 @@ def track(
     for col in ("frames", "keyframes", "ok", "weak", "lost", "median ms", "p90 ms"):
         stats.add_column(col, justify="right")
     st = s["states"]
-    stats.add_row(str(s["frames"]), str(s["keyframes"]), str(st.get("ok", 0)), str(st.get("weak", 0)),
-                  str(st.get("lost", 0)), f"{s['median_ms']:.1f}", f"{s['p90_ms']:.1f}")
+    stats.add_row(
+        str(s["frames"]),
+        str(s["keyframes"]),
+        str(st.get("ok", 0)),
+        str(st.get("weak", 0)),
+        str(st.get("lost", 0)),
+        f"{s['median_ms']:.1f}",
+        f"{s['p90_ms']:.1f}",
+    )
     console.print(stats)
     if run.metrics is not None:
-        console.print(format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth"))
+        console.print(
+            format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth")
+        )
     for name, path in paths.items():
         console.print(f"{name:>10}: {path}")
 
@@ -100,11 +111,15 @@ def evaluate_cmd(
 
 @app.command()
 def serve(
-    host: Annotated[Optional[str], typer.Option(help="address to listen on (0.0.0.0: the LAN)")] = None,
-    port: Annotated[Optional[int], typer.Option(help="TCP port")] = None,
-    data_dir: Annotated[Optional[Path], typer.Option(help="where sessions are stored")] = None,
-    tls: Annotated[Optional[bool], typer.Option("--tls/--no-tls", help="HTTPS, self-signed")] = None,
-    demo: Annotated[Optional[bool], typer.Option("--demo/--no-demo", help="replay the demo sequence")] = None,
+    host: Annotated[
+        str | None, typer.Option(help="address to listen on (0.0.0.0: the LAN)")
+    ] = None,
+    port: Annotated[int | None, typer.Option(help="TCP port")] = None,
+    data_dir: Annotated[Path | None, typer.Option(help="where sessions are stored")] = None,
+    tls: Annotated[bool | None, typer.Option("--tls/--no-tls", help="HTTPS, self-signed")] = None,
+    demo: Annotated[
+        bool | None, typer.Option("--demo/--no-demo", help="replay the demo sequence")
+    ] = None,
 ) -> None:
     """Run the server (settings from DRONESIM_* environment variables, overridden by flags)."""
     import uvicorn
@@ -126,11 +141,15 @@ def serve(
 
         cert, key = ensure_certificate(settings.data_dir / "tls")
         ssl = {"ssl_certfile": str(cert), "ssl_keyfile": str(key)}
-        console.print(f"HTTPS with a self-signed certificate ({cert}); from a phone on the same "
-                      f"network open https://<this machine>:{settings.port}/ (addresses: "
-                      f"{', '.join(local_addresses())}) and accept the certificate once.")
+        console.print(
+            f"HTTPS with a self-signed certificate ({cert}); from a phone on the same "
+            f"network open https://<this machine>:{settings.port}/ (addresses: "
+            f"{', '.join(local_addresses())}) and accept the certificate once."
+        )
     logging.getLogger().setLevel(logging.INFO)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info", **ssl)
+    uvicorn.run(
+        create_app(settings), host=settings.host, port=settings.port, log_level="info", **ssl
+    )
 
 
 @app.command()
@@ -140,12 +159,12 @@ def loadtest(
     sessions: Annotated[int, typer.Option(min=1, help="concurrent clients, a session each")] = 4,
     fps: Annotated[float, typer.Option(min=0.1, help="capture rate per client")] = 15.0,
     duration: Annotated[float, typer.Option(min=0.5, help="capture time, seconds")] = 30.0,
-    frames: Annotated[Optional[int], typer.Option(min=1, help="only the first N frames")] = None,
+    frames: Annotated[int | None, typer.Option(min=1, help="only the first N frames")] = None,
     max_in_flight: Annotated[int, typer.Option(min=1, help="unanswered frames at most")] = 2,
     depth_format: Annotated[str, typer.Option(help="zlib (as browsers send) or png")] = "zlib",
     command_every: Annotated[float, typer.Option(min=0, help="drone command period, s")] = 2.0,
-    json_path: Annotated[Optional[Path], typer.Option("--json", help="report (JSON)")] = None,
-    plot: Annotated[Optional[Path], typer.Option(help="latency over time (PNG)")] = None,
+    json_path: Annotated[Path | None, typer.Option("--json", help="report (JSON)")] = None,
+    plot: Annotated[Path | None, typer.Option(help="latency over time (PNG)")] = None,
     keep_sessions: Annotated[bool, typer.Option(help="do not delete the sessions")] = False,
     insecure: Annotated[bool, typer.Option(help="accept a self-signed certificate")] = False,
 ) -> None:
@@ -163,11 +182,19 @@ def loadtest(
     ds = _open(dataset, None, None, None, None, None)
     with console.status(f"encoding {min(frames or len(ds), len(ds))} frames of {ds.name} ..."):
         sequence = lt.EncodedSequence.from_dataset(ds, frames, depth_format)
-    cfg = lt.LoadTestConfig(url=url, sessions=sessions, fps=fps, duration_s=duration,
-                            max_in_flight=max_in_flight, command_every_s=command_every,
-                            keep_sessions=keep_sessions, insecure=insecure)
-    with Progress(TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
-                  transient=True) as progress:
+    cfg = lt.LoadTestConfig(
+        url=url,
+        sessions=sessions,
+        fps=fps,
+        duration_s=duration,
+        max_in_flight=max_in_flight,
+        command_every_s=command_every,
+        keep_sessions=keep_sessions,
+        insecure=insecure,
+    )
+    with Progress(
+        TextColumn("{task.description}"), TimeElapsedColumn(), console=console, transient=True
+    ) as progress:
         task = progress.add_task("connecting ...")
         logged = [0.0]
 
@@ -192,8 +219,9 @@ def loadtest(
     failures = [f"session {s['index']}: {f}" for s in report["sessions"] for f in s["failures"]]
     if failures:
         more = f"\n  ... {len(failures) - 20} more" if len(failures) > 20 else ""
-        err_console.print(f"[red]{len(failures)} failures:[/red]\n  " + "\n  ".join(failures[:20])
-                          + more)
+        err_console.print(
+            f"[red]{len(failures)} failures:[/red]\n  " + "\n  ".join(failures[:20]) + more
+        )
         raise typer.Exit(2)
 
 

@@ -72,7 +72,12 @@ def run_odometry(
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
             world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, result.T_world_camera)
-        bar.set_postfix(state=result.state.value, inliers=result.inliers, kf=tracker.keyframe_count, refresh=False)
+        bar.set_postfix(
+            state=result.state.value,
+            inliers=result.inliers,
+            kf=tracker.keyframe_count,
+            refresh=False,
+        )
     trajectory = Trajectory(np.array(stamps), np.array([r.T_world_camera for r in results]))
     run = OdometryRun(trajectory, results, world_map)
     if dataset.ground_truth is not None:
@@ -88,7 +93,9 @@ def run_odometry(
     return run
 
 
-def write_outputs(run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig) -> dict:
+def write_outputs(
+    run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig
+) -> dict:
     """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {

@@ -10,7 +10,9 @@ import pytest
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def random_pose(rng: np.random.Generator, max_angle_rad: float = 0.2, max_t_m: float = 0.1) -> np.ndarray:
+def random_pose(
+    rng: np.random.Generator, max_angle_rad: float = 0.2, max_t_m: float = 0.1
+) -> np.ndarray:
     """A random rigid transform with bounded rotation angle and translation."""
     from server.geometry import exp_se3
 
@@ -53,8 +55,15 @@ class LiveServer:
             self.port = s.getsockname()[1]
         self.settings = Settings(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
         self.app = create_app(self.settings)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=self.port,
-                                                    log_level="warning", ws_max_size=64 * 2**20))
+        self.server = uvicorn.Server(
+            uvicorn.Config(
+                self.app,
+                host="127.0.0.1",
+                port=self.port,
+                log_level="warning",
+                ws_max_size=64 * 2**20,
+            )
+        )
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
         import time

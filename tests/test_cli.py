@@ -14,13 +14,20 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "server", *args], cwd=REPO, capture_output=True,
-                          text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "server", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_track_writes_trajectory_map_picture_and_metrics(shared_data, tmp_path):
     out = tmp_path / "out"
-    proc = run_cli("track", str(shared_data / "synthetic_room0"), "--frames", "8", "--out", str(out))
+    proc = run_cli(
+        "track", str(shared_data / "synthetic_room0"), "--frames", "8", "--out", str(out)
+    )
     assert proc.returncode == 0, proc.stderr
     traj = read_tum(out / "trajectory.tum")
     assert len(traj) == 8  # one pose per input frame

@@ -55,7 +55,9 @@ def test_dockerfile_installs_the_package_and_serves_on_the_data_volume():
     assert "pip install" in text and "DRONESIM_DATA_DIR=/data" in text
     assert 'CMD ["python", "-m", "server", "serve"]' in text
     # The page's npm modules are installed at the locked versions and copied in.
-    assert "npm ci" in text and "COPY --from=web /web/node_modules ./client_web/node_modules" in text
+    assert (
+        "npm ci" in text and "COPY --from=web /web/node_modules ./client_web/node_modules" in text
+    )
     assert "client_web/node_modules" in (REPO / ".dockerignore").read_text()
 
 

@@ -1,4 +1,4 @@
-"""The drone through the real server: stream real frames, then pilot the drone over the WebSocket."""
+"""The drone through the real server: stream real frames, then pilot it over the WebSocket."""
 
 from __future__ import annotations
 
@@ -29,15 +29,20 @@ class Pilot:
             self.arrived.set()
 
     def of(self, kind: str, **match) -> list[dict]:
-        return [m for m in self.messages if m["type"] == kind
-                and all(m.get(k) == v for k, v in match.items())]
+        return [
+            m
+            for m in self.messages
+            if m["type"] == kind and all(m.get(k) == v for k, v in match.items())
+        ]
 
     async def wait_for(self, kind: str, timeout: float = 20.0, **match) -> dict:
         deadline = time.monotonic() + timeout
         while not (found := self.of(kind, **match)):
             self.arrived.clear()
             remaining = deadline - time.monotonic()
-            assert remaining > 0, f"no {kind} {match} within {timeout} s; last: {self.messages[-3:]}"
+            assert remaining > 0, (
+                f"no {kind} {match} within {timeout} s; last: {self.messages[-3:]}"
+            )
             try:
                 await asyncio.wait_for(self.arrived.wait(), remaining)
             except asyncio.TimeoutError:
@@ -50,7 +55,7 @@ class Pilot:
 
 def near_pixel(depth: np.ndarray, want_m: float = 1.6) -> tuple[float, float]:
     """A pixel whose surface is about want_m away, so the point in front of it is mapped."""
-    v, u = np.mgrid[40:depth.shape[0] - 40:20, 40:depth.shape[1] - 40:20]
+    v, u = np.mgrid[40 : depth.shape[0] - 40 : 20, 40 : depth.shape[1] - 40 : 20]
     z = depth[v, u]
     best = np.argmin(np.where(z > 0, np.abs(z - want_m), np.inf))
     return float(u.flat[best]), float(v.flat[best])
@@ -63,12 +68,14 @@ def drone_position(state: dict) -> np.ndarray:
 async def fly(server, dataset) -> dict:
     sid, token = server.create_session()
     K = dataset.intrinsics
-    async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}",
-                                  max_size=None) as ws:
+    async with websockets.connect(
+        f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
+    ) as ws:
         pilot = Pilot(ws)
         receiver = asyncio.create_task(pilot.receive())
-        await pilot.send(proto.make_hello("pilot-test", (K.fx, K.fy, K.cx, K.cy),
-                                          (K.width, K.height)))
+        await pilot.send(
+            proto.make_hello("pilot-test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        )
         await pilot.wait_for("welcome")
         for i in range(FRAMES):
             frame = dataset[i]
@@ -81,8 +88,9 @@ async def fly(server, dataset) -> dict:
         poses = {m["seq"]: proto.pose_matrix(m) for m in pilot.of("pose")}
         target = poses[FRAMES // 2][:3, 3] + 0.7 * poses[FRAMES // 2][:3, 2]
         await pilot.send(proto.make_command(1, "goto", target=target))
-        out["arrived"] = await pilot.wait_for("drone_event", timeout=30.0, event="arrived",
-                                              command_id=1)
+        out["arrived"] = await pilot.wait_for(
+            "drone_event", timeout=30.0, event="arrived", command_id=1
+        )
         await asyncio.sleep(0.2)
         out["after_goto"] = pilot.of("drone_state")[-1]
         out["goto_states"] = pilot.of("drone_state", command_id=1)
@@ -98,7 +106,8 @@ async def fly(server, dataset) -> dict:
         await pilot.send(proto.make_command(3, "goto_pixel", pixel=pixel, seq=last))
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and not (
-                pilot.of("error", command_id=3) or pilot.of("drone_state", command_id=3)):
+            pilot.of("error", command_id=3) or pilot.of("drone_state", command_id=3)
+        ):
             await asyncio.sleep(0.05)
         out["pixel_states"] = pilot.of("drone_state", command_id=3)
         out["pixel_errors"] = pilot.of("error", command_id=3)
@@ -115,7 +124,8 @@ async def fly(server, dataset) -> dict:
 
 
 def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
-        live_server, shared_data):
+    live_server, shared_data
+):
     dataset = open_dataset(shared_data / "synthetic_room0")
     server = live_server()
     out = asyncio.run(fly(server, dataset))
@@ -135,7 +145,9 @@ def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
     T_world_camera = out["pixel_pose"]
     np.testing.assert_allclose(
         proto.pose_matrix(state, "T_camera_drone"),
-        np.linalg.inv(T_world_camera) @ proto.pose_matrix(state, "T_world_drone"), atol=1e-6)
+        np.linalg.inv(T_world_camera) @ proto.pose_matrix(state, "T_world_drone"),
+        atol=1e-6,
+    )
 
     error = out["unreachable"]
     assert error["name"] == "unreachable_target" and not error["fatal"]
@@ -146,12 +158,13 @@ def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
     assert not out["pixel_errors"], out["pixel_errors"]
     frame = dataset[FRAMES - 1]
     u, v = (int(round(c)) for c in out["pixel"])
-    z = np.median(frame.depth[v - 3:v + 4, u - 3:u + 4])
+    z = np.median(frame.depth[v - 3 : v + 4, u - 3 : u + 4])
     K = dataset.intrinsics
     ray = np.array([(out["pixel"][0] - K.cx) / K.fx, (out["pixel"][1] - K.cy) / K.fy, 1.0])
     surface = T_world_camera[:3, :3] @ (ray * z) + T_world_camera[:3, 3]
     expected = surface - SimulationConfig().standoff_m * (
-        T_world_camera[:3, :3] @ ray) / np.linalg.norm(ray)
+        T_world_camera[:3, :3] @ ray
+    ) / np.linalg.norm(ray)
     got = np.array(out["pixel_states"][0]["target"])
     assert np.linalg.norm(got - expected) < 0.6, (got, expected)
 
@@ -168,8 +181,10 @@ def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server)
     while time.monotonic() < deadline:
         demo = server.app.state.demo
         if demo is not None:
-            status = httpx.get(f"{server.url}/api/sessions/{demo['id']}",
-                               headers={"Authorization": f"Bearer {demo['token']}"}).json()
+            status = httpx.get(
+                f"{server.url}/api/sessions/{demo['id']}",
+                headers={"Authorization": f"Bearer {demo['token']}"},
+            ).json()
             drone = status.get("drone") or {}
             if drone.get("events", {}).get("arrived", 0) >= 2 and status["frames_processed"] > 20:
                 break

@@ -37,11 +37,22 @@ def offline_track(ds, n: int) -> np.ndarray:
 
 
 def stream(server, sid, token, ds, n=FRAMES, fps=1000.0, max_in_flight=1):
-    return asyncio.run(replay(f"{server.ws_url}/ws/sessions/{sid}", token, ds, fps=fps,
-                              max_frames=n, max_in_flight=max_in_flight, drop_when_busy=False))
+    return asyncio.run(
+        replay(
+            f"{server.ws_url}/ws/sessions/{sid}",
+            token,
+            ds,
+            fps=fps,
+            max_frames=n,
+            max_in_flight=max_in_flight,
+            drop_when_busy=False,
+        )
+    )
 
 
-def test_streamed_poses_match_offline_tracking_and_the_map_downloads(live_server, shared_data, tmp_path):
+def test_streamed_poses_match_offline_tracking_and_the_map_downloads(
+    live_server, shared_data, tmp_path
+):
     server = live_server()
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()
@@ -107,15 +118,38 @@ def test_two_sessions_at_once_stay_isolated(live_server, shared_data):
 
     async def both():
         return await asyncio.gather(
-            replay(f"{server.ws_url}/ws/sessions/{sa}", ta, a, fps=1000, max_frames=30, max_in_flight=1, drop_when_busy=False),
-            replay(f"{server.ws_url}/ws/sessions/{sb}", tb, b, fps=1000, max_frames=20, max_in_flight=1, drop_when_busy=False))
+            replay(
+                f"{server.ws_url}/ws/sessions/{sa}",
+                ta,
+                a,
+                fps=1000,
+                max_frames=30,
+                max_in_flight=1,
+                drop_when_busy=False,
+            ),
+            replay(
+                f"{server.ws_url}/ws/sessions/{sb}",
+                tb,
+                b,
+                fps=1000,
+                max_frames=20,
+                max_in_flight=1,
+                drop_when_busy=False,
+            ),
+        )
 
     stats_a, stats_b = asyncio.run(both())
     assert len(stats_a.poses) == 30 and len(stats_b.poses) == 20
-    np.testing.assert_allclose(np.array([proto.pose_matrix(p) for p in stats_a.poses])[:, :3, 3],
-                               offline_track(a, 30)[:, :3, 3], atol=1e-6)
-    np.testing.assert_allclose(np.array([proto.pose_matrix(p) for p in stats_b.poses])[:, :3, 3],
-                               offline_track(b, 20)[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(
+        np.array([proto.pose_matrix(p) for p in stats_a.poses])[:, :3, 3],
+        offline_track(a, 30)[:, :3, 3],
+        atol=1e-6,
+    )
+    np.testing.assert_allclose(
+        np.array([proto.pose_matrix(p) for p in stats_b.poses])[:, :3, 3],
+        offline_track(b, 20)[:, :3, 3],
+        atol=1e-6,
+    )
     sa_status = httpx.get(f"{server.url}/api/sessions/{sa}", headers=auth(ta)).json()
     sb_status = httpx.get(f"{server.url}/api/sessions/{sb}", headers=auth(tb)).json()
     assert sa_status["frames_processed"] == 30 and sb_status["frames_processed"] == 20
@@ -127,7 +161,9 @@ def test_a_restart_keeps_a_closed_sessions_map_downloadable(live_server, shared_
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()
     stream(server, sid, token, ds, n=20)
-    before = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token)).content
+    before = httpx.get(
+        f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token)
+    ).content
     server.stop()  # shutdown saves every live session
 
     again = live_server(data_dir)
@@ -137,7 +173,12 @@ def test_a_restart_keeps_a_closed_sessions_map_downloadable(live_server, shared_
     assert after == before
     status = httpx.get(f"{again.url}/api/sessions/{sid}", headers=auth(token)).json()
     assert status["closed"] is True and status["frames_processed"] == 20
-    assert httpx.get(f"{again.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60).status_code == 200
+    assert (
+        httpx.get(
+            f"{again.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60
+        ).status_code
+        == 200
+    )
 
 
 def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
@@ -146,8 +187,12 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
     server = live_server()
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()
-    frames = [proto.encode(proto.make_frame(i, ds[i % 10].timestamp + i, ds[i % 10].colour, ds[i % 10].depth))
-              for i in range(10)]
+    frames = [
+        proto.encode(
+            proto.make_frame(i, ds[i % 10].timestamp + i, ds[i % 10].colour, ds[i % 10].depth)
+        )
+        for i in range(10)
+    ]
 
     def rss_mb() -> float:
         for line in open("/proc/self/status"):
@@ -157,8 +202,14 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
 
     async def flood():
         K = ds.intrinsics
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None) as ws:
-            await ws.send(proto.encode(proto.make_hello("flood", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))))
+        async with websockets.connect(
+            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
+        ) as ws:
+            await ws.send(
+                proto.encode(
+                    proto.make_hello("flood", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+                )
+            )
             assert proto.decode(await ws.recv())["type"] == "welcome"
             rss_start = None
             for i in range(300):
@@ -194,10 +245,12 @@ def test_a_bye_still_gets_answers_for_the_frames_in_flight(live_server, shared_d
     K = ds.intrinsics
 
     async def send_two_and_leave() -> tuple[list[dict], int]:
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}",
-                                      max_size=None) as ws:
-            await ws.send(proto.encode(proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy),
-                                                        (K.width, K.height))))
+        async with websockets.connect(
+            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
+        ) as ws:
+            await ws.send(
+                proto.encode(proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height)))
+            )
             assert proto.decode(await ws.recv())["type"] == "welcome"
             for i in range(2):
                 f = ds[i]

@@ -7,8 +7,8 @@ import pytest
 
 from server.config import RegistrationConfig
 from server.datasets import open_dataset
-from server.evaluation.metrics import evaluate
 from server.datasets.base import Trajectory
+from server.evaluation.metrics import evaluate
 from server.geometry import invert, rotation_angle_deg
 from server.pipeline import ground_truth_pose_at
 from server.registration import Tracker, TrackingState
@@ -96,7 +96,9 @@ def test_fast_hand_held_motion_keeps_tracking(demo_clean):
     assert metrics["ate_rmse_m"] < 0.01
 
 
-@pytest.mark.parametrize("sequence, frames, max_ate_m", [("synthetic_room0", 60, 0.01), ("7scenes_a", 60, 0.02)])
+@pytest.mark.parametrize(
+    "sequence, frames, max_ate_m", [("synthetic_room0", 60, 0.01), ("7scenes_a", 60, 0.02)]
+)
 def test_real_and_shared_sequences_track_without_loss(shared_data, sequence, frames, max_ate_m):
     ds = open_dataset(shared_data / sequence)
     tracker = Tracker(ds.intrinsics, T_world_first=gt_at(ds, 0))

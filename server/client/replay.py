@@ -9,8 +9,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import websockets
@@ -65,8 +65,14 @@ async def replay(
 
     def frame_message(i: int) -> dict:
         frame = dataset[i % len(dataset)]
-        return proto.make_frame(i, frame.timestamp, frame.colour, frame.depth,
-                                depth_format=depth_format, depth_scale=1000.0)
+        return proto.make_frame(
+            i,
+            frame.timestamp,
+            frame.colour,
+            frame.depth,
+            depth_format=depth_format,
+            depth_scale=1000.0,
+        )
 
     def encode_all() -> dict[int, dict]:
         return {i: frame_message(i) for i in range(min(n, len(dataset)))}
@@ -74,11 +80,18 @@ async def replay(
     cache = await asyncio.to_thread(encode_all) if preencode else {}
     answered = asyncio.Event()
     async with websockets.connect(f"{ws_url}?token={token}", max_size=None, ssl=ssl) as ws:
-        await ws.send(proto.encode(proto.make_hello(
-            client_name, (K.fx, K.fy, K.cx, K.cy), (K.width, K.height), depth_scale=1000.0)))
+        await ws.send(
+            proto.encode(
+                proto.make_hello(
+                    client_name, (K.fx, K.fy, K.cx, K.cy), (K.width, K.height), depth_scale=1000.0
+                )
+            )
+        )
         stats.welcome = proto.decode(await ws.recv())
         if stats.welcome["type"] != "welcome":
-            raise proto.ProtocolError("unexpected_message", f"expected welcome, got {stats.welcome}")
+            raise proto.ProtocolError(
+                "unexpected_message", f"expected welcome, got {stats.welcome}"
+            )
 
         async def receive() -> None:
             async for data in ws:
@@ -130,7 +143,9 @@ async def replay(
             while in_flight and time.monotonic() < deadline:
                 answered.clear()
                 try:
-                    await asyncio.wait_for(answered.wait(), timeout=max(0.01, deadline - time.monotonic()))
+                    await asyncio.wait_for(
+                        answered.wait(), timeout=max(0.01, deadline - time.monotonic())
+                    )
                 except asyncio.TimeoutError:
                     break
             await ws.send(proto.encode(proto.make_bye("done")))

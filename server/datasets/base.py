@@ -27,7 +27,8 @@ class RGBDFrame:
 
 @dataclass
 class Trajectory:
-    """Timestamped poses: ``timestamps`` (N,) seconds, ``poses`` (N, 4, 4) T_world_camera, metres."""
+    """Timestamped poses: ``timestamps`` (N,) seconds, ``poses`` (N, 4, 4) T_world_camera,
+    metres."""
 
     timestamps: np.ndarray
     poses: np.ndarray

@@ -51,7 +51,9 @@ def plot_top_view(
         height = pts @ up
         order = np.argsort(height)  # higher points drawn last, as seen from above
         xy = pts[order] @ basis.T
-        sc = ax.scatter(xy[:, 0], xy[:, 1], c=height[order], s=0.3, cmap="jet", alpha=0.6, linewidths=0)
+        sc = ax.scatter(
+            xy[:, 0], xy[:, 1], c=height[order], s=0.3, cmap="jet", alpha=0.6, linewidths=0
+        )
         fig.colorbar(sc, ax=ax, shrink=0.7, label="height (m)")
     styles = ["-", "--", "-.", ":"]
     colours = ["black", "tab:green", "tab:red", "tab:purple", "tab:orange"]

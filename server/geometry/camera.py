@@ -51,7 +51,8 @@ class Intrinsics:
 
 
 def backproject_pixels(uv: np.ndarray, depth: np.ndarray, K: Intrinsics) -> np.ndarray:
-    """Eq. 1: pixels ``uv`` (N, 2) with depths ``depth`` (N,) in metres -> points (N, 3) in metres."""
+    """Eq. 1: pixels ``uv`` (N, 2) with depths ``depth`` (N,) in metres -> points (N, 3) in
+    metres."""
     z = np.asarray(depth, dtype=np.float64)
     x = (uv[:, 0] - K.cx) * z / K.fx
     y = (uv[:, 1] - K.cy) * z / K.fy
@@ -61,7 +62,8 @@ def backproject_pixels(uv: np.ndarray, depth: np.ndarray, K: Intrinsics) -> np.n
 def backproject(depth: np.ndarray, K: Intrinsics, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Back-project every ``stride``-th pixel of a depth image (H, W) in metres.
 
-    Returns (points (N, 3) in the camera frame, pixel indices (N, 2) as (u, v)) for valid depth only.
+    Returns (points (N, 3) in the camera frame, pixel indices (N, 2) as (u, v)) for valid depth
+    only.
     """
     d = depth[::stride, ::stride]
     v, u = np.nonzero(np.isfinite(d) & (d > 0))

@@ -22,7 +22,9 @@ class PointCloudMap:
         self.cloud = o3d.geometry.PointCloud()
         self._pending = 0
 
-    def fuse(self, colour: np.ndarray, depth: np.ndarray, K: Intrinsics, T_world_camera: np.ndarray) -> None:
+    def fuse(
+        self, colour: np.ndarray, depth: np.ndarray, K: Intrinsics, T_world_camera: np.ndarray
+    ) -> None:
         """Add a frame: colour (H, W, 3) RGB uint8, depth (H, W) metres, pose T_world_camera."""
         d = np.where(depth <= self.max_depth_m, depth, 0.0)
         points, uv = backproject(d, K, self.stride)

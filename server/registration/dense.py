@@ -30,8 +30,9 @@ class DenseModel:
     gradient: np.ndarray | None = None  # (h, w, 2) d intensity / d (u, v), per half-res pixel
 
 
-def build_dense_model(depth: np.ndarray, K: Intrinsics, grey: np.ndarray | None = None,
-                      normal_step_px: int = 2) -> DenseModel:
+def build_dense_model(
+    depth: np.ndarray, K: Intrinsics, grey: np.ndarray | None = None, normal_step_px: int = 2
+) -> DenseModel:
     """Vertex and normal maps from a depth image (metres) at half resolution.
 
     Raw depth noise biases point-to-plane ICP, so the depth is first averaged over 2x2 blocks
@@ -67,13 +68,19 @@ def build_dense_model(depth: np.ndarray, K: Intrinsics, grey: np.ndarray | None 
     intensity = gradient = None
     if grey is not None:
         intensity = cv2.GaussianBlur(cv2.pyrDown(grey).astype(np.float32), (3, 3), 0)
-        gradient = np.stack([cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
-                             cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3) / 8.0], axis=-1)
+        gradient = np.stack(
+            [
+                cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
+                cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3) / 8.0,
+            ],
+            axis=-1,
+        )
     return DenseModel(V.astype(np.float64), N.astype(np.float64), Kh, intensity, gradient)
 
 
-def sample_dense_points(depth: np.ndarray, K: Intrinsics, stride: int,
-                        grey: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def sample_dense_points(
+    depth: np.ndarray, K: Intrinsics, stride: int, grey: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Every ``stride``-th valid pixel of the current depth, back-projected: (N, 3) metres, and
     the (slightly blurred, like the keyframe's) intensity there (N,), when ``grey`` is given."""
     points, uv = backproject(depth, K, stride)
@@ -89,13 +96,22 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     a, b = u - u0, v - v0
     if image.ndim == 3:
         a, b = a[:, None], b[:, None]
-    return ((1 - a) * (1 - b) * image[v0, u0] + a * (1 - b) * image[v0, u0 + 1]
-            + (1 - a) * b * image[v0 + 1, u0] + a * b * image[v0 + 1, u0 + 1])
+    return (
+        (1 - a) * (1 - b) * image[v0, u0]
+        + a * (1 - b) * image[v0, u0 + 1]
+        + (1 - a) * b * image[v0 + 1, u0]
+        + a * b * image[v0 + 1, u0 + 1]
+    )
 
 
 def photometric_equations(
-    model: DenseModel, Q: np.ndarray, intensity: np.ndarray, T: np.ndarray, weight: float,
-    sigma: float, huber_k: float,
+    model: DenseModel,
+    Q: np.ndarray,
+    intensity: np.ndarray,
+    T: np.ndarray,
+    weight: float,
+    sigma: float,
+    huber_k: float,
 ) -> NormalEquations:
     """Normal equations of e = I_keyframe(pi(T q)) - I_current(q) for current points Q (N, 3)
     with intensities (N,), moved by T_keyframe_current into the keyframe image."""
@@ -114,8 +130,14 @@ def photometric_equations(
     g = _bilinear(model.gradient, u, v)
     inv_z = 1.0 / y[:, 2]
     # d e / d y = g^T d pi / d y; then d y / d xi = [ -[y]_x , I ].
-    de_dy = np.stack([g[:, 0] * K.fx * inv_z, g[:, 1] * K.fy * inv_z,
-                      -(g[:, 0] * K.fx * y[:, 0] + g[:, 1] * K.fy * y[:, 1]) * inv_z**2], axis=1)
+    de_dy = np.stack(
+        [
+            g[:, 0] * K.fx * inv_z,
+            g[:, 1] * K.fy * inv_z,
+            -(g[:, 0] * K.fx * y[:, 0] + g[:, 1] * K.fy * y[:, 1]) * inv_z**2,
+        ],
+        axis=1,
+    )
     J = np.concatenate([np.cross(y, de_dy), de_dy], axis=1)
     m = np.abs(e) / sigma
     wts = weight * np.where(m <= huber_k, 1.0, huber_k / np.maximum(m, 1e-12)) / sigma**2
@@ -123,8 +145,13 @@ def photometric_equations(
 
 
 def dense_equations(
-    model: DenseModel, Q: np.ndarray, T: np.ndarray, max_distance: float, weight: float,
-    depth_cfg: DepthConfig, huber_k: float,
+    model: DenseModel,
+    Q: np.ndarray,
+    T: np.ndarray,
+    max_distance: float,
+    weight: float,
+    depth_cfg: DepthConfig,
+    huber_k: float,
 ) -> tuple[NormalEquations, int]:
     """Point-to-plane normal equations of current points Q (N, 3) moved by T_keyframe_current,
     matched by projection into the keyframe. Returns the equations and the match count."""
@@ -169,7 +196,9 @@ def refine_dense(
     ``sparse_terms(T) -> NormalEquations`` evaluates the sparse cost at a pose.
     Returns the refined pose and the number of dense matches in the last iteration.
     """
-    photometric = cfg.photometric_weight > 0 and intensity is not None and model.intensity is not None
+    photometric = (
+        cfg.photometric_weight > 0 and intensity is not None and model.intensity is not None
+    )
     T = T_init.copy()
     matches = 0
     for _ in range(cfg.dense_iterations):
@@ -178,8 +207,9 @@ def refine_dense(
         )
         eq = dense_eq + sparse_terms(T)
         if photometric:
-            eq = eq + photometric_equations(model, Q, intensity, T, cfg.photometric_weight,
-                                            cfg.photometric_sigma, cfg.huber_k)
+            eq = eq + photometric_equations(
+                model, Q, intensity, T, cfg.photometric_weight, cfg.photometric_sigma, cfg.huber_k
+            )
         xi = np.linalg.lstsq(eq.H, -eq.g, rcond=None)[0]
         T = orthonormalize(exp_se3(xi) @ T)
         if np.linalg.norm(xi) < 1e-6:

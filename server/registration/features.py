@@ -8,7 +8,9 @@ import numpy as np
 from server.config import FeatureConfig
 
 
-def detect_features(grey: np.ndarray, cfg: FeatureConfig, mask: np.ndarray | None = None) -> np.ndarray:
+def detect_features(
+    grey: np.ndarray, cfg: FeatureConfig, mask: np.ndarray | None = None
+) -> np.ndarray:
     """Corner positions (N, 2) as float32 (u, v) in full-resolution pixels, strongest first.
 
     Level l of the pyramid is the image shrunk by 2^l; its corners are scaled back to level 0.
@@ -46,8 +48,9 @@ def spread_over_grid(
     order = np.argsort(-score, kind="stable")
     uv = uv[order]
     per_bucket = max(1, int(np.ceil(cfg.max_features / (cfg.grid_cols * cfg.grid_rows))))
-    bucket = (np.clip((uv[:, 1] * cfg.grid_rows / h).astype(int), 0, cfg.grid_rows - 1) * cfg.grid_cols
-              + np.clip((uv[:, 0] * cfg.grid_cols / w).astype(int), 0, cfg.grid_cols - 1))
+    bucket = np.clip(
+        (uv[:, 1] * cfg.grid_rows / h).astype(int), 0, cfg.grid_rows - 1
+    ) * cfg.grid_cols + np.clip((uv[:, 0] * cfg.grid_cols / w).astype(int), 0, cfg.grid_cols - 1)
     # Rank of each corner within its bucket, by strength: drop those past the bucket's share.
     rank = np.zeros(len(uv), dtype=np.int64)
     seen: dict[int, int] = {}

@@ -34,16 +34,30 @@ def track_points(
         p1 = np.ascontiguousarray(uv_guess, dtype=np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        grey_from, grey_to, p0, p1, winSize=win, maxLevel=cfg.pyramid_levels,
-        criteria=criteria, flags=flags,
+        grey_from,
+        grey_to,
+        p0,
+        p1,
+        winSize=win,
+        maxLevel=cfg.pyramid_levels,
+        criteria=criteria,
+        flags=flags,
     )
     p0_back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        grey_to, grey_from, p1, p0.copy(), winSize=win, maxLevel=cfg.pyramid_levels,
-        criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        grey_to,
+        grey_from,
+        p1,
+        p0.copy(),
+        winSize=win,
+        maxLevel=cfg.pyramid_levels,
+        criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     uv_to = p1.reshape(-1, 2)
     fb_error = np.linalg.norm(p0_back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     h, w = grey_to.shape[:2]
-    inside = (uv_to[:, 0] >= 0) & (uv_to[:, 0] <= w - 1) & (uv_to[:, 1] >= 0) & (uv_to[:, 1] <= h - 1)
+    inside = (
+        (uv_to[:, 0] >= 0) & (uv_to[:, 0] <= w - 1) & (uv_to[:, 1] >= 0) & (uv_to[:, 1] <= h - 1)
+    )
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb_error < cfg.max_fb_error_px) & inside
     return uv_to, ok

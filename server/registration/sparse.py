@@ -110,7 +110,9 @@ def solve_sparse(
     T = T_init.copy()
     n = len(P)
     if n < 3:
-        return SparseSolution(T, np.zeros(n, bool), np.inf, 0.0, 0, NormalEquations(np.zeros((6, 6)), np.zeros(6)))
+        return SparseSolution(
+            T, np.zeros(n, bool), np.inf, 0.0, 0, NormalEquations(np.zeros((6, 6)), np.zeros(6))
+        )
     weights = np.ones(n)
     it = 0
     huber_only = max(2, cfg.max_iterations // 3)

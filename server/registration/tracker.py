@@ -146,7 +146,9 @@ class Tracker:
         kf, solution = found.kf, found.solution
         state = self._judge(solution)
         if state is TrackingState.LOST:
-            return self._lose(index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition)
+            return self._lose(
+                index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition
+            )
 
         # 4. Dense refinement from the sparse estimate.
         T_kf_cur = solution.T
@@ -173,8 +175,17 @@ class Tracker:
                 self._new_keyframe(index, grey, depth, T_world_cur)
             timings["keyframe"] = _ms(t)
         timings["total"] = _ms(t0)
-        return TrackResult(index, T_world_cur.copy(), state, inliers, solution.rmse,
-                           solution.condition, self.keyframe.id, new_kf, timings)
+        return TrackResult(
+            index,
+            T_world_cur.copy(),
+            state,
+            inliers,
+            solution.rmse,
+            solution.condition,
+            self.keyframe.id,
+            new_kf,
+            timings,
+        )
 
     # ------------------------------------------------------------------ stages
     def _start(self, index: int, grey: np.ndarray, depth: np.ndarray, timings: dict) -> TrackResult:
@@ -183,12 +194,23 @@ class Tracker:
         timings["keyframe"] = _ms(t)
         kf = self.keyframe
         # A first frame without texture or depth cannot anchor tracking.
-        state = TrackingState.OK if len(kf.points) >= self.cfg.state.ok_inliers else TrackingState.LOST
+        state = (
+            TrackingState.OK if len(kf.points) >= self.cfg.state.ok_inliers else TrackingState.LOST
+        )
         if state is TrackingState.LOST:
             self.keyframe, self.lost = None, True
             self.recent.clear()
-        return TrackResult(index, self.T_world_first.copy(), state, len(kf.points), 0.0, 1.0,
-                           kf.id, state is TrackingState.OK, timings)
+        return TrackResult(
+            index,
+            self.T_world_first.copy(),
+            state,
+            len(kf.points),
+            0.0,
+            1.0,
+            kf.id,
+            state is TrackingState.OK,
+            timings,
+        )
 
     def _track_keyframe(self, kf: Keyframe, grey, depth, T_world_pred, chained: bool):
         """Track the keyframe's corners into this frame and solve T_keyframe_current.
@@ -215,8 +237,12 @@ class Tracker:
         d_ids = ids[with_depth]
         Q = backproject_pixels(uv[with_depth].astype(np.float64), zc[with_depth], self.K)
         solution = solve_sparse(
-            kf.points[d_ids], Q, kf.covariances[d_ids], point_information(Q, self.K, self.cfg.depth),
-            T_kf_pred, self.cfg.solver,
+            kf.points[d_ids],
+            Q,
+            kf.covariances[d_ids],
+            point_information(Q, self.K, self.cfg.depth),
+            T_kf_pred,
+            self.cfg.solver,
         )
         return _Registration(kf, ids, uv, with_depth, Q, solution)
 
@@ -236,7 +262,9 @@ class Tracker:
         d_ids = reg.ids[reg.with_depth][inl]
         P_in, Q_in = kf.points[d_ids], reg.points[inl]
         R = solution.T[:3, :3]
-        W = np.linalg.inv(kf.covariances[d_ids] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T)
+        W = np.linalg.inv(
+            kf.covariances[d_ids] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T
+        )
 
         def sparse_terms(T):
             _, m = sparse_equations(P_in, Q_in, W, T, np.ones(len(P_in)))
@@ -244,16 +272,22 @@ class Tracker:
             return eq
 
         photometric = self.cfg.solver.photometric_weight > 0
-        points, intensity = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride,
-                                                grey if photometric else None)
-        T, _ = refine_dense(solution.T, kf.dense, points, sparse_terms, self.cfg.solver, self.cfg.depth,
-                            intensity)
+        points, intensity = sample_dense_points(
+            depth, self.K, self.cfg.solver.dense_stride, grey if photometric else None
+        )
+        T, _ = refine_dense(
+            solution.T, kf.dense, points, sparse_terms, self.cfg.solver, self.cfg.depth, intensity
+        )
         return T
 
     def _judge(self, solution: SparseSolution) -> TrackingState:
         s = self.cfg.state
         n = int(solution.inliers.sum())
-        if n < s.lost_inliers or solution.condition < s.min_condition or not np.isfinite(solution.rmse):
+        if (
+            n < s.lost_inliers
+            or solution.condition < s.min_condition
+            or not np.isfinite(solution.rmse)
+        ):
             return TrackingState.LOST
         if n < s.ok_inliers or solution.rmse > s.ok_rmse:
             return TrackingState.WEAK
@@ -268,8 +302,17 @@ class Tracker:
         self.tracks = None
         timings["total"] = sum(timings.values())
         kf_id = self.keyframe.id if self.keyframe is not None else -1
-        return TrackResult(index, self.T_world_last.copy(), TrackingState.LOST, inliers, rmse,
-                           condition, kf_id, False, timings)
+        return TrackResult(
+            index,
+            self.T_world_last.copy(),
+            TrackingState.LOST,
+            inliers,
+            rmse,
+            condition,
+            kf_id,
+            False,
+            timings,
+        )
 
     def _needs_keyframe(self, kf: Keyframe, T_kf_cur: np.ndarray, tracked: int) -> bool:
         c = self.cfg.keyframes
@@ -283,7 +326,9 @@ class Tracker:
         """Go back to an earlier keyframe that sees this view well, instead of making a new one:
         every new keyframe adds its own error to the chain, an old one adds none."""
         c = self.cfg.keyframes
-        for kf in sorted(self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)):
+        for kf in sorted(
+            self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)
+        ):
             if kf is self.keyframe:
                 continue
             T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
@@ -303,7 +348,9 @@ class Tracker:
         return False
 
     def _new_keyframe(self, index, grey, depth, T_world_camera) -> None:
-        kf = make_keyframe(self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg)
+        kf = make_keyframe(
+            self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg
+        )
         self.keyframe_count += 1
         self.keyframe = kf
         self.recent.append(kf)

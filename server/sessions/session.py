@@ -12,8 +12,8 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -25,10 +25,10 @@ from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
-from server.simulation.config import SimulationConfig
 from server.sessions.errors import SessionError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
 from server.sessions.store import SessionStore
+from server.simulation.config import SimulationConfig
 
 log = logging.getLogger(__name__)
 
@@ -110,10 +110,17 @@ class Session:
     always fused; other frames are skipped when the mapper is behind. ``on_update`` receives
     PoseUpdate, MapUpdate, DroneUpdate and DroneNotice objects, from the worker threads."""
 
-    def __init__(self, session_id: str, token_hash: str, store: SessionStore,
-                 config: SessionConfig | None = None, created_at: float | None = None,
-                 tsdf: TSDFMap | None = None, trajectory: list | None = None,
-                 closed: bool = False) -> None:
+    def __init__(
+        self,
+        session_id: str,
+        token_hash: str,
+        store: SessionStore,
+        config: SessionConfig | None = None,
+        created_at: float | None = None,
+        tsdf: TSDFMap | None = None,
+        trajectory: list | None = None,
+        closed: bool = False,
+    ) -> None:
         self.id = session_id
         self.token_hash = token_hash
         self.store = store
@@ -151,22 +158,30 @@ class Session:
         """Constant-time comparison of a presented token with this session's."""
         return token is not None and hmac.compare_digest(hash_token(token), self.token_hash)
 
-    def configure(self, intrinsics: Intrinsics, client_name: str = "",
-                  gravity: np.ndarray | None = None) -> None:
+    def configure(
+        self, intrinsics: Intrinsics, client_name: str = "", gravity: np.ndarray | None = None
+    ) -> None:
         """Set the camera from the client's hello. A reconnecting client must present the same
         camera, as the map and trajectory were built with it. gravity: its direction in the
         first camera's frame (sets the drone's up; +y when None); a reconnect keeps the first."""
         if self.closed:
             raise SessionError("session_closed", "this session is closed; create a new one")
         if self.intrinsics is not None and self.intrinsics != intrinsics:
-            raise SessionError("intrinsics_changed",
-                               "this session was started with another camera; create a new session")
+            raise SessionError(
+                "intrinsics_changed",
+                "this session was started with another camera; create a new session",
+            )
         if self.tracker is None:
             T_first = self._trajectory[-1][1] if self._trajectory else None
             self.tracker = Tracker(intrinsics, self.config.registration, T_world_first=T_first)
         if self.flight is None and self.config.simulation is not None:
-            self.flight = Flight(self.config.simulation, intrinsics, gravity, self._publish,
-                                 self.config.drone_state_hz)
+            self.flight = Flight(
+                self.config.simulation,
+                intrinsics,
+                gravity,
+                self._publish,
+                self.config.drone_state_hz,
+            )
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
@@ -179,8 +194,12 @@ class Session:
     def command(self, name: str, command_id: int, **fields) -> None:
         """A pilot command for the drone (see ``Flight.command``); raises CommandRefused."""
         if self.flight is None:
-            raise CommandRefused("bad_command", "no drone in this session: send a hello first"
-                                 if self.config.simulation else "the drone simulation is off")
+            raise CommandRefused(
+                "bad_command",
+                "no drone in this session: send a hello first"
+                if self.config.simulation
+                else "the drone simulation is off",
+            )
         self.flight.command(name, command_id, **fields)
 
     # ------------------------------------------------------------------ frames in
@@ -200,8 +219,10 @@ class Session:
             raise SessionError("no_hello", "send a hello before frames")
         with self._lock:
             if frame.seq <= self._last_seq:
-                raise SessionError("bad_sequence",
-                                   f"sequence number {frame.seq} is not above the last one ({self._last_seq})")
+                raise SessionError(
+                    "bad_sequence",
+                    f"sequence number {frame.seq} is not above the last one ({self._last_seq})",
+                )
             self._last_seq = frame.seq
             self.received += 1
         self.last_seen = time.monotonic()
@@ -252,19 +273,27 @@ class Session:
                 return
 
     def _snapshot_due(self) -> bool:
-        return self._dirty and time.monotonic() - self._last_snapshot >= self.config.snapshot_interval_s
+        return (
+            self._dirty
+            and time.monotonic() - self._last_snapshot >= self.config.snapshot_interval_s
+        )
 
     def _process(self, frame: FrameData) -> PoseUpdate:
         K = self.intrinsics
         t0 = time.perf_counter()
         depth = resample_depth(frame.depth, K.width, K.height)
         result = self.tracker.track(frame.colour, depth)
-        timings = {"decode": frame.decode_ms, **{f"track_{k}": v for k, v in result.timings_ms.items()}}
+        timings = {
+            "decode": frame.decode_ms,
+            **{f"track_{k}": v for k, v in result.timings_ms.items()},
+        }
         timings["track"] = (time.perf_counter() - t0) * 1e3
         if result.state is not TrackingState.LOST and (
-                result.new_keyframe or self.processed % self.config.fuse_every == 0):
-            self._queue_fusion(_FuseJob(frame.seq, frame.colour, depth, result.T_world_camera,
-                                        result.new_keyframe))
+            result.new_keyframe or self.processed % self.config.fuse_every == 0
+        ):
+            self._queue_fusion(
+                _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, result.new_keyframe)
+            )
         if self.flight is not None and result.state is not TrackingState.LOST:
             self.flight.camera_moved(frame.seq, result.T_world_camera, depth)
         with self._lock:
@@ -274,8 +303,17 @@ class Session:
             dropped, processed = self.dropped, self.processed
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
-        return PoseUpdate(frame.seq, frame.timestamp, result.T_world_camera, result.state.value,
-                          result.inliers, result.new_keyframe, timings, dropped, processed)
+        return PoseUpdate(
+            frame.seq,
+            frame.timestamp,
+            result.T_world_camera,
+            result.state.value,
+            result.inliers,
+            result.new_keyframe,
+            timings,
+            dropped,
+            processed,
+        )
 
     # ------------------------------------------------------------------ mapping worker
     def _queue_fusion(self, job: _FuseJob) -> None:
@@ -298,8 +336,9 @@ class Session:
                 return
             try:
                 self.map.integrate(job.colour, job.depth, K, job.T_world_camera)
-                points, colours = self.preview.new_points(job.colour, job.depth, K, job.T_world_camera,
-                                                          self.config.preview_points)
+                points, colours = self.preview.new_points(
+                    job.colour, job.depth, K, job.T_world_camera, self.config.preview_points
+                )
             except Exception:
                 log.exception("session %s: fusing frame %d failed", self.id, job.seq)
                 continue
@@ -312,7 +351,8 @@ class Session:
     def _feed_flight_map(self) -> None:
         """Hand the drone a fresh occupancy grid, at most every flight_map_interval_s."""
         if self.flight is None or (
-                time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s):
+            time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s
+        ):
             return
         self._flight_map_at = time.monotonic()
         try:

@@ -52,7 +52,9 @@ class SessionStore:
         return self.root / session_id
 
     def write_meta(self, session_id: str, meta: dict) -> None:
-        atomic_write_bytes(self.folder(session_id) / "meta.json", json.dumps(meta, indent=2).encode())
+        atomic_write_bytes(
+            self.folder(session_id) / "meta.json", json.dumps(meta, indent=2).encode()
+        )
 
     def read_meta(self, session_id: str) -> dict:
         path = self.folder(session_id) / "meta.json"
@@ -68,16 +70,22 @@ class SessionStore:
         return self.folder(session_id) / name
 
     def saved_ids(self) -> list[str]:
-        return sorted(p.name for p in self.root.iterdir()
-                      if SESSION_ID.fullmatch(p.name) and (p / "meta.json").is_file())
+        return sorted(
+            p.name
+            for p in self.root.iterdir()
+            if SESSION_ID.fullmatch(p.name) and (p / "meta.json").is_file()
+        )
 
     def remove_partial_files(self, session_id: str) -> list[str]:
         """Delete temp files that a write cut short by a crash left beside the session's files
         (the files themselves are whole: each was renamed into place). Call only while the
         session is not live. Returns the names removed."""
         prefixes = tuple(f".{name}." for name in FILES)  # as the atomic writers name them
-        partial = [p for p in self.folder(session_id).iterdir()
-                   if p.is_file() and p.name.startswith(prefixes)]
+        partial = [
+            p
+            for p in self.folder(session_id).iterdir()
+            if p.is_file() and p.name.startswith(prefixes)
+        ]
         for path in partial:
             path.unlink(missing_ok=True)
         return [p.name for p in partial]

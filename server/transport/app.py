@@ -39,9 +39,12 @@ class RedactTokens(logging.Filter):
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    config = SessionConfig(fuse_every=settings.fuse_every, voxel_m=settings.voxel_m,
-                           preview_points=settings.preview_points,
-                           snapshot_interval_s=settings.snapshot_interval_s)
+    config = SessionConfig(
+        fuse_every=settings.fuse_every,
+        voxel_m=settings.voxel_m,
+        preview_points=settings.preview_points,
+        snapshot_interval_s=settings.snapshot_interval_s,
+    )
     manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions)
 
     @contextlib.asynccontextmanager
@@ -73,8 +76,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if not any(isinstance(f, RedactTokens) for f in logger.filters):
             logger.addFilter(RedactTokens())
     if settings.cors_origins:
-        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
-                           allow_methods=["GET", "POST", "DELETE"], allow_headers=["Authorization"])
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization"],
+        )
     app.include_router(routes_sessions.router)
     app.include_router(websocket.router)
     app.include_router(routes_client.router)
@@ -82,23 +89,33 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:
         retry = getattr(exc, "retry_after_s", None)
-        return JSONResponse({"error": {"code": exc.code, "message": str(exc)}},
-                            status_code=_STATUS.get(exc.code, 400),
-                            headers={"Retry-After": str(math.ceil(retry))} if retry else None)
+        return JSONResponse(
+            {"error": {"code": exc.code, "message": str(exc)}},
+            status_code=_STATUS.get(exc.code, 400),
+            headers={"Retry-After": str(math.ceil(retry))} if retry else None,
+        )
 
     @app.exception_handler(StoreError)
     async def store_error(request: Request, exc: StoreError) -> JSONResponse:
         # A malformed id is indistinguishable from an unknown one.
-        return JSONResponse({"error": {"code": "not_found", "message": "no session with this id for this token"}},
-                            status_code=404)
+        return JSONResponse(
+            {"error": {"code": "not_found", "message": "no session with this id for this token"}},
+            status_code=404,
+        )
 
     @app.exception_handler(MapError)
     async def map_error(request: Request, exc: MapError) -> JSONResponse:
-        return JSONResponse({"error": {"code": "map_unavailable", "message": str(exc)}}, status_code=409)
+        return JSONResponse(
+            {"error": {"code": "map_unavailable", "message": str(exc)}}, status_code=409
+        )
 
     @app.get("/healthz", tags=["server"])
     def health() -> dict:
-        return {"status": "ok", "live_sessions": manager.live_count, "saved_sessions": manager.saved_count}
+        return {
+            "status": "ok",
+            "live_sessions": manager.live_count,
+            "saved_sessions": manager.saved_count,
+        }
 
     return app
 

@@ -20,7 +20,6 @@ from server.sessions import (
     DroneUpdate,
     FrameData,
     MapUpdate,
-    PoseUpdate,
     Session,
     SessionError,
 )
@@ -132,20 +131,41 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int) -> No
                 continue
             if isinstance(item, MapUpdate):
                 for i in range(0, len(item.points), chunk_points):
-                    await _send(ws, proto.make_map_chunk(item.points[i:i + chunk_points],
-                                                         item.colours[i:i + chunk_points], chunk,
-                                                         total_points=item.total_points))
+                    await _send(
+                        ws,
+                        proto.make_map_chunk(
+                            item.points[i : i + chunk_points],
+                            item.colours[i : i + chunk_points],
+                            chunk,
+                            total_points=item.total_points,
+                        ),
+                    )
                     chunk += 1
                 continue
             if isinstance(item, DroneUpdate):
                 await _send(ws, _drone_state(item))
                 continue
             if isinstance(item, DroneNotice):
-                await _send(ws, proto.make_drone_event(item.event, item.timestamp, item.position,
-                                                       item.message, item.command_id))
+                await _send(
+                    ws,
+                    proto.make_drone_event(
+                        item.event, item.timestamp, item.position, item.message, item.command_id
+                    ),
+                )
                 continue
-            await _send(ws, proto.make_pose(item.seq, item.timestamp, item.T_world_camera, item.state,
-                                            item.inliers, item.timings_ms, item.dropped, item.keyframe))
+            await _send(
+                ws,
+                proto.make_pose(
+                    item.seq,
+                    item.timestamp,
+                    item.T_world_camera,
+                    item.state,
+                    item.inliers,
+                    item.timings_ms,
+                    item.dropped,
+                    item.keyframe,
+                ),
+            )
     except (WebSocketDisconnect, RuntimeError, asyncio.CancelledError):
         return
 
@@ -160,13 +180,23 @@ async def _close_after_answers(ws: WebSocket, session: Session, outbox: _Outbox)
 
 
 def _drone_state(s: DroneUpdate) -> dict:
-    return proto.make_drone_state(s.timestamp, s.T_world_drone, s.velocity, s.mode, s.command_id,
-                                  T_camera_drone=s.T_camera_drone, camera_seq=s.camera_seq,
-                                  clearance=s.clearance, target=s.target, route=s.route)
+    return proto.make_drone_state(
+        s.timestamp,
+        s.T_world_drone,
+        s.velocity,
+        s.mode,
+        s.command_id,
+        T_camera_drone=s.T_camera_drone,
+        camera_seq=s.camera_seq,
+        clearance=s.clearance,
+        target=s.target,
+        route=s.route,
+    )
 
 
-async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int,
-                   outbox: _Outbox) -> None:
+async def _receive(
+    ws: WebSocket, session: Session, deliver, max_bytes: int, outbox: _Outbox
+) -> None:
     order = proto.ClientOrder()
     errors_in_a_row = 0
     limit = proto.LIMITS["max_consecutive_errors"]
@@ -187,12 +217,14 @@ async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int,
             await _handle(ws, session, message, order, deliver)
             errors_in_a_row = 0
         except _CommandError as exc:
-            error = proto.make_error(exc.code, exc.message, command_id=exc.command_id,
-                                     nearest=exc.nearest)
+            error = proto.make_error(
+                exc.code, exc.message, command_id=exc.command_id, nearest=exc.nearest
+            )
             await _send(ws, error)  # refused commands do not count as client errors in a row
         except SessionError as exc:
-            error = proto.ProtocolError(_SESSION_CODES.get(exc.code, "internal_error"), str(exc),
-                                        seq=_seq(data))
+            error = proto.ProtocolError(
+                _SESSION_CODES.get(exc.code, "internal_error"), str(exc), seq=_seq(data)
+            )
             errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
         except proto.ProtocolError as exc:
             errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
@@ -200,8 +232,9 @@ async def _receive(ws: WebSocket, session: Session, deliver, max_bytes: int,
             raise
         except Exception:  # a bug on one message: say so with a documented code, keep going
             log.exception("session %s: failed on a client message", session.id)
-            error = proto.ProtocolError("internal_error", "the server failed on this message",
-                                        seq=_seq(data))
+            error = proto.ProtocolError(
+                "internal_error", "the server failed on this message", seq=_seq(data)
+            )
             errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
         if errors_in_a_row < 0:
             return
@@ -248,12 +281,22 @@ async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver
             raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
         session.configure(intrinsics, message["client_name"], message.get("gravity"))
         session.start(deliver)
-        await _send(ws, proto.make_welcome(session.id, max_message_bytes=ws.app.state.settings.max_message_bytes))
+        await _send(
+            ws,
+            proto.make_welcome(
+                session.id, max_message_bytes=ws.app.state.settings.max_message_bytes
+            ),
+        )
     elif kind == "frame":
         t0 = time.perf_counter()
         colour, depth = await asyncio.to_thread(proto.decode_frame_images, message, order.hello)
-        frame = FrameData(message["seq"], message["timestamp"], colour, depth,
-                          decode_ms=(time.perf_counter() - t0) * 1e3)
+        frame = FrameData(
+            message["seq"],
+            message["timestamp"],
+            colour,
+            depth,
+            decode_ms=(time.perf_counter() - t0) * 1e3,
+        )
         session.submit(frame)
     elif kind == "command":
         fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}

@@ -1,0 +1,394 @@
+"""Soak: phones streaming to one server for a long time; its memory must stay flat, nothing may
+fail, and no session's data may be lost.
+
+Starts ``python -m server serve`` in its own process (a fresh data folder, a short session TTL so
+that finished sessions are closed and saved during the run), then runs ``--sessions`` clients
+for ``--minutes``. Each client streams a session of ``--session-minutes`` at ``--fps`` (the
+sequence played forward and backward, pre-encoded, frames dropped on the phone while two await
+answers; ``server/client/replay.py``), downloads its map and trajectory, checks them against
+its status, and starts the next session. The server's RSS is read from /proc every few seconds.
+At the end the server is stopped with SIGTERM, started again on the same folder, and every
+session's map and trajectory are downloaded once more and compared with what the client got.
+
+Writes ``benchmarks/results/soak.md`` and ``soak.png`` (RSS over time).
+
+    python benchmarks/soak.py [SEQUENCE] [--minutes 30] [--sessions 4] [--fps 15]
+
+The defaults are the capacity target (4 phones at 15 fps, ``benchmarks/capacity.py``). The load
+tester (``server/client/loadtest.py``) does not hand out its sessions' tokens, which the final
+downloads need, so the clients here are replay clients.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import datetime
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from anywhere, installed or not
+
+import httpx  # noqa: E402
+import numpy as np  # noqa: E402
+import open3d as o3d  # noqa: E402
+
+from server.client.replay import replay  # noqa: E402
+from server.datasets import open_dataset  # noqa: E402
+from server.datasets.base import RGBDDataset, RGBDFrame  # noqa: E402
+
+RESULTS = REPO / "benchmarks" / "results"
+RSS_GROWTH_LIMIT_MB_PER_MIN = 5.0  # over the second half of the run
+
+
+class PingPong(RGBDDataset):
+    """The first ``frames`` of a sequence forward, then backward, as one period: looping it keeps
+    the camera's motion continuous. Timestamps increase at ``fps``."""
+
+    def __init__(self, dataset: RGBDDataset, frames: int, fps: float) -> None:
+        self.base, self.n, self.dt = dataset, min(frames, len(dataset)), 1.0 / fps
+        self.name, self.path, self.intrinsics = dataset.name, dataset.path, dataset.intrinsics
+        self.depth_scale = dataset.depth_scale
+
+    def __len__(self) -> int:
+        return max(1, 2 * self.n - 2)
+
+    def __getitem__(self, i: int) -> RGBDFrame:
+        k = i % len(self)
+        frame = self.base[k if k < self.n else 2 * self.n - 2 - k]
+        return dataclasses.replace(frame, index=i, timestamp=i * self.dt)
+
+
+# ---- the server ---------------------------------------------------------------------------------
+
+
+class Server:
+    """``python -m server serve`` on a free port; RSS sampled from /proc/<pid>/status."""
+
+    def __init__(self, data_dir: Path, log: Path, env: dict[str, str]) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{port}"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "server", "serve", "--port", str(port), "--data-dir",
+             str(data_dir), "--no-demo"], cwd=REPO, env={**os.environ, **env},
+            stdout=log.open("a"), stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 90
+        while self.proc.poll() is None and time.monotonic() < deadline:
+            try:
+                if httpx.get(f"{self.url}/healthz").status_code == 200:
+                    return
+            except httpx.HTTPError:
+                time.sleep(0.3)
+        self.proc.kill()
+        raise RuntimeError(f"server did not start; its log:\n{log.read_text()[-3000:]}")
+
+    def rss_mb(self) -> float:
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def terminate(self, timeout_s: float = 120) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(timeout_s)
+
+
+class RSSSampler(threading.Thread):
+    def __init__(self, server: Server, every_s: float) -> None:
+        super().__init__(daemon=True)
+        self.server, self.every_s = server, every_s
+        self.t0 = time.monotonic()
+        self.samples: list[tuple[float, float, int]] = []  # (s since start, MB, live sessions)
+        self._done = threading.Event()
+
+    def run(self) -> None:
+        while True:
+            try:
+                live = httpx.get(f"{self.server.url}/healthz", timeout=10).json()["live_sessions"]
+                self.samples.append((time.monotonic() - self.t0, self.server.rss_mb(), live))
+            except (OSError, httpx.HTTPError, ValueError):
+                pass
+            if self._done.wait(self.every_s):
+                return
+
+    def stop(self) -> None:
+        self._done.set()
+        self.join()
+
+
+# ---- the clients --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class SessionRecord:
+    """One streamed session, as its client saw it at the end."""
+
+    client: int
+    id: str
+    token: str
+    started_s: float
+    sent: int = 0
+    poses: int = 0
+    errors: list[dict] = dataclasses.field(default_factory=list)
+    status: dict | None = None
+    trajectory: bytes = b""
+    map_points: int = 0
+    problems: list[str] = dataclasses.field(default_factory=list)
+
+
+def ply_points(data: bytes, folder: Path) -> int:
+    path = folder / f"check-{threading.get_ident()}.ply"
+    path.write_bytes(data)
+    return len(o3d.io.read_point_cloud(str(path)).points)
+
+
+async def run_client(index: int, url: str, dataset: PingPong, args, deadline: float, t0: float,
+                     tmp: Path, records: list[SessionRecord]) -> None:
+    async with httpx.AsyncClient(base_url=url, timeout=120) as http:
+        while time.monotonic() + 20 < deadline:  # a session of at least 20 s
+            r = await http.post("/api/sessions")
+            if r.status_code != 201:
+                records.append(SessionRecord(index, "-", "-", time.monotonic() - t0,
+                                             problems=[f"create: HTTP {r.status_code} {r.text}"]))
+                await asyncio.sleep(5)
+                continue
+            body = r.json()
+            record = SessionRecord(index, body["id"], body["token"], time.monotonic() - t0)
+            records.append(record)
+            seconds = min(args.session_minutes * 60, deadline - time.monotonic())
+            try:
+                stats = await replay(f"{url.replace('http', 'ws', 1)}/ws/sessions/{record.id}",
+                                     record.token, dataset, fps=args.fps,
+                                     max_frames=int(seconds * args.fps), loop_sequence=True,
+                                     preencode=True, client_name=f"soak/{index}")
+            except Exception as exc:  # any failure of a session is a finding, not a crash
+                record.problems.append(f"stream: {type(exc).__name__}: {exc}")
+                continue
+            record.sent, record.poses, record.errors = stats.sent, len(stats.poses), stats.errors
+            await asyncio.sleep(2.0)  # let the mapping thread fuse what it has queued
+            headers = {"Authorization": f"Bearer {record.token}"}
+            record.status = (await http.get(f"/api/sessions/{record.id}", headers=headers)).json()
+            traj = await http.get(f"/api/sessions/{record.id}/trajectory.tum", headers=headers)
+            ply = await http.get(f"/api/sessions/{record.id}/map.ply", headers=headers)
+            record.trajectory = traj.content
+            record.map_points = ply_points(ply.content, tmp) if ply.status_code == 200 else 0
+            check_live(record)
+
+
+def trajectory_poses(data: bytes) -> int:
+    return sum(1 for line in data.decode().splitlines() if line and not line.startswith("#"))
+
+
+def check_live(r: SessionRecord) -> None:
+    if r.errors:
+        r.problems.append(f"{len(r.errors)} error messages: {r.errors[:3]}")
+    processed = (r.status or {}).get("frames_processed")
+    if trajectory_poses(r.trajectory) != processed:
+        r.problems.append(f"trajectory has {trajectory_poses(r.trajectory)} poses, status says "
+                          f"{processed} processed")
+    if processed is None or processed < r.poses:
+        r.problems.append(f"client got {r.poses} poses, server processed {processed}")
+    if r.map_points < 1000:
+        r.problems.append(f"map has {r.map_points} points")
+
+
+def check_after_restart(url: str, records: list[SessionRecord], tmp: Path) -> None:
+    """Every session downloads from the restarted server: the same trajectory, the map whole."""
+    for r in records:
+        if r.status is None:
+            continue
+        headers = {"Authorization": f"Bearer {r.token}"}
+        status = httpx.get(f"{url}/api/sessions/{r.id}", headers=headers)
+        traj = httpx.get(f"{url}/api/sessions/{r.id}/trajectory.tum", headers=headers)
+        ply = httpx.get(f"{url}/api/sessions/{r.id}/map.ply", headers=headers, timeout=120)
+        if status.status_code != 200 or not status.json().get("closed"):
+            r.problems.append(f"after restart: status HTTP {status.status_code}")
+        if traj.content != r.trajectory:
+            r.problems.append(f"after restart: trajectory differs ({trajectory_poses(traj.content)}"
+                              f" poses, {trajectory_poses(r.trajectory)} before)")
+        points = ply_points(ply.content, tmp) if ply.status_code == 200 else 0
+        if points < 0.9 * r.map_points:
+            r.problems.append(f"after restart: map has {points} points, {r.map_points} before")
+
+
+# ---- report -------------------------------------------------------------------------------------
+
+
+def rss_analysis(samples: list[tuple[float, float, int]]) -> dict:
+    t = np.array([s[0] for s in samples]) / 60.0
+    rss = np.array([s[1] for s in samples])
+    half = t >= t[-1] / 2
+    slope = float(np.polyfit(t[half], rss[half], 1)[0]) if half.sum() >= 3 else float("nan")
+    return {"start_mb": float(rss[0]), "end_mb": float(rss[-1]), "max_mb": float(rss.max()),
+            "median_second_half_mb": float(np.median(rss[half])),
+            "slope_second_half_mb_per_min": slope, "samples": len(samples)}
+
+
+def write_plot(samples, records: list[SessionRecord], args, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.array([s[0] for s in samples]) / 60.0
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(t, [s[1] for s in samples], color="tab:blue", label="server RSS")
+    ax.set_xlabel("minutes")
+    ax.set_ylabel("RSS (MB)", color="tab:blue")
+    ax.set_ylim(bottom=0)
+    twin = ax.twinx()
+    twin.step(t, [s[2] for s in samples], where="post", color="tab:grey", alpha=0.6,
+              label="live sessions")
+    twin.set_ylabel("live sessions", color="tab:grey")
+    twin.set_ylim(0, max(s[2] for s in samples) + 1)
+    for r in records:
+        ax.axvline(r.started_s / 60.0, color="tab:green", alpha=0.25, lw=0.8)
+    ax.set_title(f"Soak: {args.sessions} x {args.fps:g} fps, sessions of "
+                 f"{args.session_minutes:g} min (green: a session starts)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(path: Path, args, command: str, rss: dict, records, wall_min: float,
+                 load: tuple[float, float], log_problems: list[str], restart_ok: bool) -> bool:
+    streamed = [r for r in records if r.status is not None]
+    problems = [(r.id, p) for r in records for p in r.problems] + [("server", p)
+                                                                   for p in log_problems]
+    flat = not rss["slope_second_half_mb_per_min"] > RSS_GROWTH_LIMIT_MB_PER_MIN
+    ok = flat and not problems and restart_ok and bool(streamed)
+    short = args.minutes < 30
+    lines = [
+        f"# Soak{' — SHORT RUN' if short else ''}: {wall_min:.1f} min, {args.sessions} sessions "
+        f"x {args.fps:g} fps",
+        "",
+    ]
+    if short:
+        lines += [f"> **Short run** ({args.minutes:g} min instead of 30) on a shared, loaded "
+                  "machine: it shows the soak works and what to look at; run "
+                  "`python benchmarks/soak.py` (30 min) on a quiet machine for the real figure.",
+                  ""]
+    lines += [
+        f"{datetime.datetime.now():%Y-%m-%d %H:%M}; {platform.platform()}, {os.cpu_count()} cores,"
+        f" load average {load[0]:.2f} before / {load[1]:.2f} after; sequence {args.sequence.name}"
+        f" ({args.frames} frames, forward and backward); server settings: session TTL "
+        f"{args.ttl_s:g} s, snapshots every 10 s"
+        f"{', environment ' + ' '.join(args.server_env) if args.server_env else ''}.",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"**Result: {'PASS' if ok else 'FAIL'}** — memory {'flat' if flat else 'GROWING'} "
+        f"({rss['slope_second_half_mb_per_min']:+.1f} MB/min over the second half, limit "
+        f"{RSS_GROWTH_LIMIT_MB_PER_MIN:g}), {len(problems)} problems, "
+        f"{len(streamed)} sessions streamed and all "
+        f"{'found whole' if restart_ok and not problems else 'checked'} after a restart.",
+        "",
+        "| | |",
+        "|---|--:|",
+        f"| sessions streamed | {len(streamed)} |",
+        f"| frames sent / poses received | {sum(r.sent for r in streamed)} / "
+        f"{sum(r.poses for r in streamed)} |",
+        f"| error messages from the server | {sum(len(r.errors) for r in records)} |",
+        f"| server RSS at start / end / max (MB) | {rss['start_mb']:.0f} / {rss['end_mb']:.0f} / "
+        f"{rss['max_mb']:.0f} |",
+        f"| RSS median over the second half (MB) | {rss['median_second_half_mb']:.0f} |",
+        f"| RSS slope over the second half (MB/min) | {rss['slope_second_half_mb_per_min']:+.1f} |",
+        "",
+        "![RSS over time](soak.png)",
+        "",
+        "| client | session | started (min) | sent | poses | processed | trajectory | map points "
+        "| problems |",
+        "|--:|---|--:|--:|--:|--:|--:|--:|---|",
+    ]
+    for r in records:
+        processed = (r.status or {}).get("frames_processed", "-")
+        lines.append(f"| {r.client} | {r.id} | {r.started_s / 60:.1f} | {r.sent} | {r.poses} | "
+                     f"{processed} | {trajectory_poses(r.trajectory)} | {r.map_points} | "
+                     f"{'; '.join(r.problems) or '-'} |")
+    if log_problems:
+        lines += ["", "Server log:", *[f"- {p}" for p in log_problems]]
+    lines += ["", "How to read it: each client streams one session after another; a finished "
+              "session stays live until the TTL closes and saves it, so RSS rises with the "
+              "live sessions and falls as they close. Flat means the level it returns to does "
+              "not creep up. After the run the server is stopped (SIGTERM) and started again, "
+              "and every session's trajectory must download byte for byte as before and its map "
+              "with at least 90 % of its points (fusion may still have added frames after the "
+              "first download)."]
+    path.write_text("\n".join(lines) + "\n")
+    return ok
+
+
+# ---- main ---------------------------------------------------------------------------------------
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequence", nargs="?", type=Path,
+                        default=REPO.parent / "shared" / "data" / "synthetic_room0")
+    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--sessions", type=int, default=4)
+    parser.add_argument("--fps", type=float, default=15.0)
+    parser.add_argument("--session-minutes", type=float, default=5.0)
+    parser.add_argument("--frames", type=int, default=60, help="frames of the sequence played")
+    parser.add_argument("--ttl-s", type=float, default=60.0, help="server session TTL")
+    parser.add_argument("--sample-s", type=float, default=5.0, help="RSS sampling period")
+    parser.add_argument("--server-env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="extra environment for the server, e.g. MALLOC_ARENA_MAX=2")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    command = "python benchmarks/soak.py " + " ".join(sys.argv[1:])
+
+    dataset = PingPong(open_dataset(args.sequence), args.frames, args.fps)
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
+        tmp = Path(tmp_name)
+        data_dir, log = tmp / "data", tmp / "server.log"
+        env = {"DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
+               "DRONESIM_CREATE_RATE_PER_MIN": "0", "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
+               **dict(item.split("=", 1) for item in args.server_env)}
+        server = Server(data_dir, log, env)
+        sampler = RSSSampler(server, args.sample_s)
+        sampler.start()
+        records: list[SessionRecord] = []
+        t0 = time.monotonic()
+        deadline = t0 + args.minutes * 60
+
+        async def clients():
+            await asyncio.gather(*(run_client(i, server.url, dataset, args, deadline, t0, tmp,
+                                              records) for i in range(args.sessions)))
+
+        asyncio.run(clients())
+        while time.monotonic() < deadline:  # the last sessions' TTL, as the run's tail
+            time.sleep(1)
+        sampler.stop()
+        wall_min = (time.monotonic() - t0) / 60
+        code = server.terminate()
+        restarted = Server(data_dir, log, env)
+        check_after_restart(restarted.url, records, tmp)
+        restart_ok = restarted.terminate() in (0, -signal.SIGTERM) and code in (0, -signal.SIGTERM)
+        text = log.read_text()
+        log_problems = [line for line in text.splitlines()
+                        if "Traceback" in line or line.startswith(("ERROR", "CRITICAL"))]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rss = rss_analysis(sampler.samples)
+    write_plot(sampler.samples, records, args, args.out / "soak.png")
+    ok = write_report(args.out / "soak.md", args, command, rss, records, wall_min,
+                      (load_before, os.getloadavg()[0]), log_problems, restart_ok)
+    print((args.out / "soak.md").read_text())
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

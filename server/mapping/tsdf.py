@@ -49,7 +49,7 @@ class TSDFConfig:
 
     voxel_m: float = 0.02
     block_resolution: int = 16
-    block_count: int = 1000  # 80 MiB up front; a room grows it to 2000-4000
+    block_count: int = 256  # 20 MiB up front (idle sessions stay cheap); a room doubles it to 2-4k
     trunc_voxels: float = 4.0
     depth_max_m: float = 4.0
     min_weight: float = 3.0

@@ -253,9 +253,7 @@ class Session:
         while True:
             with self._wake:
                 while self._inbox is None and not self._stopping:
-                    self._wake.wait(timeout=self.config.snapshot_interval_s)
-                    if self._snapshot_due():
-                        break
+                    self._wake.wait()
                 frame, self._inbox = self._inbox, None
                 self._busy = frame is not None
                 stopping = self._stopping
@@ -270,8 +268,6 @@ class Session:
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()  # for drain()
-            if self._snapshot_due():
-                self.snapshot()
             if stopping and frame is None:
                 return
 
@@ -332,11 +328,20 @@ class Session:
                 self.fusion_skipped += 1
 
     def _map(self) -> None:
+        """Fuses frames, and writes the periodic snapshots: here a slow disk delays the map,
+        never a pose."""
         K = self.intrinsics
         while True:
-            job = self._fuse_jobs.get()
+            try:
+                job = self._fuse_jobs.get(timeout=1.0)
+            except queue.Empty:
+                job = False
+            if self._snapshot_due():
+                self.snapshot()
             if job is None:
                 return
+            if job is False:
+                continue
             try:
                 self.map.integrate(job.colour, job.depth, K, job.T_world_camera)
                 points, colours = self.preview.new_points(

@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import missing
 
 sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (dev extras)")
 
@@ -36,7 +37,7 @@ APP_READY = "window.dronesim && window.dronesim.protocol && window.dronesim.pilo
 def chromium():
     """Headless chromium, once per test module."""
     if not CHROMIUM.exists():
-        pytest.skip(f"no chromium at {CHROMIUM}: apt-get install chromium (scripts/setup.sh)")
+        missing(f"no chromium at {CHROMIUM}: apt-get install chromium (scripts/setup.sh)")
     if not (ROOT / "client_web" / "node_modules" / "three").is_dir():
         pytest.fail("client_web/node_modules is missing: `npm ci` in client_web (scripts/setup.sh)")
     with sync_api.sync_playwright() as p:

@@ -12,6 +12,7 @@ import cv2
 import msgpack
 import numpy as np
 import pytest
+from conftest import missing
 
 from server.errors import DroneSimError
 from server.transport import protocol as P
@@ -26,7 +27,7 @@ ROOM_SCALE = 5000.0  # TUM depth units per metre
 def room_frame() -> tuple[np.ndarray, np.ndarray]:
     """Colour RGB uint8 (480, 640, 3) and depth float32 metres (480, 640) of one room frame."""
     if not ROOM.is_dir():
-        pytest.skip(f"shared data folder {ROOM} is absent")
+        missing(f"shared data folder {ROOM} is absent")
     _, rgb_name, _, depth_name = (ROOM / "associations.txt").read_text().splitlines()[10].split()
     colour = cv2.cvtColor(cv2.imread(str(ROOM / rgb_name)), cv2.COLOR_BGR2RGB)
     depth = cv2.imread(str(ROOM / depth_name), cv2.IMREAD_UNCHANGED)

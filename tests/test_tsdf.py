@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from conftest import missing
 from scipy.spatial import cKDTree
 
 from server.datasets import open_dataset
@@ -26,7 +27,7 @@ def small_config(**overrides) -> TSDFConfig:
 @pytest.fixture(scope="module")
 def room():
     if not DATA.is_dir():
-        pytest.skip(f"shared data folder {DATA} is absent")
+        missing(f"shared data folder {DATA} is absent")
     return open_dataset(DATA)
 
 

@@ -263,3 +263,16 @@ def test_a_bye_still_gets_answers_for_the_frames_in_flight(live_server, shared_d
     assert close_code == 1000
     poses = [m for m in received if m["type"] == "pose"]
     assert poses and poses[-1]["seq"] == 1  # acknowledges both frames
+
+
+def test_a_reconnecting_client_may_number_its_frames_from_zero_again(live_server, shared_data):
+    """A reloaded page starts seq at 0: the session goes on instead of refusing every frame."""
+    ds = open_dataset(shared_data / "synthetic_room0")
+    server = live_server()
+    sid, token = server.create_session()
+    first = stream(server, sid, token, ds, n=8)
+    second = stream(server, sid, token, ds, n=8)  # seq 0..7 again, same session
+    assert len(first.poses) == 8 and not first.errors
+    assert len(second.poses) == 8 and not second.errors, second.errors
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["frames_processed"] == 16 and status["trajectory_poses"] == 16

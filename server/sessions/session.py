@@ -188,6 +188,8 @@ class Session:
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
+        with self._lock:  # a new connection numbers its frames afresh (a reloaded page)
+            self._last_seq = -1
 
     def _publish(self, update: Update) -> None:
         on_update = self.on_update

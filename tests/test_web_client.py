@@ -384,7 +384,12 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
       };
       if (window.dronesim.seen.poses > 0) done(); else c.addEventListener('pose', done);
     })""")
-    first = page.screenshot("phone-first-frame.png")
+    page.screenshot("phone-first-frame.png")
+    # The camera picture itself may hold drone-like colours (the demo's random textures): judge
+    # the overlay alone, with the picture hidden.
+    page.page.evaluate("document.querySelector('.ar-image').style.visibility = 'hidden'")
+    first = page.screenshot("phone-first-frame-overlay-only.png")
+    page.page.evaluate("document.querySelector('.ar-image').style.visibility = ''")
     seen_first = page.snapshot()
     if seen_first["droneStates"] == 0:  # the picture above was taken before any drone state
         st = seen_first["ar"]["stage"]
@@ -422,11 +427,12 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     css_per_px = s["ar"]["stage"]["width"] / s["ar"]["colourSize"][0]
     radius = max(25.0, 0.2 * s["ar"]["intrinsics"][0] / spot[2] * css_per_px)  # ~ the drone's size
     near = count_near(drone_mask(shot), spot[:2], radius)
-    assert near >= 20, f"only {near} drone-coloured pixels within {radius:.0f} px of {spot[:2]}"
     page.page.evaluate("document.querySelector('.ar-overlay').style.visibility = 'hidden'")
     bare = page.screenshot("phone-ar-without-overlay.png")
     page.page.evaluate("document.querySelector('.ar-overlay').style.visibility = ''")
-    assert count_near(drone_mask(bare), spot[:2], radius) <= 3, "the scene has the drone's colour"
+    # The drone's pixels come from the overlay (the picture may hold a few of its colour too).
+    added = near - count_near(drone_mask(bare), spot[:2], radius)
+    assert added >= 20, f"the overlay adds {added} drone-coloured pixels within {radius:.0f} px"
     hud = page.page.inner_text("#hud")
     assert "drone hover" in hud or "drone goto" in hud or "drone manual" in hud, hud
 

@@ -17,13 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from server.datasets.base import RGBDDataset, RGBDFrame
-from server.datasets.tum import (
-    read_colour,
-    read_depth,
-    read_ground_truth,
-    read_intrinsics_json,
-)
+from server.datasets.tum import ImagePairDataset, read_ground_truth, read_intrinsics_json
 from server.errors import DatasetError, DroneSimError
 from server.geometry import Intrinsics
 
@@ -81,7 +75,7 @@ def _list_images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-class RedwoodDataset(RGBDDataset):
+class RedwoodDataset(ImagePairDataset):
     """A Redwood / Open3D RGB-D sequence; colour and depth paired by sorted file name.
 
     path: the sequence folder. intrinsics: overrides any json in the folder.
@@ -113,21 +107,3 @@ class RedwoodDataset(RGBDDataset):
         self.ground_truth = read_ground_truth(self.path / "groundtruth.txt")
         logger.info("%s: %d frames", self.name, len(self))
 
-    def __len__(self) -> int:
-        return len(self._colour_files)
-
-    def __getitem__(self, index: int) -> RGBDFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} out of range for {len(self)} frames")
-        index = index % len(self)
-        return RGBDFrame(
-            index=index,
-            timestamp=float(self._timestamps[index]),
-            colour=read_colour(self._colour_files[index], self.intrinsics),
-            depth=read_depth(self._depth_files[index], self.depth_scale, self.intrinsics),
-        )
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        """Timestamps (N,) in seconds: frame index / 30 Hz."""
-        return self._timestamps

@@ -20,6 +20,7 @@ import numpy as np
 from server.datasets.base import RGBDDataset, RGBDFrame, Trajectory
 from server.errors import DatasetError, DroneSimError
 from server.geometry import Intrinsics
+from server.textfile import data_lines
 
 logger = logging.getLogger(__name__)
 
@@ -71,15 +72,8 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
 
     Raises DatasetError naming the file (and line) when it is missing, malformed or empty.
     """
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise DatasetError(f"cannot read {path}: {exc.strerror}") from exc
     stamps, names = [], []
-    for line_no, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
+    for line_no, line in data_lines(path, DatasetError):
         fields = line.replace(",", " ").split()
         try:
             if len(fields) < 2:
@@ -187,7 +181,35 @@ def tum_intrinsics(
     )
 
 
-class TUMDataset(RGBDDataset):
+class ImagePairDataset(RGBDDataset):
+    """Frames stored as colour and depth image files paired one to one. Subclasses set
+    ``_colour_files`` and ``_depth_files`` (lists of paths) and ``_timestamps`` ((N,) seconds)."""
+
+    _colour_files: list[Path]
+    _depth_files: list[Path]
+    _timestamps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    def __getitem__(self, index: int) -> RGBDFrame:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame {index} out of range for {len(self)} frames")
+        index = index % len(self)
+        return RGBDFrame(
+            index=index,
+            timestamp=float(self._timestamps[index]),
+            colour=read_colour(self._colour_files[index], self.intrinsics),
+            depth=read_depth(self._depth_files[index], self.depth_scale, self.intrinsics),
+        )
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Timestamps (N,) in seconds, one per frame."""
+        return self._timestamps
+
+
+class TUMDataset(ImagePairDataset):
     """A TUM RGB-D sequence; colour and depth associated by nearest timestamp.
 
     path: the sequence folder. intrinsics, depth_scale (units per metre): override intrinsics.json
@@ -218,7 +240,7 @@ class TUMDataset(RGBDDataset):
                 f"depth {depth_stamps.min():.6f}-{depth_stamps.max():.6f} s)"
             )
         self._timestamps = rgb_stamps[idx_rgb]
-        self._rgb_files = [self.path / rgb_names[i] for i in idx_rgb]
+        self._colour_files = [self.path / rgb_names[i] for i in idx_rgb]
         self._depth_files = [self.path / depth_names[j] for j in idx_depth]
         logger.info(
             "%s: %d of %d rgb frames associated with depth", self.name, len(idx_rgb), len(rgb_names)
@@ -226,21 +248,3 @@ class TUMDataset(RGBDDataset):
 
         self.ground_truth = read_ground_truth(self.path / "groundtruth.txt")
 
-    def __len__(self) -> int:
-        return len(self._timestamps)
-
-    def __getitem__(self, index: int) -> RGBDFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} out of range for {len(self)} frames")
-        index = index % len(self)
-        return RGBDFrame(
-            index=index,
-            timestamp=float(self._timestamps[index]),
-            colour=read_colour(self._rgb_files[index], self.intrinsics),
-            depth=read_depth(self._depth_files[index], self.depth_scale, self.intrinsics),
-        )
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        """Timestamps (N,) in seconds of the associated frames (the colour image's)."""
-        return self._timestamps

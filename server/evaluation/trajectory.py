@@ -16,6 +16,7 @@ import numpy as np
 from server.datasets.base import Trajectory
 from server.errors import TrajectoryError
 from server.geometry import pose_from_quaternion, quaternion_from_pose
+from server.textfile import data_lines
 
 logger = logging.getLogger(__name__)
 
@@ -48,15 +49,8 @@ def read_tum(path: str | Path) -> Trajectory:
     the file and the line number).
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise TrajectoryError(f"cannot read trajectory file {path}: {exc.strerror}") from exc
     stamps, poses = [], []
-    for line_no, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
+    for line_no, line in data_lines(path, TrajectoryError, "trajectory file "):
         stamp, pose = _parse_row(path, line_no, line)
         stamps.append(stamp)
         poses.append(pose)

@@ -25,13 +25,11 @@ import json
 import os
 import platform
 import re
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,6 +41,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from server.client.loadtest import EncodedSequence, LoadTestConfig, live_line, run_loadtest  # noqa: E402
+from server.client.server_process import ServerProcess, rss_mb  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.settings import Settings  # noqa: E402
 
@@ -63,28 +62,6 @@ def server_environment(max_sessions: int) -> dict[str, str]:
         if info.annotation is bool and re.search(r"drone|simulat|flight", name):
             env[f"DRONESIM_{name.upper()}"] = "true"
     return env
-
-
-def start_server(data_dir: Path, max_sessions: int) -> tuple[subprocess.Popen, str, Path]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    log = data_dir.parent / "server.log"  # beside the data, gone with the temporary folder
-    proc = subprocess.Popen([sys.executable, "-m", "server", "serve", "--port", str(port),
-                             "--data-dir", str(data_dir), "--no-demo"], cwd=REPO,
-                            env=server_environment(max_sessions), stdout=log.open("w"),
-                            stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.time() + 90
-    while time.time() < deadline and proc.poll() is None:
-        try:
-            with urllib.request.urlopen(f"{url}/healthz", timeout=1) as r:
-                if r.status == 200:
-                    return proc, url, log
-        except OSError:
-            time.sleep(0.3)
-    proc.kill()
-    raise RuntimeError(f"server did not start; its log:\n{log.read_text()[-3000:]}")
 
 
 class ProcessSampler:
@@ -113,10 +90,7 @@ class ProcessSampler:
     def rss_mb(self) -> float:
         if self._proc is not None:
             return self._proc.memory_info().rss / 2**20
-        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
+        return rss_mb(self.pid)
 
     def __enter__(self) -> ProcessSampler:
         self._t0, self._cpu0 = time.monotonic(), self.cpu_s()
@@ -360,12 +334,13 @@ def main() -> None:
         for sessions in args.sessions:
             # A fresh server per row: rows share no memory, caches or leftover sessions.
             with tempfile.TemporaryDirectory() as tmp:
-                proc, url, log = start_server(Path(tmp) / "data", sessions + 1)
+                log = Path(tmp) / "server.log"  # beside the data, gone with the folder
+                server = ServerProcess(Path(tmp) / "data", server_environment(sessions + 1), log)
                 try:
-                    rows.append(run_row(url, seq, proc.pid, sessions, fps, args.duration))
+                    rows.append(run_row(server.url, seq, server.pid, sessions, fps,
+                                        args.duration))
                 finally:
-                    proc.terminate()
-                    proc.wait(timeout=120)
+                    server.terminate()
                 if rows and rows[-1]["failures"]:
                     console.print(f"server log (tail):\n{log.read_text()[-3000:]}")
             console.print(console_table(rows[-1:]))

@@ -16,19 +16,16 @@ import datetime
 import json
 import os
 import platform
-import socket
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from server.client.replay import latency_summary, replay
+from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,47 +33,12 @@ TARGET_P95_MS_AT_15 = 50.0
 console = Console()
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(data_dir: Path) -> tuple[subprocess.Popen, int]:
-    port = free_port()
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "server",
-            "serve",
-            "--port",
-            str(port),
-            "--data-dir",
-            str(data_dir),
-            "--no-demo",
-        ],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
-                return proc, port
-        except httpx.HTTPError:
-            time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError("server did not start")
-
-
-def run_once(port: int, dataset, fps: float, frames: int) -> dict:
-    body = httpx.post(f"http://127.0.0.1:{port}/api/sessions").json()
+def run_once(server: ServerProcess, dataset, fps: float, frames: int) -> dict:
+    sid, token = server.create_session()
     stats = asyncio.run(
         replay(
-            f"ws://127.0.0.1:{port}/ws/sessions/{body['id']}",
-            body["token"],
+            f"{server.ws_url}/ws/sessions/{sid}",
+            token,
             dataset,
             fps=fps,
             max_frames=frames,
@@ -112,14 +74,13 @@ def main() -> None:
     frames = len(dataset) if args.frames is None else min(args.frames, len(dataset))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        proc, port = start_server(Path(tmp))
+        server = ServerProcess(Path(tmp))
         try:
             for fps in args.fps:
                 console.print(f"replaying {frames} frames of {dataset.name} at {fps:g} fps ...")
-                rows.append(run_once(port, dataset, fps, frames))
+                rows.append(run_once(server, dataset, fps, frames))
         finally:
-            proc.terminate()
-            proc.wait(timeout=60)
+            server.terminate(timeout_s=60)
 
     table = Table(
         title=f"server latency, one session, {dataset.name} "

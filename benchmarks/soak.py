@@ -28,8 +28,6 @@ import datetime
 import os
 import platform
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -43,7 +41,9 @@ import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
+from server.client.loadtest import ping_pong_index  # noqa: E402
 from server.client.replay import replay  # noqa: E402
+from server.client.server_process import ServerProcess  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.datasets.base import RGBDDataset, RGBDFrame  # noqa: E402
 
@@ -64,49 +64,15 @@ class PingPong(RGBDDataset):
         return max(1, 2 * self.n - 2)
 
     def __getitem__(self, i: int) -> RGBDFrame:
-        k = i % len(self)
-        frame = self.base[k if k < self.n else 2 * self.n - 2 - k]
+        frame = self.base[ping_pong_index(i, self.n)]
         return dataclasses.replace(frame, index=i, timestamp=i * self.dt)
 
 
 # ---- the server ---------------------------------------------------------------------------------
 
 
-class Server:
-    """``python -m server serve`` on a free port; RSS sampled from /proc/<pid>/status."""
-
-    def __init__(self, data_dir: Path, log: Path, env: dict[str, str]) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{port}"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "server", "serve", "--port", str(port), "--data-dir",
-             str(data_dir), "--no-demo"], cwd=REPO, env={**os.environ, **env},
-            stdout=log.open("a"), stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 90
-        while self.proc.poll() is None and time.monotonic() < deadline:
-            try:
-                if httpx.get(f"{self.url}/healthz").status_code == 200:
-                    return
-            except httpx.HTTPError:
-                time.sleep(0.3)
-        self.proc.kill()
-        raise RuntimeError(f"server did not start; its log:\n{log.read_text()[-3000:]}")
-
-    def rss_mb(self) -> float:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
-
-    def terminate(self, timeout_s: float = 120) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        return self.proc.wait(timeout_s)
-
-
 class RSSSampler(threading.Thread):
-    def __init__(self, server: Server, every_s: float) -> None:
+    def __init__(self, server: ServerProcess, every_s: float) -> None:
         super().__init__(daemon=True)
         self.server, self.every_s = server, every_s
         self.t0 = time.monotonic()
@@ -358,7 +324,7 @@ def main() -> int:
         env = {"DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
                "DRONESIM_CREATE_RATE_PER_MIN": "0", "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
                **dict(item.split("=", 1) for item in args.server_env)}
-        server = Server(data_dir, log, env)
+        server = ServerProcess(data_dir, env, log)
         sampler = RSSSampler(server, args.sample_s)
         sampler.start()
         records: list[SessionRecord] = []
@@ -375,7 +341,7 @@ def main() -> int:
         sampler.stop()
         wall_min = (time.monotonic() - t0) / 60
         code = server.terminate()
-        restarted = Server(data_dir, log, env)
+        restarted = ServerProcess(data_dir, env, log)
         check_after_restart(restarted.url, records, tmp)
         restart_ok = restarted.terminate() in (0, -signal.SIGTERM) and code in (0, -signal.SIGTERM)
         text = log.read_text()

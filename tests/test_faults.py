@@ -9,11 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -23,13 +19,13 @@ import open3d as o3d
 import pytest
 import websockets
 
+from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
 from server.registration import Tracker
 from server.transport import protocol as P
 
-REPO = Path(__file__).resolve().parents[1]
 UNASKED = {"map_chunk", "drone_state", "drone_event"}
 
 
@@ -37,50 +33,13 @@ def auth(token: str) -> dict:
     return {"Authorization": f"Bearer {token}"}
 
 
-class ServerProcess:
-    """``python -m server serve`` on a free loopback port, settings from DRONESIM_* variables."""
-
-    def __init__(self, data_dir: Path, log: Path, **settings) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        env = {**os.environ, **{f"DRONESIM_{k.upper()}": str(v) for k, v in settings.items()}}
-        self.log = log
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "server", "serve", "--port", str(self.port), "--data-dir",
-             str(data_dir)], cwd=REPO, env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT)
-        self.url, self.ws_url = f"http://127.0.0.1:{self.port}", f"ws://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{self.url}/healthz").status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"server did not start: {log.read_text()[-2000:]}")
-            time.sleep(0.1)
-
-    def create_session(self) -> tuple[str, str]:
-        body = httpx.post(f"{self.url}/api/sessions").raise_for_status().json()
-        return body["id"], body["token"]
-
-    def signal(self, sig: int, timeout: float = 60) -> int:
-        self.proc.send_signal(sig)
-        return self.proc.wait(timeout)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(30)
-
-
 @pytest.fixture
 def server_process(tmp_path):
     started = []
 
     def start(data_dir: Path, **settings) -> ServerProcess:
-        server = ServerProcess(data_dir, tmp_path / "server.log", **settings)
+        env = {f"DRONESIM_{k.upper()}": str(v) for k, v in settings.items()}
+        server = ServerProcess(data_dir, env, log=tmp_path / "server.log")
         started.append(server)
         return server
 

@@ -51,6 +51,15 @@ class LoadTestError(DroneSimError):
     """The load test could not run at all (e.g. an empty sequence)."""
 
 
+def ping_pong_index(k: int, n: int) -> int:
+    """Which of n frames capture k shows when a sequence plays forward, backward, forward, ...
+    (looping that way keeps the camera's motion continuous)."""
+    if n == 1:
+        return 0
+    k %= 2 * n - 2
+    return k if k < n else 2 * n - 2 - k
+
+
 @dataclass
 class EncodedSequence:
     """A sequence encoded once for the wire: frame messages without seq and timestamp."""
@@ -80,11 +89,7 @@ class EncodedSequence:
 
     def index(self, k: int) -> int:
         """Frame of capture k when playing forward, backward, forward, ... (ping-pong)."""
-        n = len(self.frames)
-        if n == 1:
-            return 0
-        k %= 2 * n - 2
-        return k if k < n else 2 * n - 2 - k
+        return ping_pong_index(k, len(self.frames))
 
     @property
     def mean_bytes(self) -> float:

@@ -119,8 +119,7 @@ class Flight:
         self._lock = threading.Lock()  # the simulator and flight map are used by one thread at once
         # Camera frames have their own lock: tracking never waits for planning or physics.
         self._frames_lock = threading.Lock()
-        self._frames: OrderedDict[int, _CameraFrame] = OrderedDict()
-        self._camera: tuple[int, np.ndarray] | None = None  # latest (seq, T_world_camera)
+        self._frames: OrderedDict[int, _CameraFrame] = OrderedDict()  # by seq, newest last
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.event_counts: dict[str, int] = {}  # drone events so far, by kind
         self._stop = threading.Event()
@@ -146,7 +145,7 @@ class Flight:
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
         """A processed frame: its pose (and depth, for tapped pixels). Tracking-thread side."""
         with self._frames_lock:
-            self._camera = (seq, T_world_camera)
+            self._frames.pop(seq, None)  # a reconnected client numbers from 0 again
             self._frames[seq] = _CameraFrame(T_world_camera, depth)
             while len(self._frames) > _RECENT_FRAMES:
                 self._frames.popitem(last=False)
@@ -280,21 +279,23 @@ class Flight:
             events = []
             pending, self._pending_map = self._pending_map, None
             if pending is not None:
-                changed = self.flight_map.update(*pending)
-                if self.spawned:
-                    self.sim.on_map_update(changed)
-                elif (camera := self._latest_camera()) is not None:
+                self.sim.update_map(*pending)
+                if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
             if self.spawned:
                 events = self.sim.advance(dt)
-        for e in events:
-            kind = getattr(e.kind, "value", e.kind)
-            self.event_counts[kind] = self.event_counts.get(kind, 0) + 1
-        return [self._notice(e) for e in events]
+        notices = [self._notice(e) for e in events]
+        for n in notices:
+            self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
+        return notices
 
     def _latest_camera(self) -> tuple[int, np.ndarray] | None:
+        """(seq, T_world_camera) of the newest processed frame."""
         with self._frames_lock:
-            return self._camera
+            if not self._frames:
+                return None
+            seq = next(reversed(self._frames))
+            return seq, self._frames[seq].T_world_camera
 
     def _spawn(self, T: np.ndarray) -> None:
         """Hover spawn_ahead_m in front of the camera, facing away from it, in observed free
@@ -309,7 +310,7 @@ class Flight:
                 continue
 
     def _notice(self, event) -> DroneNotice:
-        return DroneNotice(event.kind, event.time_s, self._to_world(event.position),
+        return DroneNotice(event.kind.value, event.time_s, self._to_world(event.position),
                            event.message, event.command_id)
 
     def state(self) -> DroneUpdate:

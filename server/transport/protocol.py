@@ -264,7 +264,7 @@ def _floats(values: Any, n: int, name: str) -> list[float]:
     flat = np.asarray(values, dtype=np.float64).reshape(-1)
     if flat.size != n:
         raise ProtocolError("invalid_field", f"{name} needs {n} numbers, got {flat.size}")
-    return [float(v) for v in flat]
+    return flat.tolist()
 
 
 def make_hello(
@@ -442,7 +442,7 @@ def make_drone_state(
         mode=str(getattr(mode, "value", mode)),
         clearance=None if clearance is None else float(clearance),
         target=None if target is None else _floats(target, 3, "target"),
-        route=None if route is None else [float(x) for x in np.asarray(route).ravel()],
+        route=None if route is None else np.asarray(route, dtype=np.float64).ravel().tolist(),
         command_id=None if command_id is None else int(command_id),
     )
 

@@ -216,11 +216,11 @@ async def _receive(
             order.check(message)
             await _handle(ws, session, message, order, deliver)
             errors_in_a_row = 0
-        except _CommandError as exc:
+        except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
             error = proto.make_error(
-                exc.code, exc.message, command_id=exc.command_id, nearest=exc.nearest
+                exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
             )
-            await _send(ws, error)  # refused commands do not count as client errors in a row
+            await _send(ws, error)
         except SessionError as exc:
             error = proto.ProtocolError(
                 _SESSION_CODES.get(exc.code, "internal_error"), str(exc), seq=_seq(data)
@@ -241,12 +241,6 @@ async def _receive(
         if order.closed:
             await _close_after_answers(ws, session, outbox)
             return
-
-
-class _CommandError(Exception):
-    def __init__(self, code: str, message: str, command_id: int, nearest) -> None:
-        super().__init__(message)
-        self.code, self.message, self.command_id, self.nearest = code, message, command_id, nearest
 
 
 def _seq(data: bytes) -> int | None:
@@ -300,7 +294,4 @@ async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver
         session.submit(frame)
     elif kind == "command":
         fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}
-        try:
-            await asyncio.to_thread(session.command, message["name"], message["id"], **fields)
-        except CommandRefused as exc:
-            raise _CommandError(exc.code, str(exc), message["id"], exc.nearest) from None
+        await asyncio.to_thread(session.command, message["name"], message["id"], **fields)

@@ -44,8 +44,8 @@ class TSDFConfig:
     allocated up front (the hash map doubles when full; each block costs block_resolution^3 * 20
     bytes, 80 KiB at 16). trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond
     this is ignored. min_weight: observations a voxel needs before it shows in extracted surfaces.
-    carve_free_space: also allocate the blocks a ray crosses before the surface (see module doc).
-    integrate_every: a hint to the caller (fuse every n-th tracked frame); not used here."""
+    carve_free_space: also allocate the blocks a ray crosses before the surface (see module
+    doc)."""
 
     voxel_m: float = 0.02
     block_resolution: int = 16
@@ -54,14 +54,13 @@ class TSDFConfig:
     depth_max_m: float = 4.0
     min_weight: float = 3.0
     carve_free_space: bool = True
-    integrate_every: int = 1
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
         if not (self.voxel_m > 0 and self.trunc_voxels > 0 and self.depth_max_m > 0):
             raise ConfigError(f"TSDF voxel, truncation and depth range must be positive: {self}")
-        if self.block_resolution < 2 or self.block_count < 1 or self.integrate_every < 1:
-            raise ConfigError(f"TSDF block resolution, block count or integrate_every < 1: {self}")
+        if self.block_resolution < 2 or self.block_count < 1:
+            raise ConfigError(f"TSDF block resolution < 2 or block count < 1: {self}")
 
     @property
     def trunc_m(self) -> float:

@@ -5,8 +5,10 @@ COPY client_web/package.json client_web/package-lock.json ./
 RUN npm ci --no-audit --no-fund --omit=dev
 
 FROM python:3.11-slim
-# open3d needs libusb and OpenGL/OpenMP runtime libraries to import.
+# open3d needs libusb and OpenGL/OpenMP runtime libraries to import; serve restarts itself on
+# jemalloc, which keeps a long-running server's memory flat (server/memory.py).
 RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 \
+    libjemalloc2 \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
 COPY pyproject.toml README.md ./

@@ -193,13 +193,24 @@ def check_after_restart(url: str, records: list[SessionRecord], tmp: Path) -> No
 
 
 def rss_analysis(samples: list[tuple[float, float, int]]) -> dict:
+    """RSS rises while finished sessions wait for their TTL and falls when they close; what must
+    stay flat is the level it falls back to. That base level is read at the most common count of
+    live sessions (the clients streaming, none waiting), and its slope over the second half of
+    the run is the figure."""
     t = np.array([s[0] for s in samples]) / 60.0
     rss = np.array([s[1] for s in samples])
+    live = np.array([s[2] for s in samples])
+    counts = np.bincount(live[live > 0]) if (live > 0).any() else np.array([0])
+    base_live = int(counts.argmax())
     half = t >= t[-1] / 2
-    slope = float(np.polyfit(t[half], rss[half], 1)[0]) if half.sum() >= 3 else float("nan")
+    base = (live == base_live) & half
+    slope = float(np.polyfit(t[base], rss[base], 1)[0]) if base.sum() >= 3 else float("nan")
+    first = (live == base_live) & ~half
     return {"start_mb": float(rss[0]), "end_mb": float(rss[-1]), "max_mb": float(rss.max()),
-            "median_second_half_mb": float(np.median(rss[half])),
-            "slope_second_half_mb_per_min": slope, "samples": len(samples)}
+            "base_live_sessions": base_live,
+            "base_first_half_mb": float(np.median(rss[first])) if first.any() else float("nan"),
+            "base_second_half_mb": float(np.median(rss[base])) if base.any() else float("nan"),
+            "base_slope_mb_per_min": slope, "samples": len(samples)}
 
 
 def write_plot(samples, records: list[SessionRecord], args, path: Path) -> None:
@@ -233,7 +244,7 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
     streamed = [r for r in records if r.status is not None]
     problems = [(r.id, p) for r in records for p in r.problems] + [("server", p)
                                                                    for p in log_problems]
-    flat = not rss["slope_second_half_mb_per_min"] > RSS_GROWTH_LIMIT_MB_PER_MIN
+    flat = not rss["base_slope_mb_per_min"] > RSS_GROWTH_LIMIT_MB_PER_MIN
     ok = flat and not problems and restart_ok and bool(streamed)
     short = args.minutes < 30
     lines = [
@@ -256,7 +267,8 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
         f"Command: `{command}`",
         "",
         f"**Result: {'PASS' if ok else 'FAIL'}** — memory {'flat' if flat else 'GROWING'} "
-        f"({rss['slope_second_half_mb_per_min']:+.1f} MB/min over the second half, limit "
+        f"({rss['base_slope_mb_per_min']:+.1f} MB/min at its base level over the second half, "
+        f"limit "
         f"{RSS_GROWTH_LIMIT_MB_PER_MIN:g}), {len(problems)} problems, "
         f"{len(streamed)} sessions streamed and all "
         f"{'found whole' if restart_ok and not problems else 'checked'} after a restart.",
@@ -269,8 +281,10 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
         f"| error messages from the server | {sum(len(r.errors) for r in records)} |",
         f"| server RSS at start / end / max (MB) | {rss['start_mb']:.0f} / {rss['end_mb']:.0f} / "
         f"{rss['max_mb']:.0f} |",
-        f"| RSS median over the second half (MB) | {rss['median_second_half_mb']:.0f} |",
-        f"| RSS slope over the second half (MB/min) | {rss['slope_second_half_mb_per_min']:+.1f} |",
+        f"| base level: RSS with {rss['base_live_sessions']} live sessions, median of the first / "
+        f"second half (MB) | {rss['base_first_half_mb']:.0f} / {rss['base_second_half_mb']:.0f} |",
+        f"| base level's slope over the second half (MB/min) | "
+        f"{rss['base_slope_mb_per_min']:+.1f} |",
         "",
         "![RSS over time](soak.png)",
         "",
@@ -287,8 +301,9 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
         lines += ["", "Server log:", *[f"- {p}" for p in log_problems]]
     lines += ["", "How to read it: each client streams one session after another; a finished "
               "session stays live until the TTL closes and saves it, so RSS rises with the "
-              "live sessions and falls as they close. Flat means the level it returns to does "
-              "not creep up. After the run the server is stopped (SIGTERM) and started again, "
+              "live sessions and falls as they close. Flat means the level it returns to (the "
+              "base level, with only the streaming sessions live) does not creep up. After the "
+              "run the server is stopped (SIGTERM) and started again, "
               "and every session's trajectory must download byte for byte as before and its map "
               "with at least 90 % of its points (fusion may still have added frames after the "
               "first download)."]

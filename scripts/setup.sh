@@ -6,10 +6,14 @@ cd "$(dirname "$0")/.."
 SUDO=""
 [ "$(id -u)" -eq 0 ] || SUDO="sudo"
 
-# open3d needs libusb at import time; nothing else from Debian is needed yet.
-if ! ldconfig -p | grep -q libusb-1.0.so.0; then
+# open3d needs libusb at import time. The server runs on jemalloc, which gives freed memory
+# back to the system (glibc's malloc let a long-running server grow; see server/memory.py).
+SERVER_PACKAGES=()
+ldconfig -p | grep -q libusb-1.0.so.0 || SERVER_PACKAGES+=(libusb-1.0-0)
+ldconfig -p | grep -q libjemalloc.so.2 || SERVER_PACKAGES+=(libjemalloc2)
+if [ ${#SERVER_PACKAGES[@]} -gt 0 ]; then
   $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${SERVER_PACKAGES[@]}" >/dev/null
 fi
 
 # The web client's browser tests drive Debian's chromium with Playwright (Playwright's own

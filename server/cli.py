@@ -122,11 +122,10 @@ def serve(
     ] = None,
 ) -> None:
     """Run the server (settings from DRONESIM_* environment variables, overridden by flags)."""
-    import uvicorn
     from pydantic import ValidationError
 
     from server.settings import Settings
-    from server.transport.app import create_app
+    from server.transport.app import make_server
 
     flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo}
     try:
@@ -134,6 +133,10 @@ def serve(
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise DroneSimError(f"invalid settings: {problems}") from exc
+    if settings.allocator == "jemalloc":
+        from server.memory import restart_on_jemalloc
+
+        restart_on_jemalloc()  # returns only when it cannot
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ssl = {}
     if settings.tls:
@@ -147,9 +150,7 @@ def serve(
             f"{', '.join(local_addresses())}) and accept the certificate once."
         )
     logging.getLogger().setLevel(logging.INFO)
-    uvicorn.run(
-        create_app(settings), host=settings.host, port=settings.port, log_level="info", **ssl
-    )
+    make_server(settings, log_level="info", **ssl).run()
 
 
 @app.command()

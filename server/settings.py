@@ -4,6 +4,7 @@ and validated at start-up, so that a bad value stops the server with a clear mes
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 from urllib.parse import urlsplit
 
 from pydantic import Field, field_validator
@@ -32,6 +33,13 @@ class Settings(BaseSettings):
     cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
     create_rate_per_min: float = Field(30.0, ge=0)  # sessions one client IP may create; 0: no limit
     create_burst: int = Field(20, ge=1)  # ...of which this many at once
+    # Reverse proxies whose X-Forwarded-For / -Proto are believed (uvicorn's forwarded_allow_ips:
+    # comma-separated addresses or networks, "*" for any); the rate limit then counts the phone's
+    # address, not the proxy's. Others' forwarding headers are ignored, so they cannot forge one.
+    forwarded_allow_ips: str = "127.0.0.1"
+    # "jemalloc": serve restarts itself on jemalloc when installed (see server/memory.py);
+    # "system": keep the C library's malloc.
+    allocator: Literal["jemalloc", "system"] = "jemalloc"
 
     @field_validator("data_dir")
     @classmethod

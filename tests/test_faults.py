@@ -63,24 +63,14 @@ class Stream:
         self.map_points = 0  # total_points of the last map chunk
         self.ws = None
 
-    async def open(self, attempts: int = 50) -> None:
-        """Connect and say hello; a socket of ours that the server has not yet seen drop gets
-        session_in_use (4008) for a moment: try again."""
+    async def open(self) -> None:
+        """Connect and say hello (a socket of ours that the server still holds is taken over)."""
         K = self.dataset.intrinsics
-        for _ in range(attempts):
-            self.ws = await websockets.connect(self.url, max_size=None)
-            await self.ws.send(P.encode(P.make_hello("faults", (K.fx, K.fy, K.cx, K.cy),
-                                                     (K.width, K.height))))
-            try:
-                welcome = await self._answer()
-            except websockets.ConnectionClosed as closed:
-                if closed.rcvd and closed.rcvd.code == P.CLOSE_CODES["session_in_use"]:
-                    await asyncio.sleep(0.1)
-                    continue
-                raise
-            assert welcome["type"] == "welcome", welcome
-            return
-        raise AssertionError("the session stayed in use")
+        self.ws = await websockets.connect(self.url, max_size=None)
+        await self.ws.send(P.encode(P.make_hello("faults", (K.fx, K.fy, K.cx, K.cy),
+                                                 (K.width, K.height))))
+        welcome = await self._answer()
+        assert welcome["type"] == "welcome", welcome
 
     async def _answer(self) -> dict:
         while True:
@@ -191,15 +181,17 @@ def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room
     async def stream_then_terminate():
         await stream.open()
         await stream.send_range(range(25))
-        code = server.signal(signal.SIGTERM)
+        terminated = asyncio.create_task(asyncio.to_thread(server.signal, signal.SIGTERM))
+        error = await stream._answer()  # the server says why before it closes
         with pytest.raises(websockets.ConnectionClosed) as closed:
-            while True:
-                await stream._answer()
-        return code, closed.value.rcvd.code
+            await stream._answer()
+        return await terminated, error, closed.value.rcvd.code
 
-    code, close_code = asyncio.run(stream_then_terminate())
+    code, error, close_code = asyncio.run(stream_then_terminate())
     assert code in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after a clean shutdown
-    assert close_code in (1012, P.CLOSE_CODES["server_shutdown"])
+    assert error["type"] == "error" and error["name"] == "server_shutdown", error
+    assert "saved" in error["message"]
+    assert close_code == P.CLOSE_CODES["server_shutdown"]
     log = server.log.read_text()
     assert "Application shutdown complete" in log and "Traceback" not in log
     assert token not in log  # uvicorn logs the WebSocket path: the token is redacted
@@ -246,6 +238,52 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
                                atol=1e-6)
     tum = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
     assert len(tum.text.strip().splitlines()) == 1 + 30  # header line + poses
+
+
+def test_a_phone_back_from_a_silent_wifi_drop_takes_its_session_over_at_once(live_server, room):
+    """The old socket never closed (no FIN reached the server), so the server still holds it:
+    the phone's new socket with the token takes the session over instead of waiting out the
+    idle timeout; the old one is told why, and a stranger's socket takes nothing."""
+    server = live_server()
+    sid, token = server.create_session()
+    phone = Stream(server.ws_url, sid, token, room)
+
+    async def drop_silently_and_return():
+        await phone.open()
+        await phone.send_range(range(10))
+        stale = phone.ws  # left open and unread: what the server sees of a phone off the Wi-Fi
+        wrong = ("y" if token[0] == "x" else "x") + token[1:]
+        url = f"{server.ws_url}/ws/sessions/{sid}?token={wrong}"
+        async with websockets.connect(url) as stranger:
+            refused = P.decode(await stranger.recv())
+        t0 = time.monotonic()
+        await phone.open()
+        took_over_s = time.monotonic() - t0
+        await phone.send_range(range(10, 20))  # numbered on, as a page that kept its state
+        told = [P.decode(m) async for m in _until_closed(stale)]
+        await phone.ws.send(P.encode(P.make_bye("done")))
+        await phone.ws.wait_closed()
+        return refused, took_over_s, told, stale.close_code
+
+    refused, took_over_s, told, old_code = asyncio.run(drop_silently_and_return())
+    assert refused["name"] == "unauthorized"
+    assert took_over_s < 5.0 < P.LIMITS["idle_timeout_s"]
+    errors = [m for m in told if m["type"] == "error"]
+    assert [e["name"] for e in errors] == ["session_taken_over"]
+    assert old_code == P.CLOSE_CODES["session_taken_over"]
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["closed"] is False and status["frames_processed"] == 20
+    np.testing.assert_allclose(phone.matrices()[:, :3, 3], offline_poses(room, 20)[:, :3, 3],
+                               atol=1e-6)
+
+
+async def _until_closed(ws):
+    """What the server still sent on a socket, up to its close."""
+    try:
+        while True:
+            yield await asyncio.wait_for(ws.recv(), 10)
+    except websockets.ConnectionClosed:
+        return
 
 
 def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_server, room):

@@ -234,6 +234,24 @@ def test_session_creation_is_rate_limited_per_client_address(live_server):
     assert httpx.post(url).status_code == 201
 
 
+def test_behind_a_trusted_proxy_the_limit_counts_each_phone_and_nobody_else_can_forge_one(
+        live_server):
+    """Through a reverse proxy every phone arrives from the proxy's address; its X-Forwarded-For
+    names the phone, and is believed only from the proxies in FORWARDED_ALLOW_IPS."""
+    url = "/api/sessions"
+
+    def create(server, phone: str) -> int:
+        return httpx.post(f"{server.url}{url}", headers={"X-Forwarded-For": phone}).status_code
+
+    behind_proxy = live_server(create_burst=1, create_rate_per_min=1)  # loopback is the proxy
+    assert [create(behind_proxy, "203.0.113.5"), create(behind_proxy, "203.0.113.5")] == [201, 429]
+    assert create(behind_proxy, "203.0.113.6") == 201  # another phone, its own bucket
+
+    direct = live_server(create_burst=1, create_rate_per_min=1, forwarded_allow_ips="10.9.9.9")
+    assert create(direct, "203.0.113.5") == 201
+    assert create(direct, "198.51.100.7") == 429  # a forged header changes nothing
+
+
 def test_the_rate_limiter_forgets_clients_to_stay_bounded():
     limiter = RateLimiter(per_min=6, burst=2, max_keys=100)
     for i in range(1000):

@@ -7,8 +7,9 @@ import { SERVER_TO_CLIENT } from "./protocol.js";
 
 const STORE_KEY = "dronesim.session";
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
-// Close codes after which reconnecting cannot help: the hello or the session itself is refused.
-const FINAL_CLOSES = new Set([4001, 4002, 4003]);
+// Close codes after which reconnecting cannot help: the hello or the session itself is refused,
+// or another tab or device took the session over (reconnecting would take it back, forever).
+const FINAL_CLOSES = new Set([4001, 4002, 4003, 4009]);
 const LATENCY_WINDOW = 30;
 
 export const State = Object.freeze({

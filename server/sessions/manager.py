@@ -8,6 +8,7 @@ import secrets
 import threading
 import time
 
+from server.memory import release_session_memory
 from server.sessions.session import Session, SessionConfig, SessionError, hash_token
 from server.sessions.store import SessionStore, StoreError
 
@@ -99,6 +100,8 @@ class SessionManager:
                     self._saved[session_id] = session.meta()
         if deleted:
             self.store.delete(session_id)  # the final snapshot wrote after the delete
+        del session
+        release_session_memory()
 
     def delete(self, session_id: str) -> None:
         """Stop a session if live and remove all its data."""
@@ -107,6 +110,8 @@ class SessionManager:
             self._saved.pop(session_id, None)
         if session is not None:
             session.stop(save=False)
+            del session
+            release_session_memory()
         self.store.delete(session_id)
 
     def reap(self, ttl_s: float, connected: set[str]) -> list[str]:

@@ -8,11 +8,13 @@ import logging
 import math
 import re
 
+import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
 from server.mapping.tsdf import MapError
+from server.memory import loaded_allocator
 from server.sessions import SessionError, SessionManager
 from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
@@ -46,6 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_interval_s=settings.snapshot_interval_s,
     )
     manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions)
+    allocator = loaded_allocator()  # what operators check when memory grows
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -68,7 +71,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
     app.state.settings = settings
     app.state.manager = manager
-    app.state.connections = set()
+    app.state.connections = {}  # session id -> its open WebSocket (websocket._Connection)
     app.state.demo = None
     app.state.create_limiter = RateLimiter(settings.create_rate_per_min, settings.create_burst)
     for name in ("uvicorn.error", "uvicorn.access"):
@@ -115,6 +118,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "status": "ok",
             "live_sessions": manager.live_count,
             "saved_sessions": manager.saved_count,
+            "allocator": allocator,
         }
 
     return app
@@ -125,3 +129,24 @@ async def _reap(app: FastAPI) -> None:
     while True:
         await asyncio.sleep(min(10.0, settings.session_ttl_s / 4))
         await asyncio.to_thread(manager.reap, settings.session_ttl_s, set(app.state.connections))
+
+
+def make_server(settings: Settings, app: FastAPI | None = None, **uvicorn_options) -> Server:
+    """The uvicorn server for ``settings`` (the app made from them unless given)."""
+    config = uvicorn.Config(
+        app or create_app(settings), host=settings.host, port=settings.port, proxy_headers=True,
+        forwarded_allow_ips=settings.forwarded_allow_ips, **uvicorn_options
+    )
+    return Server(config)
+
+
+class Server(uvicorn.Server):
+    """uvicorn's server, but a stop (SIGTERM, Ctrl-C) first tells every session's socket why it
+    ends (``server_shutdown``, close 4007, as the protocol says) before uvicorn closes what is
+    left with its generic 1012; the lifespan's shutdown then saves every session."""
+
+    async def shutdown(self, sockets=None) -> None:
+        app = self.config.app
+        if hasattr(app, "state"):
+            await websocket.end_all_connections(app, "server_shutdown")
+        await super().shutdown(sockets)

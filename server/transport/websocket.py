@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from dataclasses import dataclass, field
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -58,10 +59,33 @@ async def _refuse(ws: WebSocket, error: proto.ProtocolError) -> None:
         pass
 
 
+@dataclass
+class _Connection:
+    """The one open WebSocket of a session, as other tasks see it: they may end it (``end``),
+    and wait until it has let go of the session (``released``)."""
+
+    ending: asyncio.Event = field(default_factory=asyncio.Event)
+    reason: str = ""  # the close code's name: session_taken_over or server_shutdown
+    released: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def end(self, reason: str) -> None:
+        self.reason = self.reason or reason
+        self.ending.set()
+
+
+_END_MESSAGES = {
+    "session_taken_over": "a newer connection with this session's token took the session over",
+    "server_shutdown": "the server is stopping; this session is saved and closed, its map and "
+                       "trajectory stay downloadable with its token",
+}
+_RELEASE_WAIT_S = 5.0  # for the previous socket of a session to let go
+
+
 @router.websocket("/ws/sessions/{session_id}")
 async def session_socket(ws: WebSocket, session_id: str, token: str | None = None) -> None:
     app = ws.app
     manager, settings = app.state.manager, app.state.settings
+    connections: dict[str, _Connection] = app.state.connections
     await ws.accept()
     try:
         session = manager.authorize(session_id, token)
@@ -69,10 +93,17 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         return await _refuse(ws, proto.ProtocolError("unauthorized", str(exc)))
     if not isinstance(session, Session):
         return await _refuse(ws, proto.ProtocolError("unauthorized", "this session is closed"))
-    if session_id in app.state.connections:
-        await ws.close(code=proto.CLOSE_CODES["session_in_use"], reason="session_in_use")
-        return
-    app.state.connections.add(session_id)
+    # The newest socket wins: a phone whose Wi-Fi dropped silently comes back on a new socket
+    # while the server still holds the old one (until idle_timeout_s), and the token proves it
+    # is the owner. The old socket is told why, so that a second tab stops instead of fighting.
+    while (previous := connections.get(session_id)) is not None:
+        previous.end("session_taken_over")
+        try:
+            await asyncio.wait_for(previous.released.wait(), _RELEASE_WAIT_S)
+        except asyncio.TimeoutError:
+            await ws.close(code=proto.CLOSE_CODES["session_in_use"], reason="session_in_use")
+            return
+    connection = connections[session_id] = _Connection()
     loop = asyncio.get_running_loop()
     outbox = _Outbox()
 
@@ -81,13 +112,30 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
 
     sender = asyncio.create_task(_send_updates(ws, outbox, settings.preview_points))
     try:
-        await _receive(ws, session, deliver, settings.max_message_bytes, outbox)
+        await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection)
     except WebSocketDisconnect:
         pass
     finally:
         session.on_update = None
-        app.state.connections.discard(session_id)
+        del connections[session_id]
+        connection.released.set()
         sender.cancel()
+    if connection.ending.is_set():
+        reason = connection.reason
+        await _refuse(ws, proto.ProtocolError(reason, _END_MESSAGES[reason]))
+
+
+async def end_all_connections(app, reason: str = "server_shutdown") -> None:
+    """Tell every session's socket why it ends and close it with the documented code (the server
+    is stopping); returns once all have let go of their sessions, or after a few seconds."""
+    connections: dict[str, _Connection] = app.state.connections
+    waiting = list(connections.values())
+    for connection in waiting:
+        connection.end(reason)
+    if waiting:
+        await asyncio.wait([asyncio.ensure_future(c.released.wait()) for c in waiting],
+                           timeout=_RELEASE_WAIT_S)
+        await asyncio.sleep(0.1)  # let the handlers send their error and close frames
 
 
 class _Outbox:
@@ -195,52 +243,62 @@ def _drone_state(s: DroneUpdate) -> dict:
 
 
 async def _receive(
-    ws: WebSocket, session: Session, deliver, max_bytes: int, outbox: _Outbox
+    ws: WebSocket, session: Session, deliver, max_bytes: int, outbox: _Outbox,
+    connection: _Connection,
 ) -> None:
+    """Handle the client's messages until it leaves, is closed, or ``connection`` is ended."""
     order = proto.ClientOrder()
     errors_in_a_row = 0
-    limit = proto.LIMITS["max_consecutive_errors"]
-    while True:
-        try:
-            received = await asyncio.wait_for(ws.receive(), proto.LIMITS["idle_timeout_s"])
-        except asyncio.TimeoutError:
-            await ws.close(code=proto.CLOSE_CODES["idle_timeout"], reason="idle_timeout")
-            return
-        if received["type"] == "websocket.disconnect":
-            return
-        data = received.get("bytes")
-        if data is None:
-            data = (received.get("text") or "").encode()  # text frames are not msgpack: refused
-        try:
-            message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes)
-            order.check(message)
-            await _handle(ws, session, message, order, deliver)
-            errors_in_a_row = 0
-        except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
-            error = proto.make_error(
-                exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
-            )
-            await _send(ws, error)
-        except SessionError as exc:
-            error = proto.ProtocolError(
-                _SESSION_CODES.get(exc.code, "internal_error"), str(exc), seq=_seq(data)
-            )
-            errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
-        except proto.ProtocolError as exc:
-            errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
-        except (WebSocketDisconnect, OSError):
-            raise
-        except Exception:  # a bug on one message: say so with a documented code, keep going
-            log.exception("session %s: failed on a client message", session.id)
-            error = proto.ProtocolError(
-                "internal_error", "the server failed on this message", seq=_seq(data)
-            )
-            errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
-        if errors_in_a_row < 0:
-            return
-        if order.closed:
-            await _close_after_answers(ws, session, outbox)
-            return
+    limit, idle_s = proto.LIMITS["max_consecutive_errors"], proto.LIMITS["idle_timeout_s"]
+    ending = asyncio.ensure_future(connection.ending.wait())
+    try:
+        while True:
+            receiving = asyncio.ensure_future(ws.receive())
+            done, _ = await asyncio.wait({receiving, ending}, timeout=idle_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if receiving not in done:
+                receiving.cancel()
+                if ending not in done:
+                    await ws.close(code=proto.CLOSE_CODES["idle_timeout"], reason="idle_timeout")
+                return
+            received = receiving.result()
+            if received["type"] == "websocket.disconnect":
+                return
+            data = received.get("bytes")
+            if data is None:
+                data = (received.get("text") or "").encode()  # text frames are not msgpack
+            try:
+                message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes)
+                order.check(message)
+                await _handle(ws, session, message, order, deliver)
+                errors_in_a_row = 0
+            except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
+                error = proto.make_error(
+                    exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
+                )
+                await _send(ws, error)
+            except SessionError as exc:
+                error = proto.ProtocolError(
+                    _SESSION_CODES.get(exc.code, "internal_error"), str(exc), seq=_seq(data)
+                )
+                errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
+            except proto.ProtocolError as exc:
+                errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
+            except (WebSocketDisconnect, OSError):
+                raise
+            except Exception:  # a bug on one message: say so with a documented code, keep going
+                log.exception("session %s: failed on a client message", session.id)
+                error = proto.ProtocolError(
+                    "internal_error", "the server failed on this message", seq=_seq(data)
+                )
+                errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
+            if errors_in_a_row < 0:
+                return
+            if order.closed:
+                await _close_after_answers(ws, session, outbox)
+                return
+    finally:
+        ending.cancel()
 
 
 def _seq(data: bytes) -> int | None:

@@ -1,0 +1,94 @@
+"""The server process's memory: which malloc it runs on, and giving a closed session's memory back.
+
+A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer to
+one another, so reference counting never frees them: they wait for Python's oldest-generation
+collection, which runs rarely when a few objects hold hundreds of MB of native arrays. In the
+soak, RSS grew by the size of every closed session until :func:`release_session_memory` started
+collecting them right after the close.
+
+Every live session runs its own tracking, mapping and flight threads, and each frees tens of MB
+of images, point clouds and TSDF blocks a second. glibc's malloc gives each of those threads an
+arena and rarely returns a fragmented arena's pages: in a soak (``benchmarks/soak.py``, 2 phones,
+a new session every minute) the server's RSS grew by about 500 MB a minute although every closed
+session was freed. jemalloc returns the pages and kept the same soak flat, so ``serve`` restarts
+itself on it (``LD_PRELOAD``) when Debian's ``libjemalloc2`` is installed. That has to happen
+before the interpreter starts: the allocator cannot be swapped in a running process.
+
+Without jemalloc, glibc's ``malloc_trim`` after each closed session gives back what it can.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import logging
+import os
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+# Where Debian and Docker's python images install libjemalloc2.
+_JEMALLOC_CANDIDATES = (
+    "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
+    "/usr/lib/aarch64-linux-gnu/libjemalloc.so.2",
+    "/usr/lib/libjemalloc.so.2",
+)
+
+
+def find_jemalloc() -> Path | None:
+    """The jemalloc shared library on this machine, or None."""
+    for candidate in _JEMALLOC_CANDIDATES:
+        if Path(candidate).is_file():
+            return Path(candidate)
+    name = ctypes.util.find_library("jemalloc")
+    if name:
+        for folder in ("/usr/lib", "/usr/local/lib", "/lib"):
+            for found in Path(folder).rglob(name):
+                return found
+    return None
+
+
+def loaded_allocator(pid: int | str = "self") -> str:
+    """``"jemalloc"`` when a process has jemalloc mapped, else ``"glibc"`` (Linux /proc)."""
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return "unknown"
+    return "jemalloc" if "libjemalloc" in maps else "glibc"
+
+
+def restart_on_jemalloc() -> None:
+    """Replace this process with the same command preloading jemalloc, when it is installed and
+    not loaded yet; return when it cannot (then the process goes on with glibc's malloc).
+
+    Call it first thing in a long-running command, before any thread starts: ``execve`` keeps the
+    pid, the arguments and the environment, so supervisors and signals see the same process."""
+    if loaded_allocator() == "jemalloc":
+        return
+    library = find_jemalloc()
+    if library is None:
+        log.warning("jemalloc is not installed (Debian: libjemalloc2): running on glibc's malloc, "
+                    "whose memory can grow with many sessions over hours")
+        return
+    preload = os.environ.get("LD_PRELOAD", "")
+    if str(library) in preload.split():
+        return  # asked for already but not loaded (e.g. refused by the loader): don't loop
+    env = {**os.environ, "LD_PRELOAD": f"{library} {preload}".strip()}
+    argv = list(getattr(sys, "orig_argv", sys.argv))
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(sys.executable, [sys.executable, *argv[1:]], env)
+
+
+def release_session_memory() -> None:
+    """Free what closed sessions left in reference cycles, then ask glibc's malloc to return
+    free pages to the system (jemalloc returns them by itself). Tens of ms: once per close."""
+    gc.collect()
+    if loaded_allocator() != "glibc":
+        return
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass

@@ -1,0 +1,62 @@
+"""The server's memory over many sessions: a closed session is freed as it closes, and ``serve``
+runs on jemalloc, which returns freed pages (the soak, ``benchmarks/soak.py``, is the long
+check)."""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import time
+import weakref
+
+import httpx
+import pytest
+from conftest import missing
+
+from server.client.replay import replay
+from server.client.server_process import ServerProcess
+from server.datasets import open_dataset
+from server.memory import find_jemalloc, loaded_allocator
+
+
+@pytest.fixture
+def no_automatic_gc():
+    """Python's own cyclic collections run at random moments; off, only the server's count."""
+    gc.collect()
+    gc.disable()
+    yield
+    gc.enable()
+
+
+def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_data,
+                                                         no_automatic_gc):
+    server = live_server(session_ttl_s=1.0)
+    sid, token = server.create_session()
+    session = weakref.ref(server.app.state.manager._live[sid])
+    room = open_dataset(shared_data / "synthetic_room0")
+    stats = asyncio.run(replay(f"{server.ws_url}/ws/sessions/{sid}", token, room, fps=30,
+                               max_frames=20, drop_when_busy=False))
+    assert len(stats.poses) == 20
+    assert session() is not None and session().flight is not None  # threads, drone, map: cycles
+    deadline = time.monotonic() + 30
+    while httpx.get(f"{server.url}/healthz").json()["live_sessions"]:
+        assert time.monotonic() < deadline, "the session was not closed after its TTL"
+        time.sleep(0.1)
+    time.sleep(0.2)  # the reaper thread returns after the close
+    assert session() is None, "a closed session stays in memory until Python's next full GC"
+
+
+def test_serve_runs_on_jemalloc_when_installed_and_on_glibc_when_told(tmp_path):
+    if find_jemalloc() is None:
+        missing("libjemalloc2 is not installed (scripts/setup.sh installs it)")
+    jemalloc = ServerProcess(tmp_path / "a", log=tmp_path / "a.log")
+    try:
+        assert httpx.get(f"{jemalloc.url}/healthz").json()["allocator"] == "jemalloc"
+        assert loaded_allocator(jemalloc.pid) == "jemalloc"  # the same pid: exec, not a child
+    finally:
+        jemalloc.stop()
+    system = ServerProcess(tmp_path / "b", {"DRONESIM_ALLOCATOR": "system"}, log=tmp_path / "b.log")
+    try:
+        assert httpx.get(f"{system.url}/healthz").json()["allocator"] == "glibc"
+    finally:
+        system.stop()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 import signal
 import time
 from pathlib import Path
@@ -154,6 +155,8 @@ def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
     asyncio.run(stream_then_kill())
     received = stream.matrices()
     (folder / ".map.npz.k1ll3d.npz").write_bytes(b"PK\x03\x04 half a zip")  # a write cut short
+    (folder / ".snapshot").mkdir(exist_ok=True)  # a snapshot staged, never committed
+    (folder / ".snapshot" / "trajectory.tum").write_text("# newer than the committed one\n")
 
     again = server_process(data_dir)
     saved = assert_session_files_whole(folder)
@@ -277,6 +280,29 @@ def test_a_phone_back_from_a_silent_wifi_drop_takes_its_session_over_at_once(liv
                                atol=1e-6)
 
 
+def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server, room):
+    server = live_server()
+    sid, token = server.create_session()
+    phone = Stream(server.ws_url, sid, token, room)
+
+    async def stream_then_delete():
+        await phone.open()
+        await phone.send_range(range(5))
+        deleted = await asyncio.to_thread(
+            httpx.delete, f"{server.url}/api/sessions/{sid}", headers=auth(token), timeout=60)
+        told = [P.decode(m) async for m in _until_closed(phone.ws)]
+        return deleted.status_code, told, phone.ws.close_code
+
+    code, told, close_code = asyncio.run(stream_then_delete())
+    assert code == 204
+    errors = [m for m in told if m["type"] == "error"]
+    assert [(e["name"], e["message"]) for e in errors] == [
+        ("unauthorized", "this session was deleted")]
+    assert close_code == P.CLOSE_CODES["unauthorized"]
+    assert httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).status_code == 404
+    assert not (server.settings.data_dir / "sessions" / sid).exists()
+
+
 async def _until_closed(ws):
     """What the server still sent on a socket, up to its close."""
     try:
@@ -321,6 +347,42 @@ def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_serv
     assert code == P.CLOSE_CODES["unauthorized"]
     ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
     assert ply.status_code == 200 and ply.content.startswith(b"ply")
+
+
+def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(
+        live_server, room):
+    """The disk refuses the map (here a folder sits where map.npz must go; for root, who ignores
+    permissions, the closest to a full disk). Closing after the TTL must not drop the session:
+    it stays live, closed to frames, downloadable from memory, says why, and is saved as soon
+    as the disk takes it."""
+    server = live_server(session_ttl_s=1.0)
+    sid, token = server.create_session()
+    folder = server.settings.data_dir / "sessions" / sid
+    (folder / "map.npz" / "in-the-way").mkdir(parents=True)
+
+    async def stream_and_vanish():
+        stream = Stream(server.ws_url, sid, token, room)
+        await stream.open()
+        await stream.send_range(range(12))
+        stream.abort()
+
+    asyncio.run(stream_and_vanish())
+    time.sleep(3.0)  # the TTL has passed and the close has been tried several times
+    assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 1
+    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    assert status["closed"] is True and status["frames_processed"] == 12
+    assert "IsADirectoryError" in status["snapshot_error"]
+    ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert ply.status_code == 200 and ply.content.startswith(b"ply")  # from memory
+
+    shutil.rmtree(folder / "map.npz")  # the disk is back
+    deadline = time.monotonic() + 30
+    while httpx.get(f"{server.url}/healthz").json()["live_sessions"]:
+        assert time.monotonic() < deadline, "the session was never saved"
+        time.sleep(0.1)
+    saved = assert_session_files_whole(folder)
+    assert len(saved["trajectory"]) == 12 and saved["meta"]["closed"] is True
+    assert saved["meta"]["status"]["snapshot_error"] is None
 
 
 # ---- the camera sees nothing trackable ---------------------------------------------------------

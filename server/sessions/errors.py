@@ -1,4 +1,4 @@
-"""Errors a session raises for its client."""
+"""Errors of sessions: for their clients, and for the server that saves them."""
 
 from __future__ import annotations
 
@@ -11,3 +11,8 @@ class SessionError(DroneSimError):
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
+
+
+class SnapshotError(DroneSimError):
+    """A session's map or trajectory could not be written (disk full or gone); the previous
+    snapshot on disk is whole and the session still holds everything in memory."""

@@ -9,6 +9,7 @@ import threading
 import time
 
 from server.memory import release_session_memory
+from server.sessions.errors import SnapshotError
 from server.sessions.session import Session, SessionConfig, SessionError, hash_token
 from server.sessions.store import SessionStore, StoreError
 
@@ -78,8 +79,9 @@ class SessionManager:
             return found
         raise SessionError("not_found", "no session with this id for this token")
 
-    def close(self, session_id: str) -> None:
-        """Stop a live session and keep its map and trajectory on disk.
+    def close(self, session_id: str) -> bool:
+        """Stop a live session and keep its map and trajectory on disk; False when it could not
+        be saved (it then stays in memory, closed to frames, and a later close tries again).
 
         While it stops and saves (seconds for a large map) it stays reachable with its token,
         marked closed, so that its owner never sees it vanish; a session deleted meanwhile
@@ -87,21 +89,28 @@ class SessionManager:
         with self._lock:
             session = self._live.get(session_id)
             if session is None or session_id in self._closing:
-                return
+                return False
             self._closing.add(session_id)
             session.closed = True  # a hello now gets "closed"; frames no longer arrive
+        saved = False
         try:
             session.stop(save=True)
+            saved = True
+        except SnapshotError as exc:
+            log.error("%s: the session stays in memory, closed to frames; retrying later", exc)
         finally:
             with self._lock:
                 self._closing.discard(session_id)
-                deleted = self._live.pop(session_id, None) is None
-                if not deleted:
+                deleted = session_id not in self._live
+                if saved and not deleted:
+                    del self._live[session_id]
                     self._saved[session_id] = session.meta()
         if deleted:
             self.store.delete(session_id)  # the final snapshot wrote after the delete
-        del session
-        release_session_memory()
+        if saved or deleted:
+            del session
+            release_session_memory()
+        return saved
 
     def delete(self, session_id: str) -> None:
         """Stop a session if live and remove all its data."""
@@ -115,20 +124,22 @@ class SessionManager:
         self.store.delete(session_id)
 
     def reap(self, ttl_s: float, connected: set[str]) -> list[str]:
-        """Close live sessions with no connection and no frame for ``ttl_s`` seconds."""
+        """Close live sessions with no connection and no frame for ``ttl_s`` seconds (and retry
+        those whose save failed). Returns the ids closed and saved."""
         now = time.monotonic()
         with self._lock:
             idle = [sid for sid, s in self._live.items()
-                    if sid not in connected and now - s.last_seen > ttl_s]
+                    if sid not in connected and (s.closed or now - s.last_seen > ttl_s)]
+        closed = []
         for sid in idle:
             log.info("session %s idle for %.0f s: closing", sid, ttl_s)
-            self.close(sid)
-        return idle
+            if self.close(sid):
+                closed.append(sid)
+        return closed
 
-    def shutdown(self) -> None:
-        """Close every live session, saving each."""
-        for sid in list(self._live):
-            self.close(sid)
+    def shutdown(self) -> list[str]:
+        """Close every live session, saving each; returns the ids that could not be saved."""
+        return [sid for sid in list(self._live) if not self.close(sid)]
 
     # ------------------------------------------------------------------ queries
     @property

@@ -25,7 +25,7 @@ from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
-from server.sessions.errors import SessionError
+from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
 from server.sessions.store import SessionStore
 from server.simulation.config import SimulationConfig
@@ -155,6 +155,7 @@ class Session:
         self._worker: threading.Thread | None = None
         self._dirty = False
         self._last_snapshot = time.monotonic()
+        self.snapshot_error: str | None = None  # why the latest snapshot failed, if it did
 
     # ------------------------------------------------------------------ access
     def check_token(self, token: str | None) -> bool:
@@ -339,7 +340,10 @@ class Session:
             except queue.Empty:
                 job = False
             if self._snapshot_due():
-                self.snapshot()
+                try:
+                    self.snapshot()
+                except SnapshotError as exc:
+                    log.error("%s; the previous one stays whole and the map stays in memory", exc)
             if job is None:
                 return
             if job is False:
@@ -395,23 +399,39 @@ class Session:
                 "map": self.map.stats(),
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
                 "drone": None if self.flight is None else self.flight.summary(),
+                "snapshot_error": self.snapshot_error,
             }
 
     def snapshot(self) -> None:
-        """Write map and trajectory atomically; a crash leaves the previous snapshot whole."""
-        folder = self.store.folder(self.id)
-        folder.mkdir(parents=True, exist_ok=True)
+        """Write map, trajectory and meta as one snapshot: staged beside the previous one, then
+        renamed into place (``SessionStore.commit``), so a crash leaves a whole snapshot.
+
+        Raises SnapshotError when the disk refuses (full, gone): the previous snapshot stays
+        whole, everything stays in memory, and ``snapshot_error`` (in the status) says why until
+        a later snapshot succeeds."""
         with self._lock:
             self._dirty = False
-        write_tum(self.store.file(self.id, "trajectory.tum"), self.trajectory())
-        if self.map.stats()["frames_integrated"] > 0:
-            self.map.save(self.store.file(self.id, "map.npz"))
-            try:
-                self.map.write_point_cloud_ply(self.store.file(self.id, "map.ply"))
-            except MapError:  # too few observations for a surface yet
-                log.info("session %s: no map surface to write yet", self.id)
-        self.store.write_meta(self.id, self.meta())
-        self._last_snapshot = time.monotonic()
+        try:
+            staging = self.store.staging(self.id)
+            write_tum(staging / "trajectory.tum", self.trajectory())
+            names = ["trajectory.tum"]
+            if self.map.stats()["frames_integrated"] > 0:
+                self.map.save(staging / "map.npz")
+                names.append("map.npz")
+                try:
+                    self.map.write_point_cloud_ply(staging / "map.ply")
+                    names.append("map.ply")
+                except MapError:  # too few observations for a surface yet
+                    log.info("session %s: no map surface to write yet", self.id)
+            self.snapshot_error = None
+            self.store.commit(self.id, names, self.meta())
+        except (OSError, MapError) as exc:  # MapError: Open3D refused to write
+            with self._lock:
+                self._dirty = True
+            self.snapshot_error = f"{type(exc).__name__}: {exc}"
+            raise SnapshotError(f"session {self.id}: snapshot failed ({exc})") from exc
+        finally:
+            self._last_snapshot = time.monotonic()  # a failed one is retried after the interval
 
     def meta(self) -> dict:
         return {

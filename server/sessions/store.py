@@ -17,6 +17,7 @@ from server.errors import DroneSimError
 
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
 FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json")
+STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
 
 
 class StoreError(DroneSimError):
@@ -56,6 +57,25 @@ class SessionStore:
             self.folder(session_id) / "meta.json", json.dumps(meta, indent=2).encode()
         )
 
+    def staging(self, session_id: str) -> Path:
+        """A folder to write a whole snapshot into; :meth:`commit` moves it into place."""
+        path = self.folder(session_id) / STAGING
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    def commit(self, session_id: str, names: list[str], meta: dict) -> None:
+        """Move the staged files ``names`` into place, then write ``meta``. Writing a large map
+        takes a second; the renames take microseconds, so a crash leaves the previous snapshot or
+        the new one (at worst a mix of whole files), and the meta, written last, never counts
+        fewer frames than the trajectory beside it holds."""
+        staging, folder = self.folder(session_id) / STAGING, self.folder(session_id)
+        for name in names:
+            if name not in FILES:
+                raise StoreError(f"unknown session file {name!r}")
+            os.replace(staging / name, folder / name)
+        self.write_meta(session_id, meta)
+        shutil.rmtree(staging, ignore_errors=True)  # leaves the folder as a reader expects it
+
     def read_meta(self, session_id: str) -> dict:
         path = self.folder(session_id) / "meta.json"
         try:
@@ -77,8 +97,9 @@ class SessionStore:
         )
 
     def remove_partial_files(self, session_id: str) -> list[str]:
-        """Delete temp files that a write cut short by a crash left beside the session's files
-        (the files themselves are whole: each was renamed into place). Call only while the
+        """Delete temp files that a write cut short by a crash left beside the session's files,
+        and a snapshot staged but not committed (the files themselves are whole: each was
+        renamed into place). Call only while the
         session is not live. Returns the names removed."""
         prefixes = tuple(f".{name}." for name in FILES)  # as the atomic writers name them
         partial = [
@@ -88,6 +109,10 @@ class SessionStore:
         ]
         for path in partial:
             path.unlink(missing_ok=True)
+        staged = self.folder(session_id) / STAGING  # a snapshot that never reached its commit
+        if staged.is_dir():
+            shutil.rmtree(staged, ignore_errors=True)
+            partial.append(staged)
         return [p.name for p in partial]
 
     def delete(self, session_id: str) -> None:

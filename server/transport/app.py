@@ -66,7 +66,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             for task in (reaper, demo):
                 if task is not None:
                     task.cancel()
-            await asyncio.to_thread(manager.shutdown)
+            unsaved = await asyncio.to_thread(manager.shutdown)
+            if unsaved:
+                log.critical("could not save sessions %s at shutdown (see the errors above): "
+                             "their maps since the last snapshot are lost", ", ".join(unsaved))
 
     app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
     app.state.settings = settings
@@ -128,7 +131,11 @@ async def _reap(app: FastAPI) -> None:
     settings, manager = app.state.settings, app.state.manager
     while True:
         await asyncio.sleep(min(10.0, settings.session_ttl_s / 4))
-        await asyncio.to_thread(manager.reap, settings.session_ttl_s, set(app.state.connections))
+        try:
+            await asyncio.to_thread(manager.reap, settings.session_ttl_s,
+                                    set(app.state.connections))
+        except Exception:  # one session's failure must not end the reaping of all others
+            log.exception("reaping idle sessions failed; trying again")
 
 
 def make_server(settings: Settings, app: FastAPI | None = None, **uvicorn_options) -> Server:
@@ -148,5 +155,5 @@ class Server(uvicorn.Server):
     async def shutdown(self, sockets=None) -> None:
         app = self.config.app
         if hasattr(app, "state"):
-            await websocket.end_all_connections(app, "server_shutdown")
+            await websocket.end_all_connections(app)
         await super().shutdown(sockets)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import tempfile
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from server.evaluation.trajectory import write_tum
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import Session
 from server.transport.deps import ManagerDep, SessionDep, creation_allowed
+from server.transport.websocket import end_connection
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
@@ -42,9 +44,12 @@ def session_status(session: SessionDep) -> dict:
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete_session(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
-    """Stop the session and delete its map and trajectory."""
-    manager.delete(session_id)
+async def delete_session(request: Request, session_id: str, session: SessionDep,
+                         manager: ManagerDep) -> Response:
+    """Stop the session and delete its map and trajectory; its open WebSocket, if any, is told
+    (``unauthorized``) and closed."""
+    await asyncio.to_thread(manager.delete, session_id)
+    end_connection(request.app, session_id, "unauthorized", "this session was deleted")
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

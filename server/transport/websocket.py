@@ -65,19 +65,22 @@ class _Connection:
     and wait until it has let go of the session (``released``)."""
 
     ending: asyncio.Event = field(default_factory=asyncio.Event)
-    reason: str = ""  # the close code's name: session_taken_over or server_shutdown
+    why: proto.ProtocolError | None = None  # what the client is told, then closed with
     released: asyncio.Event = field(default_factory=asyncio.Event)
 
-    def end(self, reason: str) -> None:
-        self.reason = self.reason or reason
+    def end(self, code: str, message: str) -> None:
+        """Event-loop thread only. The first reason given is the one the client hears."""
+        self.why = self.why or proto.ProtocolError(code, message)
         self.ending.set()
 
 
-_END_MESSAGES = {
-    "session_taken_over": "a newer connection with this session's token took the session over",
-    "server_shutdown": "the server is stopping; this session is saved and closed, its map and "
-                       "trajectory stay downloadable with its token",
-}
+def end_connection(app, session_id: str, code: str, message: str) -> None:
+    """End a session's open socket, if it has one, with a fatal protocol error (event loop)."""
+    connection = app.state.connections.get(session_id)
+    if connection is not None:
+        connection.end(code, message)
+
+
 _RELEASE_WAIT_S = 5.0  # for the previous socket of a session to let go
 
 
@@ -97,7 +100,8 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
     # while the server still holds the old one (until idle_timeout_s), and the token proves it
     # is the owner. The old socket is told why, so that a second tab stops instead of fighting.
     while (previous := connections.get(session_id)) is not None:
-        previous.end("session_taken_over")
+        previous.end("session_taken_over",
+                     "a newer connection with this session's token took the session over")
         try:
             await asyncio.wait_for(previous.released.wait(), _RELEASE_WAIT_S)
         except asyncio.TimeoutError:
@@ -120,18 +124,18 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         del connections[session_id]
         connection.released.set()
         sender.cancel()
-    if connection.ending.is_set():
-        reason = connection.reason
-        await _refuse(ws, proto.ProtocolError(reason, _END_MESSAGES[reason]))
+    if connection.why is not None:
+        await _refuse(ws, connection.why)
 
 
-async def end_all_connections(app, reason: str = "server_shutdown") -> None:
-    """Tell every session's socket why it ends and close it with the documented code (the server
-    is stopping); returns once all have let go of their sessions, or after a few seconds."""
+async def end_all_connections(app) -> None:
+    """Tell every session's socket that the server is stopping and close it with the documented
+    code; returns once all have let go of their sessions, or after a few seconds."""
     connections: dict[str, _Connection] = app.state.connections
     waiting = list(connections.values())
     for connection in waiting:
-        connection.end(reason)
+        connection.end("server_shutdown", "the server is stopping; this session is saved and "
+                       "closed, its map and trajectory stay downloadable with its token")
     if waiting:
         await asyncio.wait([asyncio.ensure_future(c.released.wait()) for c in waiting],
                            timeout=_RELEASE_WAIT_S)

@@ -68,13 +68,16 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=None, help="frames per run (default: all)")
     parser.add_argument("--fps", type=float, nargs="+", default=[30.0, 15.0])
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    parser.add_argument("--server-env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="server settings, e.g. DRONESIM_ALLOCATOR=system")
     args = parser.parse_args()
 
     dataset = open_dataset(args.sequence)
     frames = len(dataset) if args.frames is None else min(args.frames, len(dataset))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        server = ServerProcess(Path(tmp))
+        server = ServerProcess(Path(tmp), dict(item.split("=", 1) for item in args.server_env))
+        allocator = server.health()["allocator"]
         try:
             for fps in args.fps:
                 console.print(f"replaying {frames} frames of {dataset.name} at {fps:g} fps ...")
@@ -127,7 +130,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     header = (
         f"\n## {dataset.name}, {datetime.datetime.now():%Y-%m-%d %H:%M}\n\n"
-        f"machine: {platform.platform()}, {os.cpu_count()} cores; command: "
+        f"machine: {platform.platform()}, {os.cpu_count()} cores; server on {allocator}; command: "
         f"`python {' '.join(sys.argv)}`\n\n"
     )
     with open(args.out / "server_latency.md", "a") as f:

@@ -1,20 +1,19 @@
 """The server process's memory: which malloc it runs on, and giving a closed session's memory back.
 
-A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer to
-one another, so reference counting never frees them: they wait for Python's oldest-generation
-collection, which runs rarely when a few objects hold hundreds of MB of native arrays. In the
-soak, RSS grew by the size of every closed session until :func:`release_session_memory` started
-collecting them right after the close.
+Two causes made a long-running server grow (``benchmarks/soak.py``: +488 MB/min with 2 phones and
+a new session every minute, although every session was closed on time):
 
-Every live session runs its own tracking, mapping and flight threads, and each frees tens of MB
-of images, point clouds and TSDF blocks a second. glibc's malloc gives each of those threads an
-arena and rarely returns a fragmented arena's pages: in a soak (``benchmarks/soak.py``, 2 phones,
-a new session every minute) the server's RSS grew by about 500 MB a minute although every closed
-session was freed. jemalloc returns the pages and kept the same soak flat, so ``serve`` restarts
-itself on it (``LD_PRELOAD``) when Debian's ``libjemalloc2`` is installed. That has to happen
-before the interpreter starts: the allocator cannot be swapped in a running process.
-
-Without jemalloc, glibc's ``malloc_trim`` after each closed session gives back what it can.
+- A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer
+  to one another, so reference counting never frees them: they wait for Python's full
+  collection, which runs rarely when a few objects hold hundreds of MB of native arrays.
+  :func:`release_session_memory` collects right after each close.
+- Each session's tracking, mapping and flight threads free tens of MB of images, point clouds and
+  TSDF blocks a second, and glibc's malloc keeps a fragmented per-thread arena's pages: with the
+  collection alone, the level RSS fell back to after each generation of sessions still rose
+  (624, 778, 991 MB); on jemalloc it stayed put (429, 522, 460, 518 MB). So ``serve`` restarts
+  itself on jemalloc (``LD_PRELOAD``) when Debian's ``libjemalloc2`` is installed: the allocator
+  must be chosen before the interpreter starts. Without it, glibc's ``malloc_trim`` after each
+  close gives back what it can.
 """
 
 from __future__ import annotations
@@ -37,17 +36,13 @@ _JEMALLOC_CANDIDATES = (
 )
 
 
-def find_jemalloc() -> Path | None:
-    """The jemalloc shared library on this machine, or None."""
+def find_jemalloc() -> str | None:
+    """The jemalloc shared library on this machine (a path, or a name the dynamic loader finds
+    in its own folders), or None."""
     for candidate in _JEMALLOC_CANDIDATES:
         if Path(candidate).is_file():
-            return Path(candidate)
-    name = ctypes.util.find_library("jemalloc")
-    if name:
-        for folder in ("/usr/lib", "/usr/local/lib", "/lib"):
-            for found in Path(folder).rglob(name):
-                return found
-    return None
+            return candidate
+    return ctypes.util.find_library("jemalloc")
 
 
 def loaded_allocator(pid: int | str = "self") -> str:
@@ -73,7 +68,7 @@ def restart_on_jemalloc() -> None:
                     "whose memory can grow with many sessions over hours")
         return
     preload = os.environ.get("LD_PRELOAD", "")
-    if str(library) in preload.split():
+    if library in preload.split():
         return  # asked for already but not loaded (e.g. refused by the loader): don't loop
     env = {**os.environ, "LD_PRELOAD": f"{library} {preload}".strip()}
     argv = list(getattr(sys, "orig_argv", sys.argv))

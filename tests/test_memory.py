@@ -51,12 +51,12 @@ def test_serve_runs_on_jemalloc_when_installed_and_on_glibc_when_told(tmp_path):
         missing("libjemalloc2 is not installed (scripts/setup.sh installs it)")
     jemalloc = ServerProcess(tmp_path / "a", log=tmp_path / "a.log")
     try:
-        assert httpx.get(f"{jemalloc.url}/healthz").json()["allocator"] == "jemalloc"
+        assert jemalloc.health()["allocator"] == "jemalloc"
         assert loaded_allocator(jemalloc.pid) == "jemalloc"  # the same pid: exec, not a child
     finally:
         jemalloc.stop()
     system = ServerProcess(tmp_path / "b", {"DRONESIM_ALLOCATOR": "system"}, log=tmp_path / "b.log")
     try:
-        assert httpx.get(f"{system.url}/healthz").json()["allocator"] == "glibc"
+        assert system.health()["allocator"] == "glibc"
     finally:
         system.stop()

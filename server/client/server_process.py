@@ -73,6 +73,11 @@ class ServerProcess:
     def rss_mb(self) -> float:
         return rss_mb(self.pid)
 
+    def health(self) -> dict:
+        """GET /healthz: live and saved sessions, the allocator."""
+        with urllib.request.urlopen(f"{self.url}/healthz", timeout=30) as r:
+            return json.loads(r.read())
+
     def create_session(self) -> tuple[str, str]:
         """POST /api/sessions -> (id, token)."""
         request = urllib.request.Request(f"{self.url}/api/sessions", method="POST")

@@ -121,7 +121,8 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         pass
     finally:
         session.on_update = None
-        del connections[session_id]
+        if connections.get(session_id) is connection:
+            del connections[session_id]
         connection.released.set()
         sender.cancel()
     if connection.why is not None:

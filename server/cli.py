@@ -125,7 +125,6 @@ def serve(
     from pydantic import ValidationError
 
     from server.settings import Settings
-    from server.transport.app import make_server
 
     flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo}
     try:
@@ -136,7 +135,9 @@ def serve(
     if settings.allocator == "jemalloc":
         from server.memory import restart_on_jemalloc
 
-        restart_on_jemalloc()  # returns only when it cannot
+        restart_on_jemalloc()  # before the heavy imports below; returns only when it cannot
+    from server.transport.app import make_server
+
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ssl = {}
     if settings.tls:

@@ -40,6 +40,7 @@ from browser import (
     start_replay,
     wait_for_approach,
 )
+from websockets.sync.client import connect
 
 from server.transport import protocol as proto
 
@@ -573,6 +574,27 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     assert s["lastPose"]["seq"] > last_seq
     assert not [e for e in s["errors"] if e["name"] == "bad_sequence"]
     page.screenshot("desktop-after-reload.png")
+
+    # Another tab or device with the token takes the session over (the newest socket wins):
+    # this page says so and stays off (reconnecting would take it back, forever), but keeps the
+    # session, so that Start takes it back.
+    saved = page.page.evaluate("JSON.parse(sessionStorage.getItem('dronesim.session'))")
+    url = f"{server.ws_url}/ws/sessions/{saved['id']}?token={saved['token']}"
+    with connect(url, max_size=None) as other:
+        other.send(proto.encode(saved["hello"]))
+        assert proto.decode(other.recv(timeout=10))["type"] == "welcome"
+        page.wait("window.dronesim.client.state === 'taken_over'", 10, "the page to let go")
+        reconnects = page.snapshot()["counts"]["reconnects"]
+        time.sleep(2.0)
+        s = page.snapshot()
+        assert s["counts"]["reconnects"] == reconnects
+        assert [e["state"] for e in s["statusLog"][-2:]] == ["open", "taken_over"]
+        assert page.page.inner_text("[data-field=connection]") == "taken over"
+        assert "took this session over" in page.page.inner_text("#banner")
+        other.ping().wait(timeout=5)  # still ours
+    page.page.click("#btn-stream")  # Start: this page takes its session back
+    page.wait("window.dronesim.client.isOpen", 20, "the page to take its session back")
+    assert page.snapshot()["session"] == session
     assert not page.errors, page.errors
 
 

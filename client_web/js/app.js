@@ -157,7 +157,11 @@ class App {
       this.hud.connection(detail.state, detail.message);
       if (detail.state === State.RECONNECTING) this.hud.showBanner(`Connection lost: ${detail.message}`, "warn", 0);
       else if (detail.state === State.OPEN) this.hud.hideBanner();
-      else if (detail.state === State.ENDED) {
+      else if (detail.state === State.TAKEN_OVER) {
+        this.stopStreaming("the session moved to another tab or device");
+        this.hud.showBanner("Another tab or device took this session over. Start takes it back.",
+          "warn", 0);
+      } else if (detail.state === State.ENDED) {
         this.stopStreaming("the session ended");
         this.hud.showBanner(`${detail.message}. Start again for a new session.`, "error", 0);
         this.client.forget();

@@ -7,9 +7,11 @@ import { SERVER_TO_CLIENT } from "./protocol.js";
 
 const STORE_KEY = "dronesim.session";
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
-// Close codes after which reconnecting cannot help: the hello or the session itself is refused,
-// or another tab or device took the session over (reconnecting would take it back, forever).
-const FINAL_CLOSES = new Set([4001, 4002, 4003, 4009]);
+// Close codes after which reconnecting cannot help: the hello or the session itself is refused.
+const FINAL_CLOSES = new Set([4001, 4002, 4003]);
+// Another tab or device took the session over: reconnecting by itself would take it back, and
+// the two would take it from each other forever. Only the user's Start takes it back.
+const TAKEN_OVER_CLOSE = 4009;
 const LATENCY_WINDOW = 30;
 
 export const State = Object.freeze({
@@ -19,6 +21,7 @@ export const State = Object.freeze({
   RECONNECTING: "reconnecting",
   PAUSED: "paused", // the server closed an idle socket: reopens on the next frame or command
   ENDED: "ended", // refused for good (bad hello, unknown or closed session)
+  TAKEN_OVER: "taken_over", // another socket with the token has the session; stays saved here
 });
 
 /** Events: "status" {state, message}, "message" (every decoded server message), and one event
@@ -199,6 +202,8 @@ export class SessionClient extends EventTarget {
     if (this.stopping) {
       this.stopping = false;
       this.#status(State.IDLE, "disconnected");
+    } else if (event.code === TAKEN_OVER_CLOSE) {
+      this.#status(State.TAKEN_OVER, "another tab or device took this session over");
     } else if (FINAL_CLOSES.has(event.code)) {
       this.#status(State.ENDED, `the server ended the session: ${reason}`);
     } else if (event.code === 4006) {
@@ -212,9 +217,10 @@ export class SessionClient extends EventTarget {
     }
   }
 
-  /** Reconnect a session that the server paused for idleness. */
+  /** Reconnect a session that the server paused for idleness, or that another tab took over
+   * (called when the user streams or flies here again: the user's act takes it back). */
   wake() {
-    if (this.state === State.PAUSED && this.saved) {
+    if ((this.state === State.PAUSED || this.state === State.TAKEN_OVER) && this.saved) {
       this.attempt = 0;
       this.#connect();
     }

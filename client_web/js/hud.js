@@ -25,7 +25,7 @@ export class Hud {
 
   connection(state, message) {
     const label = { idle: "offline", connecting: "connecting…", open: "connected", reconnecting: "reconnecting…",
-      paused: "paused", ended: "session ended" }[state] ?? state;
+      paused: "paused", ended: "session ended", taken_over: "taken over" }[state] ?? state;
     this.#set("connection", label, state);
     this.fields.connection.title = message || label;
   }

@@ -138,8 +138,10 @@ async def end_all_connections(app) -> None:
         connection.end("server_shutdown", "the server is stopping; this session is saved and "
                        "closed, its map and trajectory stay downloadable with its token")
     if waiting:
-        await asyncio.wait([asyncio.ensure_future(c.released.wait()) for c in waiting],
-                           timeout=_RELEASE_WAIT_S)
+        released = [asyncio.ensure_future(c.released.wait()) for c in waiting]
+        _, stuck = await asyncio.wait(released, timeout=_RELEASE_WAIT_S)
+        for future in stuck:
+            future.cancel()
         await asyncio.sleep(0.1)  # let the handlers send their error and close frames
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import gc
 import logging
 import os
@@ -77,13 +78,24 @@ def restart_on_jemalloc() -> None:
     os.execve(sys.executable, [sys.executable, *argv[1:]], env)
 
 
+@functools.cache
+def this_process_allocator() -> str:
+    """:func:`loaded_allocator` of this process, which cannot change once it runs."""
+    return loaded_allocator()
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
 def release_session_memory() -> None:
     """Free what closed sessions left in reference cycles, then ask glibc's malloc to return
     free pages to the system (jemalloc returns them by itself). Tens of ms: once per close."""
     gc.collect()
-    if loaded_allocator() != "glibc":
-        return
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+    trim = _malloc_trim() if this_process_allocator() == "glibc" else None
+    if trim is not None:
+        trim(0)

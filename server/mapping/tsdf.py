@@ -292,7 +292,6 @@ class TSDFMap:
             R = np.asarray(R_grid_world, dtype=np.float64)
             samples, surface, cameras = samples @ R.T, surface @ R.T, cameras @ R.T
         seen = np.floor(np.concatenate([samples, surface]) / voxel_m).astype(np.int64)
-        near = np.arange(len(seen)) >= len(samples)
         cells = np.concatenate([seen, np.floor(cameras / voxel_m).astype(np.int64)])
         if cells.size == 0:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
@@ -301,7 +300,7 @@ class TSDFMap:
         observed = np.zeros(tuple(cells.max(axis=0) + 1), dtype=bool)
         occupied = np.zeros_like(observed)
         observed[tuple(cells.T)] = True
-        occupied[tuple(cells[: len(seen)][near].T)] = True
+        occupied[tuple(cells[len(samples) : len(seen)].T)] = True  # the surface cells
         return lo * voxel_m, occupied, observed
 
     # --- files -------------------------------------------------------------------------------

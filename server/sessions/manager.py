@@ -138,8 +138,12 @@ class SessionManager:
         return closed
 
     def shutdown(self) -> list[str]:
-        """Close every live session, saving each; returns the ids that could not be saved."""
-        return [sid for sid in list(self._live) if not self.close(sid)]
+        """Close every live session, saving each; returns the ids that could not be saved (not
+        those another thread, the reaper, is still closing)."""
+        for sid in list(self._live):
+            self.close(sid)
+        with self._lock:
+            return [sid for sid in self._live if sid not in self._closing]
 
     # ------------------------------------------------------------------ queries
     @property

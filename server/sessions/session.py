@@ -7,7 +7,6 @@ the newest wins, so latency stays bounded and stale frames are dropped and count
 from __future__ import annotations
 
 import hashlib
-import hmac
 import logging
 import queue
 import threading
@@ -158,10 +157,6 @@ class Session:
         self.snapshot_error: str | None = None  # why the latest snapshot failed, if it did
 
     # ------------------------------------------------------------------ access
-    def check_token(self, token: str | None) -> bool:
-        """Constant-time comparison of a presented token with this session's."""
-        return token is not None and hmac.compare_digest(hash_token(token), self.token_hash)
-
     def configure(
         self, intrinsics: Intrinsics, client_name: str = "", gravity: np.ndarray | None = None
     ) -> None:
@@ -266,8 +261,8 @@ class Session:
                 except Exception:  # one bad frame must not end the session's worker
                     log.exception("session %s: frame %d failed", self.id, frame.seq)
                     update = None
-                if update is not None and self.on_update is not None:
-                    self.on_update(update)
+                if update is not None:
+                    self._publish(update)
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()  # for drain()
@@ -358,8 +353,8 @@ class Session:
                 continue
             with self._lock:
                 self._dirty = True
-            if len(points) and self.on_update is not None:
-                self.on_update(MapUpdate(job.seq, points, colours, self.preview.total))
+            if len(points):
+                self._publish(MapUpdate(job.seq, points, colours, self.preview.total))
             self._feed_flight_map()
 
     def _feed_flight_map(self) -> None:

@@ -57,10 +57,11 @@ class SessionStore:
             self.folder(session_id) / "meta.json", json.dumps(meta, indent=2).encode()
         )
 
-    def staging(self, session_id: str) -> Path:
+    def staging(self, session_id: str, create: bool = True) -> Path:
         """A folder to write a whole snapshot into; :meth:`commit` moves it into place."""
         path = self.folder(session_id) / STAGING
-        path.mkdir(parents=True, exist_ok=True)
+        if create:
+            path.mkdir(parents=True, exist_ok=True)
         return path
 
     def commit(self, session_id: str, names: list[str], meta: dict) -> None:
@@ -68,11 +69,9 @@ class SessionStore:
         takes a second; the renames take microseconds, so a crash leaves the previous snapshot or
         the new one (at worst a mix of whole files), and the meta, written last, never counts
         fewer frames than the trajectory beside it holds."""
-        staging, folder = self.folder(session_id) / STAGING, self.folder(session_id)
+        staging = self.staging(session_id, create=False)
         for name in names:
-            if name not in FILES:
-                raise StoreError(f"unknown session file {name!r}")
-            os.replace(staging / name, folder / name)
+            os.replace(staging / name, self.file(session_id, name))
         self.write_meta(session_id, meta)
         shutil.rmtree(staging, ignore_errors=True)  # leaves the folder as a reader expects it
 
@@ -109,7 +108,7 @@ class SessionStore:
         ]
         for path in partial:
             path.unlink(missing_ok=True)
-        staged = self.folder(session_id) / STAGING  # a snapshot that never reached its commit
+        staged = self.staging(session_id, create=False)  # a snapshot never committed
         if staged.is_dir():
             shutil.rmtree(staged, ignore_errors=True)
             partial.append(staged)

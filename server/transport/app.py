@@ -14,7 +14,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
 from server.mapping.tsdf import MapError
-from server.memory import loaded_allocator
+from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
 from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
@@ -48,7 +48,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_interval_s=settings.snapshot_interval_s,
     )
     manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions)
-    allocator = loaded_allocator()  # what operators check when memory grows
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -121,7 +120,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "status": "ok",
             "live_sessions": manager.live_count,
             "saved_sessions": manager.saved_count,
-            "allocator": allocator,
+            "allocator": this_process_allocator(),  # what operators check when memory grows
         }
 
     return app

@@ -27,6 +27,7 @@ VERSION: int = SPEC["version"]
 LIMITS: dict = SPEC["limits"]
 MESSAGES: dict = SPEC["messages"]
 ERRORS: dict[str, dict] = {e["name"]: e for e in SPEC["errors"]}
+_MAX_SEQ = next(f["max"] for f in MESSAGES["frame"]["fields"] if f["name"] == "seq")
 ERROR_NAMES: dict[int, str] = {e["code"]: e["name"] for e in SPEC["errors"]}
 CLOSE_CODES: dict[str, int] = {c["name"]: c["code"] for c in SPEC["close_codes"]}
 CLIENT_TO_SERVER = "client_to_server"
@@ -70,7 +71,10 @@ class ProtocolError(DroneSimError):
         return ERRORS[self.code]["close"]
 
     def to_message(self) -> dict:
-        return make_error(self.code, self.message, seq=self.seq)
+        """The error for the client; a seq that is itself invalid (e.g. negative) is left out,
+        as the error message could not carry it."""
+        valid = isinstance(self.seq, int) and 0 <= self.seq <= _MAX_SEQ
+        return make_error(self.code, self.message, seq=self.seq if valid else None)
 
 
 # ---- validation against protocol.json ---------------------------------------------------------

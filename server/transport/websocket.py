@@ -37,23 +37,15 @@ _SESSION_CODES = {
     "session_closed": "unauthorized",
 }
 _OUTBOX = 256  # updates waiting for a slow client; beyond this the oldest are skipped
-_MAX_SEQ = next(f["max"] for f in proto.MESSAGES["frame"]["fields"] if f["name"] == "seq")
 
 
 async def _send(ws: WebSocket, message: dict) -> None:
     await ws.send_bytes(proto.encode(message))
 
 
-def _error_message(error: proto.ProtocolError) -> dict:
-    """The error for the client; a seq that is itself invalid (e.g. negative) is left out, as the
-    error message could not carry it."""
-    seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= _MAX_SEQ else None
-    return proto.make_error(error.code, error.message, seq=seq)
-
-
 async def _refuse(ws: WebSocket, error: proto.ProtocolError) -> None:
     try:
-        await _send(ws, _error_message(error))
+        await _send(ws, error.to_message())
         await ws.close(code=error.close_code or 1000, reason=error.code)
     except (RuntimeError, OSError, WebSocketDisconnect):
         pass
@@ -286,7 +278,8 @@ async def _receive(
                 await _send(ws, error)
             except SessionError as exc:
                 error = proto.ProtocolError(
-                    _SESSION_CODES.get(exc.code, "internal_error"), str(exc), seq=_seq(data)
+                    _SESSION_CODES.get(exc.code, "internal_error"), str(exc),
+                    seq=message.get("seq"),  # decoded already: a session refused it
                 )
                 errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
             except proto.ProtocolError as exc:
@@ -321,7 +314,7 @@ async def _report(ws: WebSocket, error: proto.ProtocolError, in_a_row: int, limi
     if error.fatal:
         await _refuse(ws, error)
         return -1
-    await _send(ws, _error_message(error))
+    await _send(ws, error.to_message())
     in_a_row += 1
     if in_a_row >= limit:
         await ws.close(code=proto.CLOSE_CODES["too_many_errors"], reason="too_many_errors")

@@ -111,6 +111,8 @@ class Flight:
         self.config = config
         self.K = K
         self.R_flight_world = flight_frame(gravity_world)
+        self.T_world_flight = np.eye(4)  # constant: the state at 20 Hz needs it
+        self.T_world_flight[:3, :3] = self.R_flight_world.T
         self.publish = publish
         self.state_period_s = 1.0 / state_hz
         self.spawn_ahead_m = spawn_ahead_m
@@ -135,11 +137,6 @@ class Flight:
 
     def _to_world(self, p_flight: np.ndarray) -> np.ndarray:
         return np.asarray(p_flight, dtype=np.float64) @ self.R_flight_world
-
-    def T_world_flight(self) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = self.R_flight_world.T
-        return T
 
     # ------------------------------------------------------------------ inputs
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
@@ -202,7 +199,7 @@ class Flight:
             # The planner speaks in flight-frame coordinates; the client knows the world's.
             nearest = None if exc.nearest is None else self._to_world(exc.nearest)
             code = "bad_command" if exc.reason == "not_finite" else "unreachable_target"
-            why = _REFUSALS.get(getattr(exc.reason, "value", exc.reason), str(exc))
+            why = _REFUSALS.get(exc.reason.value, str(exc))
             message = f"target {_xyz(target_world)}: {why}"
             if nearest is not None:
                 message += f"; nearest reachable point {_xyz(nearest)}"
@@ -317,8 +314,7 @@ class Flight:
         with self._lock:
             s = self.sim.status()
         camera = self._latest_camera()
-        T_world_flight = self.T_world_flight()
-        T_world_drone = T_world_flight @ s.T_flight_drone
+        T_world_drone = self.T_world_flight @ s.T_flight_drone
         T_camera_drone = None if camera is None else invert(camera[1]) @ T_world_drone
         route = None if s.route is None or len(s.route) == 0 else self._to_world(s.route)
         return DroneUpdate(
@@ -327,7 +323,7 @@ class Flight:
             T_camera_drone=T_camera_drone,
             camera_seq=None if camera is None else camera[0],
             velocity=self._to_world(s.velocity),
-            mode=getattr(s.mode, "value", s.mode),
+            mode=s.mode.value,
             clearance=float(s.clearance),
             target=None if s.target is None else self._to_world(s.target),
             route=route,

@@ -15,7 +15,7 @@ acceleration feed-forward, or only a velocity (manual flight). ``fly_sticks`` an
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -31,32 +31,36 @@ MAX_THRUST_FRACTION = 0.95  # of the four motors' full thrust
 class ControlGains:
     """Bandwidths of the loops, 1/s."""
 
-    position: float = 1.8
-    velocity: float = 4.0
-    attitude: float = 9.0
-    yaw: float = 3.0
-    rate: float = 18.0
+    position: float
+    velocity: float
+    attitude: float
+    yaw: float
+    rate: float
 
     @classmethod
     def from_config(cls, config: SimulationConfig) -> ControlGains:
-        return cls(config.position_gain, config.velocity_gain, config.attitude_gain,
-                   config.yaw_gain, config.rate_gain)
+        """The defaults live in SimulationConfig alone (``<loop>_gain``)."""
+        return cls(**{f.name: getattr(config, f"{f.name}_gain") for f in fields(cls)})
 
 
 @dataclass(frozen=True)
 class ControlLimits:
-    max_speed_m_s: float = 3.0  # horizontal
-    max_climb_rate_m_s: float = 1.0  # vertical, both ways
-    max_accel_m_s2: float = 4.0
-    max_tilt_rad: float = math.radians(35.0)
-    max_yaw_rate_rad_s: float = math.radians(120.0)
-    brake_accel_m_s2: float = 2.0  # position errors are closed no faster than this allows
+    max_speed_m_s: float  # horizontal
+    max_climb_rate_m_s: float  # vertical, both ways
+    max_accel_m_s2: float
+    max_tilt_rad: float
+    max_yaw_rate_rad_s: float
+    brake_accel_m_s2: float  # position errors are closed no faster than this allows
 
     @classmethod
     def from_config(cls, config: SimulationConfig) -> ControlLimits:
-        return cls(config.max_speed_m_s, config.max_climb_rate_m_s, config.max_accel_m_s2,
-                   math.radians(config.max_tilt_deg), math.radians(config.max_yaw_rate_deg_s),
-                   config.route_accel_m_s2)
+        """The defaults live in SimulationConfig alone."""
+        return cls(max_speed_m_s=config.max_speed_m_s,
+                   max_climb_rate_m_s=config.max_climb_rate_m_s,
+                   max_accel_m_s2=config.max_accel_m_s2,
+                   max_tilt_rad=math.radians(config.max_tilt_deg),
+                   max_yaw_rate_rad_s=math.radians(config.max_yaw_rate_deg_s),
+                   brake_accel_m_s2=config.route_accel_m_s2)
 
 
 class Setpoint:
@@ -96,8 +100,8 @@ def _sqrt_controller(error: float, gain: float, accel: float) -> float:
 class CascadedController:
     """Turns the quadrotor's state and a setpoint into four motor thrust commands."""
 
-    def __init__(self, params: QuadrotorParams, gains: ControlGains = ControlGains(),
-                 limits: ControlLimits = ControlLimits()) -> None:
+    def __init__(self, params: QuadrotorParams, gains: ControlGains,
+                 limits: ControlLimits) -> None:
         self.params = params
         self.gains = gains
         self.limits = limits

@@ -38,7 +38,7 @@ from server.simulation.control import (
     Setpoint,
     fly_sticks,
 )
-from server.simulation.flight_map import Box, FlightMap
+from server.simulation.flight_map import FlightMap
 from server.simulation.planner import PlanningError, plan_path, route_is_clear
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
 
@@ -190,15 +190,16 @@ class DroneSimulator:
         values = np.asarray(sticks, dtype=float).reshape(-1)
         if values.shape != (4,) or not np.all(np.isfinite(values)):
             raise DroneCommandError("sticks must be 4 finite numbers [throttle, yaw, pitch, roll]")
-        values = tuple(float(v) for v in np.clip(values, -1.0, 1.0))
+        dz = self.config.stick_deadband  # applied once here, not on every physics step
+        throttle, values = float(values[0]), tuple(
+            0.0 if abs(v) <= dz else float(v) for v in np.clip(values, -1.0, 1.0))
         with self._lock:
-            if self._mode is None:
-                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._require_spawned()
             self._sticks = values
             self._sticks_at = self._time_s if now_s is None else float(now_s)
-            active = any(abs(v) > self.config.stick_deadband for v in values)
+            active = any(values)
             if self._mode == DroneMode.LANDED:
-                if values[0] <= 0.5:
+                if throttle <= 0.5:
                     return
                 self._quad.reset(self._quad.position, self._quad.yaw_rad, hovering=True)
             elif self._mode != DroneMode.MANUAL and not active:
@@ -217,8 +218,7 @@ class DroneSimulator:
     def command_land(self, command_id: int | None = None) -> None:
         """Descend straight down until touching the map, then stop the motors (``landed``)."""
         with self._lock:
-            if self._mode is None:
-                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._require_spawned()
             self._command_id = command_id
             if self._mode in (DroneMode.LANDED, DroneMode.LANDING):
                 return
@@ -233,8 +233,7 @@ class DroneSimulator:
     def command_takeoff(self, command_id: int | None = None) -> None:
         """From landed: rise up to takeoff_height_m (less where the map is lower) and hover."""
         with self._lock:
-            if self._mode is None:
-                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._require_spawned()
             if self._mode != DroneMode.LANDED:
                 raise DroneCommandError(f"takeoff needs a landed drone; it is {self._mode.value}")
             start = self._quad.position
@@ -262,8 +261,8 @@ class DroneSimulator:
             return changed
 
     def on_map_update(self, changed_box) -> None:
-        """The flight map changed inside ``changed_box`` (a flight_map.Box or a (lo, hi) pair of
-        corners, m; None: nothing changed).
+        """The flight map changed inside ``changed_box`` (the flight_map.Box that
+        ``FlightMap.update`` returns; None: nothing changed).
 
         Moves the drone out if the map grew into it; during a goto, replans when the remaining
         route is blocked (``replanned``, or ``blocked`` and hold), and at most every
@@ -278,8 +277,6 @@ class DroneSimulator:
             self._leave_obstacle()
             if self._mode != DroneMode.GOTO:
                 return
-            if not isinstance(changed_box, Box):
-                changed_box = Box(*(np.asarray(c, dtype=float) for c in changed_box))
             # The path samples lie a few centimetres apart: testing them is testing the path.
             remaining = self._tracker.remaining(self._setpoint())
             margin = self.config.replan_margin_m + self.config.planning_radius_m
@@ -325,8 +322,7 @@ class DroneSimulator:
     def status(self) -> DroneStatus:
         """The drone's state now; raises DroneCommandError before spawn."""
         with self._lock:
-            if self._mode is None:
-                raise DroneCommandError("no drone yet: it spawns with the first map")
+            self._require_spawned()
             q = self._quad
             position = q.position
             goto = self._mode == DroneMode.GOTO
@@ -483,9 +479,12 @@ class DroneSimulator:
         self._tracker = None
         self._goal = None
 
-    def _require_flying(self, what: str) -> None:
+    def _require_spawned(self) -> None:
         if self._mode is None:
             raise DroneCommandError("no drone yet: it spawns with the first map")
+
+    def _require_flying(self, what: str) -> None:
+        self._require_spawned()
         if self._mode == DroneMode.LANDED:
             raise DroneCommandError(f"{what} needs a flying drone; it is landed (take off first)")
 
@@ -519,12 +518,11 @@ class DroneSimulator:
         self._sp.hold(self._quad.position, self._quad.yaw_rad)
 
     def _current_sticks(self) -> tuple[float, float, float, float]:
-        """The latest sticks, zero where centred, all zero once stale."""
-        cfg = self.config
-        if self._time_s - self._sticks_at > cfg.stick_timeout_s:
+        """The latest sticks (zero where centred: command_sticks applies the deadband), all zero
+        once stale."""
+        if self._time_s - self._sticks_at > self.config.stick_timeout_s:
             return (0.0, 0.0, 0.0, 0.0)
-        t, y, p, r = (0.0 if abs(v) <= cfg.stick_deadband else v for v in self._sticks)
-        return t, y, p, r
+        return self._sticks
 
     # Helpers
 

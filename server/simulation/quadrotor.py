@@ -15,7 +15,7 @@ numpy on 3-vectors costs microseconds per call, this step costs a few.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -26,20 +26,20 @@ from server.simulation.config import SimulationConfig
 class QuadrotorParams:
     """Physical constants of the airframe (SI units)."""
 
-    mass_kg: float = 0.5
-    inertia_kg_m2: tuple[float, float, float] = (2.5e-3, 2.5e-3, 4.5e-3)
-    arm_length_m: float = 0.09
-    yaw_moment_m: float = 0.016  # reaction torque per newton of thrust
-    motor_time_constant_s: float = 0.03
-    max_motor_thrust_n: float = 3.5
-    drag_n_s_m: float = 0.1
-    gravity_m_s2: float = 9.81
+    mass_kg: float
+    inertia_kg_m2: tuple[float, float, float]
+    arm_length_m: float
+    yaw_moment_m: float  # reaction torque per newton of thrust
+    motor_time_constant_s: float
+    max_motor_thrust_n: float
+    drag_n_s_m: float
+    gravity_m_s2: float
 
     @classmethod
     def from_config(cls, config: SimulationConfig) -> QuadrotorParams:
-        return cls(config.mass_kg, tuple(config.inertia_kg_m2), config.arm_length_m,
-                   config.yaw_moment_m, config.motor_time_constant_s, config.max_motor_thrust_n,
-                   config.drag_n_s_m, config.gravity_m_s2)
+        """The defaults live in SimulationConfig alone."""
+        values = {f.name: getattr(config, f.name) for f in fields(cls)}
+        return cls(**values | {"inertia_kg_m2": tuple(config.inertia_kg_m2)})
 
     @property
     def hover_thrust_n(self) -> float:
@@ -195,14 +195,6 @@ class Quadrotor:
     @property
     def velocity(self) -> np.ndarray:
         return np.array([self.vx, self.vy, self.vz])
-
-    @property
-    def body_rates(self) -> np.ndarray:
-        return np.array([self.wx, self.wy, self.wz])
-
-    @property
-    def motor_thrusts(self) -> np.ndarray:
-        return np.array([self.f0, self.f1, self.f2, self.f3])
 
     @property
     def R_flight_body(self) -> np.ndarray:

@@ -18,7 +18,10 @@ import numpy as np
 import pytest
 from conftest import missing
 
-sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (dev extras)")
+try:
+    from playwright import sync_api
+except ImportError:
+    missing("pip install playwright (dev extras)")
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "test-artifacts" / "web"

@@ -16,7 +16,35 @@ def missing(reason: str) -> None:
     must run everything."""
     if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
         pytest.fail(f"required in CI: {reason}")
-    pytest.skip(reason)
+    pytest.skip(reason, allow_module_level=True)  # also for a module's missing import
+
+
+def auth(token: str) -> dict:
+    """The header that opens a session's REST resources."""
+    return {"Authorization": f"Bearer {token}"}
+
+
+def session_status(url: str, sid: str, token: str) -> dict:
+    """GET /api/sessions/{sid} with its token -> the status."""
+    import httpx
+
+    return httpx.get(f"{url}/api/sessions/{sid}", headers=auth(token)).json()
+
+
+def offline_track(ds, n: int) -> np.ndarray:
+    """Poses from the tracker run in-process on the first n frames as the wire carries them."""
+    from server.registration import Tracker
+    from server.transport import protocol as proto
+
+    tracker = Tracker(ds.intrinsics)
+    poses = []
+    for i in range(n):
+        f = ds[i]
+        msg = proto.decode(proto.encode(proto.make_frame(i, f.timestamp, f.colour, f.depth)))
+        hello = proto.make_hello("t", (1, 1, 1, 1), (f.colour.shape[1], f.colour.shape[0]))
+        colour, depth = proto.decode_frame_images(msg, hello)
+        poses.append(tracker.track(colour, depth).T_world_camera)
+    return np.array(poses)
 
 
 def random_pose(

@@ -21,7 +21,7 @@ import msgpack
 import numpy as np
 import pytest
 import websockets
-from conftest import LiveServer
+from conftest import LiveServer, auth
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -114,7 +114,7 @@ async def fresh_session(server: LiveServer):
             yield Client(ws)
     finally:
         httpx.delete(f"{server.url}/api/sessions/{sid}",
-                     headers={"Authorization": f"Bearer {token}"})
+                     headers=auth(token))
 
 
 def run(coro):

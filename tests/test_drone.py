@@ -19,7 +19,7 @@ from server.simulation.drone import (
 )
 from server.simulation.flight_map import FlightMap
 from server.simulation.planner import PlanningError
-from server.simulation.scenes import box_in_the_way, corridor, room_with_door, sealed_room
+from server.simulation.scenes import Scene, box_in_the_way, corridor, room_with_door, sealed_room
 
 CONFIG = SimulationConfig()
 R = CONFIG.radius_m
@@ -268,16 +268,9 @@ def test_an_obstacle_on_the_route_triggers_a_replan_and_the_drone_still_arrives(
     assert DroneEventKind.REPLANNED in kinds(events)
     assert drone.status().route[:, 1].max() > 2.2  # through the gap
 
-    class Scene:  # exact distance to the boxes for the helper
-        def __init__(self, boxes):
-            self.flight_map, self.boxes = flight_map, [(np.array(a), np.array(b))
-                                                       for a, b in boxes]
-
-        def true_distance(self, p):
-            return np.min([np.linalg.norm(np.maximum(np.maximum(a - p, p - b), 0), axis=1)
-                           for a, b in self.boxes], axis=0)
-
-    more, worst_map, worst_true = fly_until_arrived(drone, 20.0, Scene(walls + [obstacle]))
+    boxes = [(np.array(a), np.array(b)) for a, b in walls + [obstacle]]
+    scene = Scene("replan", flight_map, boxes, start, goal)  # exact distances for the helper
+    more, worst_map, worst_true = fly_until_arrived(drone, 20.0, scene)
     assert DroneEventKind.ARRIVED in kinds(more)
     assert DroneEventKind.COLLISION not in kinds(events + more)
     assert worst_map >= R and worst_true >= R - CONFIG.voxel_m / 2

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import websockets
+from conftest import auth
 
 from server.datasets import open_dataset
 from server.simulation.config import SimulationConfig
@@ -168,7 +169,7 @@ def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
     got = np.array(out["pixel_states"][0]["target"])
     assert np.linalg.norm(got - expected) < 0.6, (got, expected)
 
-    assert out["landed"]["event"] == "landed"
+    assert out["landed"]["command_id"] == 4  # the land command brought it down
 
 
 def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server):
@@ -183,7 +184,7 @@ def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server)
         if demo is not None:
             status = httpx.get(
                 f"{server.url}/api/sessions/{demo['id']}",
-                headers={"Authorization": f"Bearer {demo['token']}"},
+                headers=auth(demo["token"]),
             ).json()
             drone = status.get("drone") or {}
             if drone.get("events", {}).get("arrived", 0) >= 2 and status["frames_processed"] > 20:

@@ -19,19 +19,15 @@ import numpy as np
 import open3d as o3d
 import pytest
 import websockets
+from conftest import auth, offline_track, session_status
 
 from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
-from server.registration import Tracker
 from server.transport import protocol as P
 
 UNASKED = {"map_chunk", "drone_state", "drone_event"}
-
-
-def auth(token: str) -> dict:
-    return {"Authorization": f"Bearer {token}"}
 
 
 @pytest.fixture
@@ -105,17 +101,6 @@ class Stream:
         return np.array([P.pose_matrix(p) for p in self.poses])
 
 
-def offline_poses(dataset, n: int) -> np.ndarray:
-    """The tracker in-process on the first n frames as the wire carries them."""
-    tracker, hello, poses = Tracker(dataset.intrinsics), None, []
-    for i in range(n):
-        f = dataset[i]
-        hello = hello or P.make_hello("t", (1, 1, 1, 1), (f.colour.shape[1], f.colour.shape[0]))
-        msg = P.decode(P.encode(P.make_frame(i, f.timestamp, f.colour, f.depth)))
-        poses.append(tracker.track(*P.decode_frame_images(msg, hello)).T_world_camera)
-    return np.array(poses)
-
-
 def assert_session_files_whole(folder: Path) -> dict:
     """Every file of a saved session parses; no temp file of an interrupted write is left."""
     names = sorted(p.name for p in folder.iterdir())
@@ -172,7 +157,7 @@ def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
     assert ply.status_code == 200 and ply.content == (folder / "map.ply").read_bytes()
     mesh = httpx.get(f"{again.url}/api/sessions/{sid}/mesh.ply", headers=auth(token), timeout=60)
     assert mesh.status_code == 200 and mesh.content.startswith(b"ply")
-    assert "partial files of an interrupted write" in server.log.read_text()
+    assert "partial files of an interrupted write" in again.log.read_text()
 
 
 def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room, tmp_path):
@@ -215,7 +200,7 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
     stream = Stream(server.ws_url, sid, token, room)
 
     def status() -> dict:
-        return httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+        return session_status(server.url, sid, token)
 
     async def drop_and_return():
         await stream.open()
@@ -237,7 +222,7 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
     assert after["map"]["frames_integrated"] > before["map"]["frames_integrated"] > 0
     assert stream.map_points > points_before > 0
     # One trajectory across both sockets, as if the phone had never left.
-    np.testing.assert_allclose(stream.matrices()[:, :3, 3], offline_poses(room, 30)[:, :3, 3],
+    np.testing.assert_allclose(stream.matrices()[:, :3, 3], offline_track(room, 30)[:, :3, 3],
                                atol=1e-6)
     tum = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
     assert len(tum.text.strip().splitlines()) == 1 + 30  # header line + poses
@@ -274,9 +259,9 @@ def test_a_phone_back_from_a_silent_wifi_drop_takes_its_session_over_at_once(liv
     errors = [m for m in told if m["type"] == "error"]
     assert [e["name"] for e in errors] == ["session_taken_over"]
     assert old_code == P.CLOSE_CODES["session_taken_over"]
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert status["closed"] is False and status["frames_processed"] == 20
-    np.testing.assert_allclose(phone.matrices()[:, :3, 3], offline_poses(room, 20)[:, :3, 3],
+    np.testing.assert_allclose(phone.matrices()[:, :3, 3], offline_track(room, 20)[:, :3, 3],
                                atol=1e-6)
 
 
@@ -330,7 +315,7 @@ def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_serv
         r = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token))
         assert r.status_code == 200, r.text
         time.sleep(0.1)
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert status["closed"] is True and status["frames_processed"] == 12
     saved = assert_session_files_whole(server.settings.data_dir / "sessions" / sid)
     assert len(saved["trajectory"]) == 12 and saved["meta"]["closed"] is True
@@ -369,7 +354,7 @@ def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(
     asyncio.run(stream_and_vanish())
     time.sleep(3.0)  # the TTL has passed and the close has been tried several times
     assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 1
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert status["closed"] is True and status["frames_processed"] == 12
     assert "IsADirectoryError" in status["snapshot_error"]
     ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
@@ -400,7 +385,7 @@ def test_a_session_lost_for_long_keeps_its_map_and_says_so(live_server, room):
         """Status once the mapping thread has caught up (frames_integrated stops changing)."""
         last = None
         for _ in range(100):
-            status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+            status = session_status(server.url, sid, token)
             if last is not None and status["map"] == last["map"]:
                 return status
             last = status
@@ -442,5 +427,5 @@ def test_a_session_lost_for_long_keeps_its_map_and_says_so(live_server, room):
     assert len(after) == len(before)  # the same points (extraction may list them in any order)
     np.testing.assert_array_equal(after[np.lexsort(after.T)], before[np.lexsort(before.T)])
     # Back in the room, tracking recovers and says so.
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert stream.poses[-1]["state"] in ("ok", "weak") and status["tracking_lost"] is False

@@ -108,5 +108,5 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
     assert info.value.code == "unreachable_target"
     message = str(info.value)  # in the world frame the client knows, with the reason in words
     assert "({:.2f}, {:.2f}, {:.2f}) m".format(*in_wall) in message and "obstacle" in message
-    if info.value.nearest is not None:
-        assert fm.distance((R @ info.value.nearest)[None])[0] >= SimulationConfig().radius_m
+    assert info.value.nearest is not None  # the free side of the wall
+    assert fm.distance((R @ info.value.nearest)[None])[0] >= SimulationConfig().radius_m

@@ -9,31 +9,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 import websockets
+from conftest import auth, offline_track
 
 from server.client.replay import replay
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
-from server.registration import Tracker
 from server.transport import protocol as proto
 
 FRAMES = 60
-
-
-def auth(token: str) -> dict:
-    return {"Authorization": f"Bearer {token}"}
-
-
-def offline_track(ds, n: int) -> np.ndarray:
-    """Poses from the tracker run in-process on the frames as the wire carries them."""
-    tracker = Tracker(ds.intrinsics)
-    poses = []
-    for i in range(n):
-        f = ds[i]
-        msg = proto.decode(proto.encode(proto.make_frame(i, f.timestamp, f.colour, f.depth)))
-        hello = proto.make_hello("t", (1, 1, 1, 1), (f.colour.shape[1], f.colour.shape[0]))
-        colour, depth = proto.decode_frame_images(msg, hello)
-        poses.append(tracker.track(colour, depth).T_world_camera)
-    return np.array(poses)
 
 
 def stream(server, sid, token, ds, n=FRAMES, fps=1000.0, max_in_flight=1):

@@ -564,7 +564,7 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     # session's downloads, and frames go on with higher seqs (no bad_sequence).
     last_seq = page.snapshot()["lastPose"]["seq"]
     page.page.reload()
-    page.page.wait_for_function("window.dronesim && window.dronesim.pilot", timeout=20_000)
+    page.page.wait_for_function(browser.APP_READY, timeout=20_000)
     page.page.click("#btn-stream")
     page.wait("window.dronesim.seen.poses >= 3 && window.dronesim.seen.mapPoints >= 1000", 40,
               "poses and the restored map after a reload")

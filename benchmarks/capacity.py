@@ -24,7 +24,6 @@ import datetime
 import json
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -53,43 +52,26 @@ console = Console()
 
 
 def server_environment(max_sessions: int) -> dict[str, str]:
-    """Settings for the run: room for every session, no create rate limit, the drone on."""
-    env = {**os.environ, "DRONESIM_MAX_SESSIONS": str(max_sessions)}
-    fields = Settings.model_fields
-    if "create_rate_per_min" in fields:
-        env["DRONESIM_CREATE_RATE_PER_MIN"] = "0"  # one load-test IP creates every session
-    for name, info in fields.items():  # e.g. a switch for the drone simulation
-        if info.annotation is bool and re.search(r"drone|simulat|flight", name):
-            env[f"DRONESIM_{name.upper()}"] = "true"
-    return env
+    """Settings for the run: room for every session, no create rate limit (one load-test IP
+    creates every session)."""
+    return {"DRONESIM_MAX_SESSIONS": str(max_sessions), "DRONESIM_CREATE_RATE_PER_MIN": "0"}
 
 
 class ProcessSampler:
-    """CPU time and RSS of one process (all its threads), sampled in a background thread:
-    psutil when installed, /proc otherwise."""
+    """CPU time and RSS of one process (all its threads, from /proc), sampled in a background
+    thread."""
 
     def __init__(self, pid: int, every_s: float = 0.5) -> None:
         self.pid, self.every_s = pid, every_s
-        try:
-            import psutil
-
-            self._proc = psutil.Process(pid)
-        except ImportError:
-            self._proc = None
         self._tick = os.sysconf("SC_CLK_TCK")
         self._stop = threading.Event()
         self._rss: list[float] = []
 
     def cpu_s(self) -> float:
-        if self._proc is not None:
-            t = self._proc.cpu_times()
-            return t.user + t.system
         fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / self._tick  # utime, stime
 
     def rss_mb(self) -> float:
-        if self._proc is not None:
-            return self._proc.memory_info().rss / 2**20
         return rss_mb(self.pid)
 
     def __enter__(self) -> ProcessSampler:

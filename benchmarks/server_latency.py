@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from server.client.replay import latency_summary, replay
-from server.client.server_process import ServerProcess
+from server.client.server_process import ServerProcess, environment
 from server.datasets import open_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,9 +76,9 @@ def main() -> None:
     frames = len(dataset) if args.frames is None else min(args.frames, len(dataset))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        server = ServerProcess(Path(tmp), dict(item.split("=", 1) for item in args.server_env))
-        allocator = server.health()["allocator"]
+        server = ServerProcess(Path(tmp), environment(args.server_env))
         try:
+            allocator = server.health()["allocator"]
             for fps in args.fps:
                 console.print(f"replaying {frames} frames of {dataset.name} at {fps:g} fps ...")
                 rows.append(run_once(server, dataset, fps, frames))

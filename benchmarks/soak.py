@@ -43,7 +43,7 @@ import open3d as o3d  # noqa: E402
 
 from server.client.loadtest import ping_pong_index  # noqa: E402
 from server.client.replay import replay  # noqa: E402
-from server.client.server_process import ServerProcess  # noqa: E402
+from server.client.server_process import ServerProcess, environment  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.datasets.base import RGBDDataset, RGBDFrame  # noqa: E402
 
@@ -82,9 +82,9 @@ class RSSSampler(threading.Thread):
     def run(self) -> None:
         while True:
             try:
-                live = httpx.get(f"{self.server.url}/healthz", timeout=10).json()["live_sessions"]
+                live = self.server.health()["live_sessions"]
                 self.samples.append((time.monotonic() - self.t0, self.server.rss_mb(), live))
-            except (OSError, httpx.HTTPError, ValueError):
+            except (OSError, ValueError):  # a slow or restarting server: skip the sample
                 pass
             if self._done.wait(self.every_s):
                 return
@@ -338,7 +338,7 @@ def main() -> int:
         data_dir, log = tmp / "data", tmp / "server.log"
         env = {"DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
                "DRONESIM_CREATE_RATE_PER_MIN": "0", "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
-               **dict(item.split("=", 1) for item in args.server_env)}
+               **environment(args.server_env)}
         server = ServerProcess(data_dir, env, log)
         sampler = RSSSampler(server, args.sample_s)
         sampler.start()

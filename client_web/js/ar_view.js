@@ -12,7 +12,7 @@ import { Line2 } from "three/addons/lines/Line2.js";
 import { LineGeometry } from "three/addons/lines/LineGeometry.js";
 import { LineMaterial } from "three/addons/lines/LineMaterial.js";
 import { createDrone, createGroundMarker, createTargetMarker } from "./drone_model.js";
-import { CV_TO_GL, matrixFromRowMajor, projectPoint } from "./geometry.js";
+import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint } from "./geometry.js";
 import { projectionFromIntrinsics } from "./packing.js";
 
 const TAP_MAX_MOVE_PX = 12;
@@ -94,10 +94,13 @@ export class ARView {
 
   setUp(up) {
     this.up.copy(up);
+    this.dirty = true;
   }
 
   setGroundHeight(h) {
+    if (h === this.groundHeight) return;
     this.groundHeight = h;
+    this.dirty = true;
   }
 
   /** Fit the image (contain) into the container; the overlay covers exactly the image. */
@@ -180,8 +183,12 @@ export class ARView {
       const pixel = projectPoint(this.intrinsics ?? [1, 1, 0, 0], [p.x, p.y, p.z]);
       this.lastDraw = { droneVisible: true, seq: frame.seq, cameraPoint: p.toArray(), pixel };
     }
-    this.#placeGroundMarker(s, frame);
-    this.#placeRoute(s, frame);
+    if (this.dirty) {
+      // Marker and route change only with the state, the frame, up or the ground: not at the
+      // 30-60 Hz that rotor spin and XR frames render at (the route is a new GPU buffer).
+      this.#placeGroundMarker(s, frame);
+      this.#placeRoute(s, frame);
+    }
     this.renderer.render(this.scene, this.camera);
     this.dirty = false;
   }
@@ -218,10 +225,7 @@ export class ARView {
       this.route.visible = false;
       return;
     }
-    const positions = [];
-    for (let i = 0; i + 2 < flat.length; i += 3) {
-      positions.push(...this.#toRoot(frame, new THREE.Vector3(flat[i], flat[i + 1], flat[i + 2])).toArray());
-    }
+    const positions = pointsFromFlat(flat).flatMap((p) => this.#toRoot(frame, p).toArray());
     this.route.geometry.dispose();
     this.route.geometry = new LineGeometry();
     this.route.geometry.setPositions(positions);

@@ -4,7 +4,7 @@
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
-import { createDrone, createTargetMarker } from "./drone_model.js";
+import { DRONE_COLOUR, createDrone, createTargetMarker } from "./drone_model.js";
 import { matrixFromRowMajor, pointsFromFlat, turbo } from "./geometry.js";
 
 const TAP_MAX_MOVE_PX = 10;
@@ -73,7 +73,7 @@ export class MapView {
     this.drone.visible = false;
     this.scene.add(this.drone);
     this.droneHalo = new THREE.Mesh(new THREE.SphereGeometry(0.2, 20, 14),
-      new THREE.MeshBasicMaterial({ color: 0xff00cc, transparent: true, opacity: 0.18, depthWrite: false }));
+      new THREE.MeshBasicMaterial({ color: DRONE_COLOUR, transparent: true, opacity: 0.18, depthWrite: false }));
     this.droneHalo.visible = false;
     this.scene.add(this.droneHalo);
     this.target = createTargetMarker();

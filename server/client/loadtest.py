@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import websockets
 
+from server.client.replay import await_answers
 from server.datasets import RGBDDataset
 from server.errors import DroneSimError
 from server.transport import protocol as proto
@@ -295,13 +296,8 @@ class _Client:
                 next_command += cfg.command_every_s
             k += 1
         # The last answers (bounded), then bye; the server closes with 1000.
-        deadline = time.monotonic() + cfg.grace_s
-        while self.in_flight and not receiver.done() and time.monotonic() < deadline:
-            self.answered.clear()
-            try:
-                await asyncio.wait_for(self.answered.wait(), deadline - time.monotonic())
-            except asyncio.TimeoutError:
-                break
+        await await_answers(self.in_flight, self.answered, time.monotonic() + cfg.grace_s,
+                            receiver.done)
         if not receiver.done():
             await ws.send(proto.encode(proto.make_bye("load test done")))
         try:

@@ -35,6 +35,18 @@ class ReplayStats:
     drone_events: list[dict] = field(default_factory=list)
 
 
+async def await_answers(in_flight: dict, answered: asyncio.Event, deadline: float,
+                        gone: Callable[[], bool] = lambda: False) -> None:
+    """Wait until no frame is in flight (``answered`` is set on each answer), the monotonic
+    ``deadline`` passes, or ``gone()`` says the connection ended."""
+    while in_flight and not gone() and time.monotonic() < deadline:
+        answered.clear()
+        try:
+            await asyncio.wait_for(answered.wait(), max(0.01, deadline - time.monotonic()))
+        except asyncio.TimeoutError:
+            return
+
+
 async def replay(
     ws_url: str,
     token: str,
@@ -139,15 +151,7 @@ async def replay(
                 await ws.send(proto.encode(message))
                 stats.sent += 1
             # Wait for the last answers (bounded), then say goodbye.
-            deadline = time.monotonic() + 30.0
-            while in_flight and time.monotonic() < deadline:
-                answered.clear()
-                try:
-                    await asyncio.wait_for(
-                        answered.wait(), timeout=max(0.01, deadline - time.monotonic())
-                    )
-                except asyncio.TimeoutError:
-                    break
+            await await_answers(in_flight, answered, time.monotonic() + 30.0)
             await ws.send(proto.encode(proto.make_bye("done")))
             await asyncio.wait_for(receiver, timeout=10.0)
         except (asyncio.TimeoutError, websockets.ConnectionClosed):

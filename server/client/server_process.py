@@ -26,6 +26,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def environment(assignments: list[str]) -> dict[str, str]:
+    """``NAME=VALUE`` strings (a benchmark's ``--server-env``) -> an environment dict."""
+    return dict(item.split("=", 1) for item in assignments)
+
+
 def rss_mb(pid: int) -> float:
     """Resident memory of a process, MB (from /proc; NaN when it is gone)."""
     try:

@@ -578,6 +578,20 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     # Another tab or device with the token takes the session over (the newest socket wins):
     # this page says so and stays off (reconnecting would take it back, forever), but keeps the
     # session, so that Start takes it back.
+    # A frame whose capture was under way when the session moved must not take it back: the
+    # next capture is held until the page has let go (CI once caught the page doing just that).
+    page.page.evaluate("""() => {
+      const source = window.dronesim.streamer.source, capture = source.capture;
+      const gate = new Promise((open) => (window.openCaptureGate = open));
+      source.capture = async (...args) => {
+        const captured = await capture.apply(source, args);
+        window.captureHeld = true;
+        await gate;
+        source.capture = capture;
+        return captured;
+      };
+    }""")
+    page.wait("window.captureHeld === true", 10, "a capture held at the gate")
     saved = page.page.evaluate("JSON.parse(sessionStorage.getItem('dronesim.session'))")
     url = f"{server.ws_url}/ws/sessions/{saved['id']}?token={saved['token']}"
     with connect(url, max_size=None) as other:
@@ -585,6 +599,7 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
         assert proto.decode(other.recv(timeout=10))["type"] == "welcome"
         page.wait("window.dronesim.client.state === 'taken_over'", 10, "the page to let go")
         reconnects = page.snapshot()["counts"]["reconnects"]
+        page.page.evaluate("window.openCaptureGate()")
         time.sleep(2.0)
         s = page.snapshot()
         assert s["counts"]["reconnects"] == reconnects

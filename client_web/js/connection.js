@@ -217,10 +217,12 @@ export class SessionClient extends EventTarget {
     }
   }
 
-  /** Reconnect a session that the server paused for idleness, or that another tab took over
-   * (called when the user streams or flies here again: the user's act takes it back). */
-  wake() {
-    if ((this.state === State.PAUSED || this.state === State.TAKEN_OVER) && this.saved) {
+  /** Reconnect a session that the server paused for idleness; with `takeBack`, also one that
+   * another tab took over. Only the user's own act (Start, a command) may take it back: a frame
+   * that was being captured when the session moved must not. */
+  wake({ takeBack = false } = {}) {
+    const asleep = this.state === State.PAUSED || (takeBack && this.state === State.TAKEN_OVER);
+    if (asleep && this.saved) {
       this.attempt = 0;
       this.#connect();
     }
@@ -259,7 +261,7 @@ export class SessionClient extends EventTarget {
     if (!this.saved) return null;
     const id = this.nextCommandId++;
     const message = this.protocol.command(id, name, fields);
-    this.wake();
+    this.wake({ takeBack: true });
     if (this.isOpen) this.#send(message);
     else if (name !== "sticks") this.pending.splice(0, this.pending.length, message);
     else return null;

@@ -22,6 +22,7 @@ export class Streamer extends EventTarget {
 
   start() {
     if (this.running) return;
+    this.client.wake({ takeBack: true }); // the user's Start takes back a session another tab took
     this.running = true;
     this.t0 = performance.now();
     this.firstTick = this.tick;
@@ -54,6 +55,10 @@ export class Streamer extends EventTarget {
     this.capturing = true;
     try {
       const captured = await this.source.capture(tick, performance.now() / 1000);
+      if (!this.running) {
+        captured?.bitmap?.close(); // stopped while capturing (e.g. the session moved away)
+        return;
+      }
       if (!captured) {
         this.stop("end of the sequence");
         return;

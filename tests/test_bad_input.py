@@ -83,10 +83,14 @@ class Client:
     async def answer(self, timeout: float = 15.0) -> dict:
         """The next welcome, pose or error (skipping map chunks and drone messages)."""
         while True:
-            msg = P.decode(await asyncio.wait_for(self.ws.recv(), timeout),
-                           direction=P.SERVER_TO_CLIENT)
+            msg = await self.next(timeout)
             if msg["type"] not in UNASKED:
                 return msg
+
+    async def next(self, timeout: float = 15.0) -> dict:
+        """The next message of any type."""
+        return P.decode(await asyncio.wait_for(self.ws.recv(), timeout),
+                        direction=P.SERVER_TO_CLIENT)
 
     async def close_code(self, timeout: float = 15.0) -> int:
         """Wait for the server to close; fails on any answer before the close."""
@@ -381,23 +385,58 @@ def test_duplicate_and_out_of_order_frames_are_refused_and_the_session_goes_on(
 
 
 @pytest.mark.parametrize("command", [
-    P.make_command(7, "goto", target=[1e4, -1e4, 1e4]),  # far outside any map
-    {**P.make_command(7, "goto", target=[0, 0, 1]), "target": None},  # goto without a target
-], ids=["target outside the map", "goto without target"])
-def test_an_impossible_command_is_refused_and_the_session_goes_on(server, neighbour_keeps_going,
-                                                                  command):
+    P.make_command(7, "goto", target=[0.0, 0.0, 1.0]),
+    P.make_command(7, "takeoff"),
+], ids=["goto", "takeoff"])
+def test_a_command_before_the_drone_exists_is_refused_and_the_session_goes_on(
+        server, neighbour_keeps_going, command):
     async def go():
         async with fresh_session(server) as client:
-            await client.hello()
+            await client.hello()  # no frame yet, so no map and no drone
+            await client.send(command)
+            error = await client.answer()
+            assert_documented(error, "bad_command")
+            assert error["command_id"] == 7 and "spawned" in error["message"], error
             await client.send(frame(1))
             assert (await client.answer())["seq"] == 1
-            await client.send({k: v for k, v in command.items() if v is not None})
+
+    run(go())
+
+
+def test_targets_outside_the_map_are_refused_and_the_drone_flies_on(server, neighbour_keeps_going,
+                                                                    healthy):
+    """With the drone spawned in a real map: far-away and missing targets get their documented
+    errors (the far one with the nearest reachable point), and frames and commands go on."""
+    async def go():
+        async with fresh_session(server) as client:
+            K = healthy.K
+            await client.hello(P.make_hello("bad-input", (K.fx, K.fy, K.cx, K.cy),
+                                            (K.width, K.height)))
+            spawned = None
+            for seq, data in enumerate(healthy.frames):
+                await client.send({**msgpack.unpackb(data), "seq": seq, "timestamp": 0.1 * seq})
+                while (msg := await client.next()).get("seq") != seq:
+                    spawned = spawned or (msg.get("event") == "spawned")
+                assert msg["type"] == "pose", msg
+                if spawned:
+                    break
+            assert spawned, "no drone after streaming the healthy frames"
+            for command_id, target in enumerate([[1e4, -1e4, 1e4], [40.0, 0.0, 0.0]], start=1):
+                await client.send(P.make_command(command_id, "goto", target=target))
+                error = await client.answer()
+                assert_documented(error, "unreachable_target")
+                assert error["command_id"] == command_id, error
+                assert "outside the mapped space" in error["message"], error
+            await client.send(without(P.make_command(3, "goto", target=[0, 0, 1]), "target"))
             error = await client.answer()
-            assert error["type"] == "error", error
-            assert error["name"] in ("bad_command", "unreachable_target"), error
-            assert_documented(error, error["name"])
-            await client.send(frame(2))
-            assert (await client.answer())["seq"] == 2
+            assert_documented(error, "bad_command")
+            await client.send(P.make_command(4, "hold"))  # the drone still takes commands
+            seq += 1
+            await client.send({**msgpack.unpackb(healthy.frames[seq]), "seq": seq,
+                               "timestamp": 0.1 * seq})
+            while (msg := await client.answer())["type"] == "error":
+                assert msg.get("command_id") != 4, msg
+            assert msg["type"] == "pose" and msg["seq"] == seq, msg
 
     run(go())
 

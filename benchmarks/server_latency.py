@@ -111,7 +111,8 @@ def main() -> None:
             else "-"
         )
         stages = ", ".join(
-            f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items() if not k.startswith("track_")
+            f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items()
+            if not k.startswith("track_") or k == "track_cpu"
         )
         table.add_row(
             f"{r['fps']:g}",

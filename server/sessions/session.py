@@ -277,7 +277,7 @@ class Session:
 
     def _process(self, frame: FrameData) -> PoseUpdate:
         K = self.intrinsics
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
         result = self.tracker.track(frame.colour, depth)
         timings = {
@@ -285,6 +285,9 @@ class Session:
             **{f"track_{k}": v for k, v in result.timings_ms.items()},
         }
         timings["track"] = (time.perf_counter() - t0) * 1e3
+        # This thread's own CPU time: track minus track_cpu is time spent waiting for a core
+        # (or the GIL), which tells a busy machine from slow registration.
+        timings["track_cpu"] = (time.thread_time() - cpu0) * 1e3
         if result.state is not TrackingState.LOST and (
             result.new_keyframe or self.processed % self.config.fuse_every == 0
         ):

@@ -60,6 +60,7 @@ from server.evaluation.plots import top_view_basis, up_direction  # noqa: E402
 from server.mapping.tsdf import TSDFMap  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.simulation.config import SimulationConfig  # noqa: E402
+from server.simulation.drone import ROUTE_CLIMB_SHARE, DroneEventKind, DroneSimulator  # noqa: E402
 from server.simulation.flight_map import FlightMap  # noqa: E402
 from server.simulation.planner import PlanningError, plan_path  # noqa: E402
 
@@ -137,7 +138,8 @@ def plan_pairs(flight_map: FlightMap, starts, goals, config: SimulationConfig, n
                               margin_m=config.planning_margin_m,
                               max_speed_m_s=config.cruise_speed_m_s,
                               max_accel_m_s2=config.route_accel_m_s2,
-                              max_climb_rate_m_s=config.max_climb_rate_m_s)
+                              # as the drone plans (DroneSimulator._plan)
+                              max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s)
             reason = None
         except PlanningError as exc:
             route, reason = None, exc.reason.value
@@ -147,19 +149,14 @@ def plan_pairs(flight_map: FlightMap, starts, goals, config: SimulationConfig, n
     return results
 
 
-# --- flying: where the simulated drone plugs in ------------------------------------------------
+# --- flying ------------------------------------------------------------------------------------
 def fly_routes(flight_map: FlightMap, pairs: list[tuple[np.ndarray, np.ndarray, float]],
-               config: SimulationConfig, name: str) -> dict | None:
-    """FLYING PLUG-IN. Fly each (start, goal, planned duration s) with ``DroneSimulator``:
+               config: SimulationConfig, name: str) -> dict:
+    """Fly each (start, goal, planned duration s) with ``DroneSimulator``:
     spawn at start, goto goal (the simulator plans with the same planner), advance in 1/30 s
     slices until it arrives or twice the planned duration (plus 5 s) runs out. Returns
     collisions, arrivals, timeouts, the clearance the drone kept, and physics steps per second
-    (wall clock of ``advance`` only); None when the simulator is not available."""
-    try:
-        from server.simulation.drone import DroneEventKind, DroneSimulator
-    except ImportError as exc:
-        log.warning("no drone simulator to fly the routes: %s", exc)
-        return None
+    (wall clock of ``advance`` only)."""
     frame_s = 1.0 / 30.0
     out = {"flown": 0, "collisions": 0, "arrived": 0, "timeouts": 0, "refused": 0,
            "min_clearance_m": np.inf, "steps": 0, "advance_s": 0.0, "advance_cpu_s": 0.0,

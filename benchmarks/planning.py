@@ -3,7 +3,7 @@
 Per sequence: every ``--every``-th frame is fused into a TSDF map at its ground-truth pose, the
 map's occupancy grid (5 cm) becomes a ``FlightMap``, and ``--pairs`` random start/goal pairs
 drawn (seeded) among the cells with the planning clearance are planned with the drone's own
-settings (``SimulationConfig``: radius 0.12 m + margin 0.05 m, cruise speed, route
+settings (``SimulationConfig``: radius 0.12 m + margin 0.08 m, cruise speed, route
 acceleration, climb rate). Then every route is flown by ``DroneSimulator`` (``fly_routes``),
 which counts collisions and physics steps per second.
 
@@ -282,8 +282,9 @@ def cell(summary: dict, key: str, fmt) -> str:
     return text
 
 
-def tables(summaries: dict[str, dict]) -> tuple[Table, str]:
-    table = Table(title="Route planning in fused maps (drone radius 0.12 m + 0.05 m margin)")
+def tables(summaries: dict[str, dict], config: SimulationConfig) -> tuple[Table, str]:
+    table = Table(title=f"Route planning in fused maps (drone radius {config.radius_m:g} m + "
+                        f"{config.planning_margin_m:g} m margin)")
     table.add_column("figure")
     for name in summaries:
         table.add_column(name, justify="right")
@@ -379,12 +380,13 @@ def main(argv: list[str] | None = None) -> int:
         summaries[path.name] = summary
     if not summaries:
         return 1
-    table, markdown = tables(summaries)
+    table, markdown = tables(summaries, config)
     console.print(table)
     with open(args.out / "planning.md", "a") as md:
         md.write(f"\n## Run {header['date']}\n\n- machine: {header['machine']}, "
                  f"{header['cpu_count']} CPUs, numpy on 1 thread; python {header['python']}, "
-                 f"numpy {header['numpy']}\n- command: `{header['command']}`\n\n{markdown}")
+                 f"numpy {header['numpy']}\n- drone: radius {config.radius_m:g} m, planning margin "
+                 f"{config.planning_margin_m:g} m\n- command: `{header['command']}`\n\n{markdown}")
     json_path = args.out / "planning.json"
     stored = json.loads(json_path.read_text()) if json_path.is_file() else {}
     for name, summary in summaries.items():

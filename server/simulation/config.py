@@ -49,7 +49,7 @@ class SimulationConfig:
     # Behaviour
     cruise_speed_m_s: float = 1.0  # goto speed when a command gives none, m/s
     route_accel_m_s2: float = 2.0  # acceleration limit the routes are timed with, m/s^2
-    planning_margin_m: float = 0.05  # routes keep radius_m + this from obstacles, m
+    planning_margin_m: float = 0.08  # routes keep radius_m + this from obstacles, m
     takeoff_height_m: float = 1.0  # takeoff rises this far above where the drone landed, m
     spawn_search_m: float = 1.0  # spawn at most this far from the requested point, m
     landing_speed_m_s: float = 0.4  # descent rate while landing, m/s

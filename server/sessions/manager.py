@@ -128,11 +128,12 @@ class SessionManager:
         those whose save failed). Returns the ids closed and saved."""
         now = time.monotonic()
         with self._lock:
-            idle = [sid for sid, s in self._live.items()
+            idle = [(sid, s.closed) for sid, s in self._live.items()
                     if sid not in connected and (s.closed or now - s.last_seen > ttl_s)]
         closed = []
-        for sid in idle:
-            log.info("session %s idle for %.0f s: closing", sid, ttl_s)
+        for sid, unsaved in idle:
+            log.info("session %s %s", sid, "retrying its save" if unsaved
+                     else f"idle for {ttl_s:.0f} s: closing")
             if self.close(sid):
                 closed.append(sid)
         return closed

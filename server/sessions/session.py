@@ -269,11 +269,16 @@ class Session:
             if stopping and frame is None:
                 return
 
-    def _snapshot_due(self) -> bool:
-        return (
-            self._dirty
-            and time.monotonic() - self._last_snapshot >= self.config.snapshot_interval_s
-        )
+    def _snapshot_if_due(self) -> None:
+        """The periodic snapshot (mapping thread); a failure keeps everything in memory."""
+        if not self._dirty or (
+            time.monotonic() - self._last_snapshot < self.config.snapshot_interval_s
+        ):
+            return
+        try:
+            self.snapshot()
+        except SnapshotError as exc:
+            log.error("%s; the previous one stays whole and the map stays in memory", exc)
 
     def _process(self, frame: FrameData) -> PoseUpdate:
         K = self.intrinsics
@@ -337,16 +342,11 @@ class Session:
             try:
                 job = self._fuse_jobs.get(timeout=1.0)
             except queue.Empty:
-                job = False
-            if self._snapshot_due():
-                try:
-                    self.snapshot()
-                except SnapshotError as exc:
-                    log.error("%s; the previous one stays whole and the map stays in memory", exc)
-            if job is None:
-                return
-            if job is False:
+                self._snapshot_if_due()
                 continue
+            if job is None:  # stopping: stop() writes the final snapshot itself
+                return
+            self._snapshot_if_due()
             try:
                 self.map.integrate(job.colour, job.depth, K, job.T_world_camera)
                 points, colours = self.preview.new_points(

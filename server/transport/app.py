@@ -152,7 +152,5 @@ class Server(uvicorn.Server):
     left with its generic 1012; the lifespan's shutdown then saves every session."""
 
     async def shutdown(self, sockets=None) -> None:
-        app = self.config.app
-        if hasattr(app, "state"):
-            await websocket.end_all_connections(app)
+        await websocket.end_all_connections(self.config.app)
         await super().shutdown(sockets)

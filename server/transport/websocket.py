@@ -115,6 +115,8 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         session.on_update = None
         if connections.get(session_id) is connection:
             del connections[session_id]
+        # Released before the client is told why: telling a phone gone silent can block on its
+        # full socket buffer, and the newer socket must not wait for that.
         connection.released.set()
         sender.cancel()
     if connection.why is not None:

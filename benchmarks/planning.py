@@ -60,9 +60,9 @@ from server.evaluation.plots import top_view_basis, up_direction  # noqa: E402
 from server.mapping.tsdf import TSDFMap  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.simulation.config import SimulationConfig  # noqa: E402
-from server.simulation.drone import ROUTE_CLIMB_SHARE, DroneEventKind, DroneSimulator  # noqa: E402
+from server.simulation.drone import DroneEventKind, DroneSimulator, plan_route  # noqa: E402
 from server.simulation.flight_map import FlightMap  # noqa: E402
-from server.simulation.planner import PlanningError, plan_path  # noqa: E402
+from server.simulation.planner import PlanningError  # noqa: E402
 
 DATA = REPO_ROOT.parent / "shared" / "data"
 SEQUENCES = ("synthetic_room0", "7scenes_a")
@@ -134,12 +134,7 @@ def plan_pairs(flight_map: FlightMap, starts, goals, config: SimulationConfig, n
                             unit="route"):
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            route = plan_path(flight_map, start, goal, config.radius_m,
-                              margin_m=config.planning_margin_m,
-                              max_speed_m_s=config.cruise_speed_m_s,
-                              max_accel_m_s2=config.route_accel_m_s2,
-                              # as the drone plans (DroneSimulator._plan)
-                              max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s)
+            route = plan_route(flight_map, start, goal, config, config.cruise_speed_m_s)
             reason = None
         except PlanningError as exc:
             route, reason = None, exc.reason.value

@@ -7,11 +7,9 @@ import { SERVER_TO_CLIENT } from "./protocol.js";
 
 const STORE_KEY = "dronesim.session";
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
-// Close codes after which reconnecting cannot help: the hello or the session itself is refused.
-const FINAL_CLOSES = new Set([4001, 4002, 4003]);
-// Another tab or device took the session over: reconnecting by itself would take it back, and
-// the two would take it from each other forever. Only the user's Start takes it back.
-const TAKEN_OVER_CLOSE = 4009;
+// Closes (protocol.json names) after which reconnecting cannot help: the hello or the session
+// itself is refused.
+const FINAL_CLOSES = new Set(["version_mismatch", "bad_hello", "unauthorized"]);
 const LATENCY_WINDOW = 30;
 
 export const State = Object.freeze({
@@ -199,14 +197,17 @@ export class SessionClient extends EventTarget {
     this.welcome = null;
     this.inFlight.clear(); // their answers are lost with the socket
     const reason = this.protocol.closeReason(event.code) + (event.reason ? ` (${event.reason})` : "");
+    const close = this.protocol.closeCodes[event.code]?.name;
     if (this.stopping) {
       this.stopping = false;
       this.#status(State.IDLE, "disconnected");
-    } else if (event.code === TAKEN_OVER_CLOSE) {
+    } else if (close === "session_taken_over") {
+      // Reconnecting by itself would take the session back, and two tabs would take it from
+      // each other forever: only the user's Start or a command takes it back (wake).
       this.#status(State.TAKEN_OVER, "another tab or device took this session over");
-    } else if (FINAL_CLOSES.has(event.code)) {
+    } else if (FINAL_CLOSES.has(close)) {
       this.#status(State.ENDED, `the server ended the session: ${reason}`);
-    } else if (event.code === 4006) {
+    } else if (close === "idle_timeout") {
       this.#status(State.PAUSED, "idle: reconnects when you stream or fly");
     } else {
       const delay = BACKOFF_S[Math.min(this.attempt, BACKOFF_S.length - 1)];

@@ -104,6 +104,18 @@ class DroneStatus:
     command_id: int | None
 
 
+def plan_route(flight_map: FlightMap, start: np.ndarray, goal: np.ndarray,
+               config: SimulationConfig, speed_m_s: float):
+    """The route the drone flies from ``start`` to ``goal`` (flight frame, m) at up to
+    ``speed_m_s``, with the drone's radius, margin and limits; raises PlanningError."""
+    return plan_path(flight_map, start, goal, config.radius_m,
+                     margin_m=config.planning_margin_m, max_speed_m_s=speed_m_s,
+                     max_accel_m_s2=config.route_accel_m_s2,
+                     # Headroom below the controller's own limit, so it can catch up at the
+                     # end of a descent instead of overshooting into the floor.
+                     max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s)
+
+
 class DroneSimulator:
     """The virtual quadrotor of one session, flying in ``flight_map``."""
 
@@ -191,15 +203,14 @@ class DroneSimulator:
         if values.shape != (4,) or not np.all(np.isfinite(values)):
             raise DroneCommandError("sticks must be 4 finite numbers [throttle, yaw, pitch, roll]")
         dz = self.config.stick_deadband  # applied once here, not on every physics step
-        throttle, values = float(values[0]), tuple(
-            0.0 if abs(v) <= dz else float(v) for v in np.clip(values, -1.0, 1.0))
+        values = tuple(0.0 if abs(v) <= dz else float(v) for v in np.clip(values, -1.0, 1.0))
         with self._lock:
             self._require_spawned()
             self._sticks = values
             self._sticks_at = self._time_s if now_s is None else float(now_s)
             active = any(values)
             if self._mode == DroneMode.LANDED:
-                if throttle <= 0.5:
+                if values[0] <= 0.5:  # throttle
                     return
                 self._quad.reset(self._quad.position, self._quad.yaw_rad, hovering=True)
             elif self._mode != DroneMode.MANUAL and not active:
@@ -489,13 +500,7 @@ class DroneSimulator:
             raise DroneCommandError(f"{what} needs a flying drone; it is landed (take off first)")
 
     def _plan(self, goal: np.ndarray, speed: float):
-        cfg = self.config
-        return plan_path(self.flight_map, self._quad.position, goal, cfg.radius_m,
-                         margin_m=cfg.planning_margin_m, max_speed_m_s=speed,
-                         max_accel_m_s2=cfg.route_accel_m_s2,
-                         # Headroom below the controller's own limit, so it can catch up
-                         # at the end of a descent instead of overshooting into the floor.
-                         max_climb_rate_m_s=ROUTE_CLIMB_SHARE * cfg.max_climb_rate_m_s)
+        return plan_route(self.flight_map, self._quad.position, goal, self.config, speed)
 
     def _start_route(self, route) -> None:
         cfg = self.config

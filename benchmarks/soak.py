@@ -53,7 +53,9 @@ RSS_GROWTH_LIMIT_MB_PER_MIN = 5.0  # over the second half of the run
 
 class PingPong(RGBDDataset):
     """The first ``frames`` of a sequence forward, then backward, as one period: looping it keeps
-    the camera's motion continuous. Timestamps increase at ``fps``."""
+    the camera's motion continuous. Timestamps increase at ``fps`` within a period; a replay
+    that loops it starts them again each period (sequence numbers still rise, and they are
+    what orders the frames on the server)."""
 
     def __init__(self, dataset: RGBDDataset, frames: int, fps: float) -> None:
         self.base, self.n, self.dt = dataset, min(frames, len(dataset)), 1.0 / fps
@@ -115,14 +117,15 @@ class SessionRecord:
 
 
 def ply_points(data: bytes, folder: Path) -> int:
-    path = folder / f"check-{threading.get_ident()}.ply"
+    path = folder / "check.ply"  # the clients share one thread: one file at a time
     path.write_bytes(data)
     return len(o3d.io.read_point_cloud(str(path)).points)
 
 
-async def run_client(index: int, url: str, dataset: PingPong, args, deadline: float, t0: float,
-                     tmp: Path, records: list[SessionRecord]) -> None:
-    async with httpx.AsyncClient(base_url=url, timeout=120) as http:
+async def run_client(index: int, server: ServerProcess, dataset: PingPong, args,
+                     deadline: float, t0: float, tmp: Path,
+                     records: list[SessionRecord]) -> None:
+    async with httpx.AsyncClient(base_url=server.url, timeout=120) as http:
         while time.monotonic() + 20 < deadline:  # a session of at least 20 s
             r = await http.post("/api/sessions")
             if r.status_code != 201:
@@ -135,7 +138,7 @@ async def run_client(index: int, url: str, dataset: PingPong, args, deadline: fl
             records.append(record)
             seconds = min(args.session_minutes * 60, deadline - time.monotonic())
             try:
-                stats = await replay(f"{url.replace('http', 'ws', 1)}/ws/sessions/{record.id}",
+                stats = await replay(f"{server.ws_url}/ws/sessions/{record.id}",
                                      record.token, dataset, fps=args.fps,
                                      max_frames=int(seconds * args.fps), loop_sequence=True,
                                      preencode=True, client_name=f"soak/{index}")
@@ -176,8 +179,9 @@ def check_after_restart(url: str, records: list[SessionRecord], tmp: Path) -> No
         if r.status is None:
             continue
         headers = {"Authorization": f"Bearer {r.token}"}
-        status = httpx.get(f"{url}/api/sessions/{r.id}", headers=headers)
-        traj = httpx.get(f"{url}/api/sessions/{r.id}/trajectory.tum", headers=headers)
+        status = httpx.get(f"{url}/api/sessions/{r.id}", headers=headers, timeout=60)
+        traj = httpx.get(f"{url}/api/sessions/{r.id}/trajectory.tum", headers=headers,
+                         timeout=60)
         ply = httpx.get(f"{url}/api/sessions/{r.id}/map.ply", headers=headers, timeout=120)
         if status.status_code != 200 or not status.json().get("closed"):
             r.problems.append(f"after restart: status HTTP {status.status_code}")
@@ -192,16 +196,14 @@ def check_after_restart(url: str, records: list[SessionRecord], tmp: Path) -> No
 # ---- report -------------------------------------------------------------------------------------
 
 
-def rss_analysis(samples: list[tuple[float, float, int]]) -> dict:
+def rss_analysis(samples: list[tuple[float, float, int]], base_live: int) -> dict:
     """RSS rises while finished sessions wait for their TTL and falls when they close; what must
-    stay flat is the level it falls back to. That base level is read at the most common count of
-    live sessions (the clients streaming, none waiting), and its slope over the second half of
-    the run is the figure."""
+    stay flat is the level it falls back to. That base level is read while ``base_live``
+    sessions are live (the clients streaming, none waiting), and its slope over the second half
+    of the run is the figure."""
     t = np.array([s[0] for s in samples]) / 60.0
     rss = np.array([s[1] for s in samples])
     live = np.array([s[2] for s in samples])
-    counts = np.bincount(live[live > 0]) if (live > 0).any() else np.array([0])
-    base_live = int(counts.argmax())
     half = t >= t[-1] / 2
     base = (live == base_live) & half
     slope = float(np.polyfit(t[base], rss[base], 1)[0]) if base.sum() >= 3 else float("nan")
@@ -326,7 +328,7 @@ def main() -> int:
     parser.add_argument("--ttl-s", type=float, default=60.0, help="server session TTL")
     parser.add_argument("--sample-s", type=float, default=5.0, help="RSS sampling period")
     parser.add_argument("--server-env", nargs="*", default=[], metavar="NAME=VALUE",
-                        help="extra environment for the server, e.g. MALLOC_ARENA_MAX=2")
+                        help="extra environment for the server, e.g. DRONESIM_ALLOCATOR=system")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     command = "python benchmarks/soak.py " + " ".join(sys.argv[1:])
@@ -339,31 +341,32 @@ def main() -> int:
         env = {"DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
                "DRONESIM_CREATE_RATE_PER_MIN": "0", "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
                **environment(args.server_env)}
-        server = ServerProcess(data_dir, env, log)
-        sampler = RSSSampler(server, args.sample_s)
-        sampler.start()
         records: list[SessionRecord] = []
-        t0 = time.monotonic()
-        deadline = t0 + args.minutes * 60
+        with ServerProcess(data_dir, env, log) as server:  # killed if anything below fails
+            sampler = RSSSampler(server, args.sample_s)
+            sampler.start()
+            t0 = time.monotonic()
+            deadline = t0 + args.minutes * 60
 
-        async def clients():
-            await asyncio.gather(*(run_client(i, server.url, dataset, args, deadline, t0, tmp,
-                                              records) for i in range(args.sessions)))
+            async def clients():
+                await asyncio.gather(*(run_client(i, server, dataset, args, deadline, t0,
+                                                  tmp, records) for i in range(args.sessions)))
 
-        asyncio.run(clients())
-        while time.monotonic() < deadline:  # the last sessions' TTL, as the run's tail
-            time.sleep(1)
-        sampler.stop()
-        wall_min = (time.monotonic() - t0) / 60
-        code = server.terminate()
-        restarted = ServerProcess(data_dir, env, log)
-        check_after_restart(restarted.url, records, tmp)
-        restart_ok = restarted.terminate() in (0, -signal.SIGTERM) and code in (0, -signal.SIGTERM)
+            asyncio.run(clients())
+            while time.monotonic() < deadline:  # a client's last session may end early
+                time.sleep(1)
+            sampler.stop()
+            wall_min = (time.monotonic() - t0) / 60
+            code = server.terminate()
+        with ServerProcess(data_dir, env, log) as restarted:
+            check_after_restart(restarted.url, records, tmp)
+            restart_code = restarted.terminate()
+        restart_ok = restart_code in (0, -signal.SIGTERM) and code in (0, -signal.SIGTERM)
         text = log.read_text()
         log_problems = [line for line in text.splitlines()
                         if "Traceback" in line or line.startswith(("ERROR", "CRITICAL"))]
     args.out.mkdir(parents=True, exist_ok=True)
-    rss = rss_analysis(sampler.samples)
+    rss = rss_analysis(sampler.samples, base_live=args.sessions)
     write_plot(sampler.samples, records, args, args.out / "soak.png")
     ok = write_report(args.out / "soak.md", args, command, rss, records, wall_min,
                       (load_before, os.getloadavg()[0]), log_problems, restart_ok)

@@ -8,22 +8,16 @@ SUDO=""
 
 # open3d needs libusb at import time. The server runs on jemalloc, which gives freed memory
 # back to the system (glibc's malloc let a long-running server grow; see server/memory.py).
-SERVER_PACKAGES=()
-ldconfig -p | grep -q libusb-1.0.so.0 || SERVER_PACKAGES+=(libusb-1.0-0)
-ldconfig -p | grep -q libjemalloc.so.2 || SERVER_PACKAGES+=(libjemalloc2)
-if [ ${#SERVER_PACKAGES[@]} -gt 0 ]; then
-  $SUDO apt-get update -qq
-  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${SERVER_PACKAGES[@]}" >/dev/null
-fi
-
 # The web client's browser tests drive Debian's chromium with Playwright (Playwright's own
 # browser download does not work here); npm installs the page's modules.
-WEB_PACKAGES=()
-[ -x /usr/bin/chromium ] || WEB_PACKAGES+=(chromium chromium-driver)
-command -v npm >/dev/null || WEB_PACKAGES+=(nodejs npm)
-if [ ${#WEB_PACKAGES[@]} -gt 0 ]; then
+PACKAGES=()
+ldconfig -p | grep -q libusb-1.0.so.0 || PACKAGES+=(libusb-1.0-0)
+ldconfig -p | grep -q libjemalloc.so.2 || PACKAGES+=(libjemalloc2)
+[ -x /usr/bin/chromium ] || PACKAGES+=(chromium chromium-driver)
+command -v npm >/dev/null || PACKAGES+=(nodejs npm)
+if [ ${#PACKAGES[@]} -gt 0 ]; then
   $SUDO apt-get update -qq
-  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${WEB_PACKAGES[@]}" >/dev/null
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${PACKAGES[@]}" >/dev/null
 fi
 
 python3 -m pip install -q --disable-pip-version-check -e ".[dev]"

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import websockets
-from conftest import auth
+from conftest import session_status
 
 from server.datasets import open_dataset
 from server.simulation.config import SimulationConfig
@@ -174,7 +174,6 @@ def test_a_streamed_session_spawns_a_drone_that_flies_where_the_pilot_says(
 
 def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server):
     """`serve --demo`: the server replays its own demo sequence and a tour pilot flies the drone."""
-    import httpx
 
     server = live_server(demo=True, demo_fps=10.0)
     deadline = time.monotonic() + 120
@@ -182,10 +181,7 @@ def test_the_bundled_demo_session_maps_the_room_and_tours_the_drone(live_server)
     while time.monotonic() < deadline:
         demo = server.app.state.demo
         if demo is not None:
-            status = httpx.get(
-                f"{server.url}/api/sessions/{demo['id']}",
-                headers=auth(demo["token"]),
-            ).json()
+            status = session_status(server.url, demo["id"], demo["token"])
             drone = status.get("drone") or {}
             if drone.get("events", {}).get("arrived", 0) >= 2 and status["frames_processed"] > 20:
                 break

@@ -36,7 +36,7 @@ def server_process(tmp_path):
 
     def start(data_dir: Path, **settings) -> ServerProcess:
         env = {f"DRONESIM_{k.upper()}": str(v) for k, v in settings.items()}
-        server = ServerProcess(data_dir, env, log=tmp_path / "server.log")
+        server = ServerProcess(data_dir, env, log=tmp_path / f"server{len(started)}.log")
         started.append(server)
         return server
 
@@ -149,7 +149,7 @@ def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
     assert 15 <= n <= len(received)
     # The snapshot's poses are the ones the client was sent, in order (9 decimals on disk).
     np.testing.assert_allclose(saved["trajectory"].poses[:, :3, 3], received[:n, :3, 3], atol=1e-6)
-    status = httpx.get(f"{again.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(again.url, sid, token)
     assert status["closed"] is True and n <= status["frames_processed"] <= len(received)
     tum = httpx.get(f"{again.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
     assert tum.status_code == 200 and tum.content == (folder / "trajectory.tum").read_bytes()
@@ -352,9 +352,11 @@ def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(
         stream.abort()
 
     asyncio.run(stream_and_vanish())
-    time.sleep(3.0)  # the TTL has passed and the close has been tried several times
+    deadline = time.monotonic() + 30  # the TTL passes, then the close is tried and fails
+    while not (status := session_status(server.url, sid, token))["snapshot_error"]:
+        assert time.monotonic() < deadline, "the close after the TTL was never tried"
+        time.sleep(0.1)
     assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 1
-    status = session_status(server.url, sid, token)
     assert status["closed"] is True and status["frames_processed"] == 12
     assert "IsADirectoryError" in status["snapshot_error"]
     ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)

@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import websockets
-from conftest import auth, offline_track
+from conftest import auth, offline_track, session_status
 
 from server.client.replay import replay
 from server.datasets import open_dataset
@@ -49,7 +49,7 @@ def test_streamed_poses_match_offline_tracking_and_the_map_downloads(
     assert np.abs(streamed[:, :3, 3] - offline[:, :3, 3]).max() < 1e-6
     assert {p["state"] for p in stats.poses} <= {"ok", "weak"}
 
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert status["frames_processed"] == FRAMES and status["map"]["frames_integrated"] > 10
 
     r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
@@ -257,5 +257,5 @@ def test_a_reconnecting_client_may_number_its_frames_from_zero_again(live_server
     second = stream(server, sid, token, ds, n=8)  # seq 0..7 again, same session
     assert len(first.poses) == 8 and not first.errors
     assert len(second.poses) == 8 and not second.errors, second.errors
-    status = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).json()
+    status = session_status(server.url, sid, token)
     assert status["frames_processed"] == 16 and status["trajectory_poses"] == 16

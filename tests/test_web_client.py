@@ -588,6 +588,7 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
         window.captureHeld = true;
         await gate;
         source.capture = capture;
+        window.captureReleased = true;
         return captured;
       };
     }""")
@@ -600,6 +601,7 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
         page.wait("window.dronesim.client.state === 'taken_over'", 10, "the page to let go")
         reconnects = page.snapshot()["counts"]["reconnects"]
         page.page.evaluate("window.openCaptureGate()")
+        page.wait("window.captureReleased === true", 10, "the held capture to go on")
         time.sleep(2.0)
         s = page.snapshot()
         assert s["counts"]["reconnects"] == reconnects

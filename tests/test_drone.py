@@ -12,6 +12,7 @@ import pytest
 
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import (
+    ROUTE_TOLERANCE_M,
     DroneCommandError,
     DroneEventKind,
     DroneMode,
@@ -19,6 +20,7 @@ from server.simulation.drone import (
 )
 from server.simulation.flight_map import FlightMap
 from server.simulation.planner import PlanningError
+from server.simulation.polyline import distances_to_segment, simplify
 from server.simulation.scenes import Scene, box_in_the_way, corridor, room_with_door, sealed_room
 
 CONFIG = SimulationConfig()
@@ -399,3 +401,34 @@ def test_commands_from_another_thread_while_advancing():
     assert not errors
     assert drone.status().mode == DroneMode.MANUAL
     assert drone.status().clearance >= R
+
+
+def test_status_route_is_the_corners_of_the_path_ahead():
+    """drone_state carries the route's corners: the setpoint first, then vertices that a client
+    joins with straight lines staying within ROUTE_TOLERANCE_M of the path still ahead."""
+    scene = room_with_door()
+    drone = spawned(scene)
+    drone.command_goto(scene.goal)
+    for _ in range(6):
+        route = drone.status().route
+        tracker = drone._tracker
+        dense = tracker.remaining(drone._setpoint())
+        assert len(route) < len(dense) / 5  # corners, not samples
+        np.testing.assert_allclose(route[0], dense[0])  # where the drone is headed now
+        np.testing.assert_allclose(route[-1], scene.goal, atol=1e-9)
+        # Every path sample ahead is within the tolerance of the drawn polyline.
+        gaps = np.min([distances_to_segment(dense, a, b) for a, b in zip(route[:-1], route[1:],
+                                                                        strict=True)], axis=0)
+        assert gaps.max() <= ROUTE_TOLERANCE_M + 1e-9
+        fly(drone, 0.5)
+
+
+def test_douglas_peucker_keeps_the_corners_within_the_tolerance():
+    t = np.linspace(0, 1, 201)[:, None]
+    corner = np.vstack([t * [1.0, 0, 0], [1.0, 0, 0] + t[1:] * [0, 1.0, 0]])  # an L
+    np.testing.assert_array_equal(simplify(corner, 0.01), [0, 200, 400])
+    arc = np.stack([np.cos(t[:, 0] * np.pi), np.sin(t[:, 0] * np.pi), 0 * t[:, 0]], axis=1)
+    keep = simplify(arc, 0.02)
+    assert 5 < len(keep) < 40 and keep[0] == 0 and keep[-1] == 200
+    for a, b in zip(keep[:-1], keep[1:], strict=True):
+        assert distances_to_segment(arc[a:b + 1], arc[a], arc[b]).max() <= 0.02

@@ -110,3 +110,49 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
     assert "({:.2f}, {:.2f}, {:.2f}) m".format(*in_wall) in message and "obstacle" in message
     assert info.value.nearest is not None  # the free side of the wall
     assert fm.distance((R @ info.value.nearest)[None])[0] >= SimulationConfig().radius_m
+
+
+class _FakeMap:
+    """Stands in for a TSDFMap: hands out the queued sub-boxes, records how it was asked."""
+
+    def __init__(self, boxes):
+        self.boxes, self.asked = list(boxes), []
+
+    def occupancy_update(self, voxel_m, R_grid_world):
+        self.asked.append((voxel_m, R_grid_world))
+        return self.boxes.pop(0) if self.boxes else None
+
+
+def test_sub_boxes_fed_between_ticks_merge_and_spawn_the_drone():
+    """feed_from_map after every fused frame: boxes pending together merge (none overwrites
+    another) and the flight thread applies them at once."""
+    flight = make_flight()
+    scene = scenes.room_with_door()
+    fm = scene.flight_map
+    observed = np.ones(fm.shape, dtype=bool)
+    blocked = fm.blocked.copy()
+    half = fm.shape[0] // 2
+    v = fm.voxel_m
+    # The room in two halves, the second overlapping the first by two cells, then a wall
+    # block in the first half (overwriting those cells).
+    boxes = [(fm.origin, blocked[:half], observed[:half]),
+             (fm.origin + [(half - 2) * v, 0, 0], blocked[half - 2:], observed[half - 2:]),
+             (fm.origin + np.array([4, 10, 4]) * v, np.ones((3, 3, 3), bool),
+              np.ones((3, 3, 3), bool))]
+    source = _FakeMap(boxes)
+    for _ in boxes:
+        assert flight.feed_from_map(source)
+    assert not flight.feed_from_map(source)  # nothing new
+    assert source.asked[0][0] == flight.config.voxel_m
+    np.testing.assert_array_equal(source.asked[0][1], flight.R_flight_world)
+    T = np.eye(4)
+    T[:3, :3] = flight.R_flight_world.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    T[:3, 3] = flight.R_flight_world.T @ (scene.start - [0.8, 0.0, 0.0])
+    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
+    flight._tick(0.02)
+    expected = blocked.copy()
+    expected[4:7, 10:13, 4:7] = True
+    np.testing.assert_array_equal(flight.flight_map.blocked, expected)
+    np.testing.assert_allclose(flight.flight_map.origin, fm.origin, atol=1e-12)
+    assert flight.spawned
+    assert not flight.feed_from_map(object())  # a failure is logged, never raised

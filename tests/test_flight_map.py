@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from server.simulation import scenes
-from server.simulation.flight_map import FlightMap, FlightMapError
+from server.simulation.flight_map import FlightMap, FlightMapError, Region
 
 
 def brute_force_field(blocked: np.ndarray, voxel_m: float, max_m: float, outside: bool):
@@ -183,3 +183,94 @@ def test_malformed_grids_are_rejected():
         m.update(np.zeros(3), np.zeros((4, 4, 4), bool), np.zeros((4, 4, 3), bool))
     with pytest.raises(FlightMapError, match="origin"):
         m.update(np.array([0, np.nan, 0]), np.zeros((4, 4, 4), bool), np.zeros((4, 4, 4), bool))
+
+
+def _merge(grid, origin, box_origin, occupied, observed, written, v):
+    """The test's own merge of a sub-box into (occupied, observed) grids: grown to hold it
+    (new cells unobserved), the written cells overwritten. Returns (origin, occupied, observed)."""
+    occ, obs = grid
+    at = np.round((box_origin - origin) / v).astype(int)
+    lo = np.minimum(at, 0)
+    hi = np.maximum(np.array(occ.shape), at + occupied.shape)
+    new_occ, new_obs = np.zeros(hi - lo, bool), np.zeros(hi - lo, bool)
+    inner = tuple(slice(a, a + n) for a, n in zip(-lo, occ.shape, strict=True))
+    new_occ[inner], new_obs[inner] = occ, obs
+    box = tuple(slice(a, a + n) for a, n in zip(at - lo, occupied.shape, strict=True))
+    new_occ[box][written], new_obs[box][written] = occupied[written], observed[written]
+    return origin + lo * v, (new_occ, new_obs)
+
+
+@pytest.mark.parametrize("unknown_is_free", [False, True])
+def test_sub_box_updates_equal_a_full_rebuild_and_stay_local(unknown_is_free, monkeypatch):
+    rng = np.random.default_rng(8)
+    v, max_m = 0.05, 0.3
+    shape, origin = np.array([50, 44, 30]), np.array([0.3, -0.1, 0.0])
+    grid = (rng.random(shape) < 0.02, np.ones(shape, bool))
+    grid[1][40:] = False
+    incremental = FlightMap(v, unknown_is_free, max_distance_m=max_m)
+    incremental.update(origin, *grid)
+    windows = []  # the blocks whose field is computed from scratch
+    compute = FlightMap._signed_distance
+
+    def recording(self, blocked):
+        windows.append(blocked.size)
+        return compute(self, blocked)
+
+    monkeypatch.setattr(FlightMap, "_signed_distance", recording)
+    reach = incremental._reach
+    for step in range(10):
+        # A small box somewhere in or around the grid (sometimes sticking out, growing it),
+        # writing only some of its cells.
+        size = rng.integers(2, 7, 3)
+        at = rng.integers(-3, np.array(grid[0].shape) - 2)
+        box_origin = origin + at * v
+        occupied, observed = rng.random(size) < 0.4, rng.random(size) < 0.9
+        written = rng.random(size) < 0.8 if step % 2 else np.ones(size, bool)
+        windows.clear()
+        inside = np.all(at >= 0) and np.all(at + size <= grid[0].shape)
+        changed = incremental.update_region(box_origin, occupied, observed, written)
+        largest_window = max(windows, default=0)
+        origin, grid = _merge(grid, origin, box_origin, occupied, observed, written, v)
+        full = FlightMap(v, unknown_is_free, max_distance_m=max_m)
+        full.update(origin, *grid)
+        np.testing.assert_allclose(incremental.origin, full.origin, atol=1e-12)
+        np.testing.assert_array_equal(incremental.blocked, full.blocked)
+        np.testing.assert_array_equal(incremental.esdf, full.esdf)
+        # Local: a box inside the grid computes no window beyond the box grown by twice the
+        # field's reach (one reach for the cells that may change, one for what they see).
+        # (A box that grows the grid also recomputes the new faces near the old grid.)
+        if inside:
+            assert largest_window <= np.prod(size + 4 * reach + 2)
+        if changed is not None:
+            assert changed.contains(box_origin + (np.array(size) / 2) * v, margin_m=v)[0]
+    # Writing what is already there changes nothing.
+    version = incremental.version
+    assert incremental.update_region(origin, *grid) is None
+    assert incremental.version == version
+
+
+def test_merged_regions_equal_the_regions_applied_one_after_the_other():
+    rng = np.random.default_rng(9)
+    v = 0.05
+    base = FlightMap.from_boxes((0, 0, 0), (2.0, 1.5, 1.0), [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))],
+                                v, max_distance_m=0.4)
+    one_by_one = FlightMap.from_boxes((0, 0, 0), (2.0, 1.5, 1.0),
+                                      [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))], v, max_distance_m=0.4)
+    regions = []
+    for at in ([3, 4, 2], [6, 5, 3], [38, 28, 18]):  # two overlapping, one sticking out
+        size = (6, 5, 4)
+        regions.append(Region.whole(np.array(at) * v, rng.random(size) < 0.5,
+                                    rng.random(size) < 0.9))
+        one_by_one.update_region(regions[-1].origin, regions[-1].occupied, regions[-1].observed)
+    merged = regions[0].merged(regions[1], v).merged(regions[2], v)
+    assert merged.occupied.shape == (41, 29, 20) and not merged.written.all()
+    base.update_region(merged.origin, merged.occupied, merged.observed, merged.written)
+    np.testing.assert_array_equal(base.blocked, one_by_one.blocked)
+    np.testing.assert_array_equal(base.esdf, one_by_one.esdf)
+
+
+def test_sub_boxes_must_sit_on_the_lattice():
+    flight_map = FlightMap.from_boxes((0, 0, 0), (1, 1, 1), [], 0.1)
+    with pytest.raises(FlightMapError, match="lattice"):
+        flight_map.update_region(np.array([0.05, 0.0, 0.0]), np.zeros((2, 2, 2), bool),
+                                 np.ones((2, 2, 2), bool))

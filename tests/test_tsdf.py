@@ -14,6 +14,7 @@ from server.datasets import open_dataset
 from server.geometry import backproject
 from server.mapping.tsdf import TSDFConfig, TSDFMap
 from server.pipeline import ground_truth_pose_at
+from server.simulation.flight_map import FlightMap
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic_room0"
 VOXEL_M = 0.02
@@ -179,3 +180,37 @@ def test_occupancy_in_a_rotated_grid_frame(room, fused):
     inside = np.all((ijk >= 0) & (ijk < occupied.shape), axis=1)
     assert inside.mean() > 0.98
     assert occupied[tuple(ijk[inside].T)].mean() > 0.9
+
+
+def test_occupancy_updates_merge_into_exactly_the_full_grid_and_flight_map(room):
+    """Sub-boxes from occupancy_update, merged frame by frame, are the full occupancy grid; fed
+    into a flight map with update_region, its distance field is the full rebuild's."""
+    cell = 0.05
+    angle = np.deg2rad(20.0)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, [0, 3])
+    origin, occupied, observed = tsdf.occupancy_update(cell, R)  # the first: everything so far
+    full = tsdf.occupancy(cell, R)
+    np.testing.assert_allclose(origin, full[0])
+    np.testing.assert_array_equal(occupied, full[1])
+    np.testing.assert_array_equal(observed, full[2])
+    flight_map = FlightMap(cell, max_distance_m=0.5)
+    flight_map.update(origin, occupied, observed)
+    assert tsdf.occupancy_update(cell, R) is None  # nothing fused since
+    for i in [6, 40, 9, 80]:  # new views grow the grid, revisits change what is inside it
+        fuse(room, tsdf, [i])
+        box_origin, box_occupied, box_observed = tsdf.occupancy_update(cell, R)
+        # The box agrees with the full grid where they overlap and is unobserved elsewhere.
+        full = tsdf.occupancy(cell, R)
+        at = np.round((box_origin - full[0]) / cell).astype(int)
+        assert np.all(at >= 0) and np.all(at + box_occupied.shape <= full[1].shape)
+        box = tuple(slice(a, a + n) for a, n in zip(at, box_occupied.shape, strict=True))
+        np.testing.assert_array_equal(box_occupied, full[1][box])
+        np.testing.assert_array_equal(box_observed, full[2][box])
+        flight_map.update_region(box_origin, box_occupied, box_observed)
+        rebuilt = FlightMap(cell, max_distance_m=0.5)
+        rebuilt.update(*full)
+        np.testing.assert_allclose(flight_map.origin, rebuilt.origin, atol=1e-9)
+        np.testing.assert_array_equal(flight_map.blocked, rebuilt.blocked)
+        np.testing.assert_array_equal(flight_map.esdf, rebuilt.esdf)

@@ -5,7 +5,8 @@ x right, y down, z forward); everything returned is in the world frame, in metre
 grid holds a TSDF value (signed distance / truncation, -1..1), a weight (observations) and an RGB
 colour (0..1), all float32. Open3D allocates blocks only near surfaces; ``carve_free_space`` also
 allocates the blocks sparse camera rays cross, so the space seen empty (TSDF +1) is recorded too,
-which ``occupancy`` needs to tell free space from unknown space.
+which ``occupancy`` needs to tell free space from unknown space. ``occupancy_update`` returns only
+the part of that grid the frames fused since its last call can have changed.
 """
 
 from __future__ import annotations
@@ -82,6 +83,19 @@ def _unpack(keys: np.ndarray) -> np.ndarray:
     return np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1) - _KEY_BIAS
 
 
+def _rotate(points: np.ndarray, R: np.ndarray | None) -> np.ndarray:
+    """(N, 3) points (float64) rotated by R (3x3; None: unrotated). Written out per element, not
+    as a matrix product, so that a point's result does not depend on how many points are rotated
+    with it (a BLAS product may round differently by batch): occupancy_update then finds the
+    very cells a full occupancy does."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if R is None:
+        return p
+    R = np.asarray(R, dtype=np.float64)
+    return np.stack([p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2]
+                     for i in range(3)], axis=1)
+
+
 def _atomic_write(path: str | Path, suffix: str, write) -> None:
     """Call ``write(tmp)`` (False: it failed) on a temporary file beside ``path``, then rename
     the file over ``path``."""
@@ -119,6 +133,10 @@ class TSDFMap:
         self._cameras = list(np.reshape([] if camera_positions is None else camera_positions,
                                         (-1, 3)))
         self._dirty = np.sort(_pack(self._active_keys()))  # blocks touched since the last preview
+        # Blocks touched, and cameras added, since the last occupancy_update (all at first, so
+        # that the first update is the whole grid).
+        self._occupancy_dirty = self._dirty.copy()
+        self._occupancy_cameras = 0  # cameras [0, this) were in an occupancy_update already
         self._sent = np.empty(0, np.int64)  # voxel keys of the points already previewed
         self._rng = np.random.default_rng(0)
 
@@ -170,6 +188,7 @@ class TSDFMap:
             self._grid.integrate(coords, depth_img, colour_img, intrinsic, extrinsic,
                                  1.0, cfg.depth_max_m, cfg.trunc_voxels)
             self._dirty = np.union1d(self._dirty, keys)
+            self._occupancy_dirty = np.union1d(self._occupancy_dirty, keys)
             return hashmap.size() - before
 
     def _intrinsics_for(self, K: Intrinsics, w: int, h: int) -> Intrinsics:
@@ -247,6 +266,7 @@ class TSDFMap:
                 return o3d.geometry.TriangleMesh()
             return self._grid.extract_triangle_mesh(self.config.min_weight).cpu().to_legacy()
 
+    # --- occupancy for the drone ---------------------------------------------------------------
     def occupancy(
         self, voxel_m: float = 0.05, R_grid_world: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -256,14 +276,111 @@ class TSDFMap:
         follows (a gravity-aligned flight frame); None for the world's own axes.
         Returns (origin (3,) metres in the grid frame, occupied, observed), both bool arrays of
         the same shape indexed [i, j, k] <-> grid-frame x, y, z: cell (i, j, k) spans
-        origin + [i, i + 1) * voxel_m along x, and likewise for y (j) and z (k). A cell is
-        observed when one of its TSDF voxels was seen (weight > 0) or a fused frame's camera was in
-        it, and occupied when a seen TSDF voxel in it has a TSDF distance under half the cell's
-        diagonal (at least one TSDF voxel, at most the truncation). Free = observed & ~occupied;
-        unobserved cells should be treated as unknown (not safe to fly).
+        origin + [i, i + 1) * voxel_m along x, and likewise for y (j) and z (k); the origin is a
+        whole number of cells from the grid frame's origin. A cell is observed when one of its
+        TSDF voxels was seen (weight > 0) or a fused frame's camera was in it, and occupied when a
+        seen TSDF voxel in it has a TSDF distance under half the cell's diagonal (at least one
+        TSDF voxel, at most the truncation). Free = observed & ~occupied; unobserved cells should
+        be treated as unknown (not safe to fly).
         """
-        if voxel_m <= 0:
+        self._check_cell(voxel_m)
+        with self._lock:
+            keys, tsdf, weight = self._read_blocks()
+            cameras = np.array(self._cameras).reshape(-1, 3)
+        seen, surface, at_camera = self._cells(keys, tsdf, weight, cameras, voxel_m, R_grid_world)
+        observed_cells = np.concatenate([seen, surface, at_camera])
+        if observed_cells.size == 0:
+            return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
+        lo = observed_cells.min(axis=0)
+        return self._grid_of(lo, observed_cells.max(axis=0) + 1, observed_cells, surface, voxel_m)
+
+    def occupancy_update(
+        self, voxel_m: float = 0.05, R_grid_world: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The part of ``occupancy(voxel_m, R_grid_world)`` that what was fused since the last
+        call can have changed, or None when nothing can have.
+
+        Returns (origin, occupied, observed) as ``occupancy`` does, for a sub-box of its grid:
+        every cell that a voxel of a block integrated since the last call can fall in (the
+        blocks' extent in the grid frame, one cell wider each side) and every new camera's
+        cell, cropped to the cells observed in it. Inside that box the values are exactly a
+        full ``occupancy``'s (the voxels of untouched blocks that fall in the box are read too).
+        The origin sits on the same lattice as every ``occupancy`` grid, so boxes merge into one
+        grid (``FlightMap.update_region``). Outside the box nothing changed: observed never
+        turns false, except, when voxel_m is 5 TSDF voxels or more (voxels are then sampled),
+        a cell seen only through surface voxels that have left the surface band.
+
+        The first call returns the whole grid. Each call restarts what the next one covers, so
+        a map has one such reader (the session's drone), which passes the same voxel_m and
+        R_grid_world every time; ``occupancy`` restarts nothing.
+        """
+        self._check_cell(voxel_m)
+        with self._lock:
+            dirty = _unpack(self._occupancy_dirty)
+            cameras = np.array(self._cameras).reshape(-1, 3)
+            new_cameras = cameras[self._occupancy_cameras:]
+            self._occupancy_dirty = np.empty(0, np.int64)
+            self._occupancy_cameras = len(cameras)
+            if len(dirty) == 0 and len(new_cameras) == 0:
+                return None
+            reach = [self._block_cells(dirty, voxel_m, R_grid_world)]
+            if len(new_cameras):
+                at = np.floor(_rotate(new_cameras, R_grid_world) / voxel_m).astype(np.int64)
+                reach.append((at, at))
+            box_lo = np.min([lo.min(axis=0) for lo, _ in reach if len(lo)], axis=0)
+            box_hi = np.max([hi.max(axis=0) for _, hi in reach if len(hi)], axis=0) + 1
+
+            def overlapping(keys):  # blocks with a voxel that can fall in the box
+                lo, hi = self._block_cells(keys, voxel_m, R_grid_world)
+                return np.all((lo < box_hi) & (hi >= box_lo), axis=1)
+
+            keys, tsdf, weight = self._read_blocks(overlapping)
+        seen, surface, at_camera = self._cells(keys, tsdf, weight, cameras, voxel_m, R_grid_world)
+
+        def inside(cells):
+            return cells[np.all((cells >= box_lo) & (cells < box_hi), axis=1)]
+
+        seen, surface, at_camera = inside(seen), inside(surface), inside(at_camera)
+        observed_cells = np.concatenate([seen, surface, at_camera])
+        if observed_cells.size == 0:
+            return None
+        # Cropped to what is observed: the rest of the box was unobserved before too.
+        lo = observed_cells.min(axis=0)
+        return self._grid_of(lo, observed_cells.max(axis=0) + 1, observed_cells, surface, voxel_m)
+
+    @staticmethod
+    def _check_cell(voxel_m: float) -> None:
+        if not voxel_m > 0:
             raise ConfigError(f"occupancy voxel size must be positive, got {voxel_m}")
+
+    def _read_blocks(self, select=None):
+        """Keys (B, 3) of the active blocks (those ``select(keys)`` -> (N,) bool keeps), and
+        copies of their tsdf and weight (B, z, y, x). Call with the lock held."""
+        hashmap = self._grid.hashmap()
+        idx = hashmap.active_buf_indices().cpu().numpy().astype(np.int64)
+        keys = hashmap.key_tensor().cpu().numpy()[idx].astype(np.int64).reshape(-1, 3)
+        if select is not None:
+            keep = select(keys)
+            idx, keys = idx[keep], keys[keep]
+        # .numpy() views the grid's memory; fancy indexing copies it while the lock is held
+        # (Open3D's own tensor indexing is ~20x slower here).
+        tsdf = self._grid.attribute("tsdf").numpy()[idx, ..., 0]
+        weight = self._grid.attribute("weight").numpy()[idx, ..., 0]
+        return keys, tsdf, weight
+
+    def _block_cells(self, keys: np.ndarray, voxel_m: float, R_grid_world):
+        """(lo, hi), (B, 3) int64 each: the range of grid cells (inclusive) the voxels of each
+        block (keys (B, 3)) can fall in, one cell wider each side than the blocks' corners
+        say, for the float32 rounding of voxel positions in ``_cells``."""
+        res = self.config.block_resolution
+        corners = np.array(np.meshgrid(*[[0, res - 1]] * 3, indexing="ij")).reshape(3, 8).T
+        points = ((keys[:, None, :] * res + corners) * self.config.voxel_m).reshape(-1, 3)
+        cells = np.floor(_rotate(points, R_grid_world) / voxel_m).reshape(-1, 8, 3)
+        return cells.min(axis=1).astype(np.int64) - 1, cells.max(axis=1).astype(np.int64) + 1
+
+    def _cells(self, keys, tsdf, weight, cameras, voxel_m: float, R_grid_world):
+        """Grid cells (integer (N, 3) each, not unique) of the given blocks' seen voxels, of
+        their surface voxels, and of the cameras (world (C, 3))."""
         cfg, res = self.config, self.config.block_resolution
         # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
         # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
@@ -273,34 +390,24 @@ class TSDFMap:
         s = 1
         while s < res and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
             s *= 2
-        with self._lock:
-            keys = self._active_keys().astype(np.int64)
-            idx = self._grid.hashmap().active_buf_indices().cpu().numpy().astype(np.int64)
-            # .numpy() views the grid's memory; fancy indexing copies it while the lock is held
-            # (Open3D's own tensor indexing is ~20x slower here).
-            tsdf = self._grid.attribute("tsdf").numpy()[idx, ..., 0]  # (B, z, y, x)
-            weight = self._grid.attribute("weight").numpy()[idx, ..., 0]
-            cameras = np.array(self._cameras).reshape(-1, 3)
 
-        def world(b, zl, yl, xl, step=1):
+        def cells(b, zl, yl, xl, step=1):
             local = np.stack([xl, yl, zl], axis=1) * step
-            return (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
+            world = (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
+            return np.floor(_rotate(world, R_grid_world) / voxel_m).astype(np.int64)
 
-        samples = world(*np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
-        surface = world(*np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
-        if R_grid_world is not None:
-            R = np.asarray(R_grid_world, dtype=np.float64)
-            samples, surface, cameras = samples @ R.T, surface @ R.T, cameras @ R.T
-        seen = np.floor(np.concatenate([samples, surface]) / voxel_m).astype(np.int64)
-        cells = np.concatenate([seen, np.floor(cameras / voxel_m).astype(np.int64)])
-        if cells.size == 0:
-            return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
-        lo = cells.min(axis=0)
-        cells -= lo
-        observed = np.zeros(tuple(cells.max(axis=0) + 1), dtype=bool)
+        seen = cells(*np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
+        surface = cells(*np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
+        at_camera = np.floor(_rotate(cameras, R_grid_world) / voxel_m).astype(np.int64)
+        return seen, surface, at_camera
+
+    @staticmethod
+    def _grid_of(lo, hi, observed_cells, surface_cells, voxel_m: float):
+        """(origin, occupied, observed) of the cells [lo, hi) (integer (3,) each)."""
+        observed = np.zeros(tuple(hi - lo), dtype=bool)
         occupied = np.zeros_like(observed)
-        observed[tuple(cells.T)] = True
-        occupied[tuple(cells[len(samples) : len(seen)].T)] = True  # the surface cells
+        observed[tuple((observed_cells - lo).T)] = True
+        occupied[tuple((surface_cells - lo).T)] = True
         return lo * voxel_m, occupied, observed
 
     # --- files -------------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 The simulator works in a gravity-aligned flight frame (z up); the session's world frame is the
 first camera's frame, whose axes need not be level. This module owns the rotation between the
-two, keeps the flight map fed from the TSDF, turns the pilot's commands (world targets, tapped
+two, keeps the flight map fed from the TSDF (``feed_from_map`` after each fused frame: the
+sub-box of occupancy that frame can have changed), turns the pilot's commands (world targets, tapped
 pixels, sticks) into simulator calls, and publishes the drone's state in the world frame.
 """
 
@@ -21,7 +22,7 @@ from server.geometry import Intrinsics, invert
 from server.sessions.errors import SessionError
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneCommandError, DroneSimulator
-from server.simulation.flight_map import FlightMap
+from server.simulation.flight_map import FlightMap, Region
 from server.simulation.planner import PlanningError
 
 log = logging.getLogger(__name__)
@@ -101,9 +102,9 @@ class _CameraFrame:
 
 
 class Flight:
-    """One session's drone. ``camera_moved`` and ``map_changed`` come from the session's
-    workers, ``command`` from the transport; a thread of its own advances the simulation in
-    real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``."""
+    """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come
+    from the session's workers, ``command`` from the transport; a thread of its own advances the
+    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``."""
 
     def __init__(self, config: SimulationConfig, K: Intrinsics, gravity_world: np.ndarray | None,
                  publish: Callable[[DroneUpdate | DroneNotice], None], state_hz: float = 20.0,
@@ -122,7 +123,11 @@ class Flight:
         # Camera frames have their own lock: tracking never waits for planning or physics.
         self._frames_lock = threading.Lock()
         self._frames: OrderedDict[int, _CameraFrame] = OrderedDict()  # by seq, newest last
+        # Map changes waiting for the flight thread: a whole grid, then the sub-boxes that came
+        # after it merged into one. Their own lock: the mapping thread never waits for physics.
+        self._pending_lock = threading.Lock()
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pending_region: Region | None = None
         self.event_counts: dict[str, int] = {}  # drone events so far, by kind
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -148,10 +153,39 @@ class Flight:
                 self._frames.popitem(last=False)
 
     def map_changed(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray) -> None:
-        """A new occupancy grid in the flight frame (``TSDFMap.occupancy(voxel_m,
-        R_grid_world=R_flight_world)``); the flight thread applies it."""
-        with self._lock:
+        """A new whole occupancy grid in the flight frame (``TSDFMap.occupancy(voxel_m,
+        R_grid_world=R_flight_world)``); it replaces whatever is pending, and the flight thread
+        applies it."""
+        with self._pending_lock:
             self._pending_map = (origin, occupied, observed)
+            self._pending_region = None
+
+    def map_region_changed(self, origin: np.ndarray, occupied: np.ndarray,
+                           observed: np.ndarray) -> None:
+        """New occupancy for a sub-box of the grid, flight frame (``TSDFMap.occupancy_update``:
+        origin (3,) metres on the grid's lattice, occupied and observed (X, Y, Z) bool). Cheap
+        to call often: boxes pending together merge (the newer wins where they overlap) and
+        the flight thread applies them in one update."""
+        region = Region.whole(origin, occupied, observed)
+        with self._pending_lock:
+            pending = self._pending_region
+            self._pending_region = region if pending is None else \
+                pending.merged(region, self.flight_map.voxel_m)
+
+    def feed_from_map(self, tsdf_map) -> bool:
+        """Hand the drone what the frames fused into ``tsdf_map`` (a ``TSDFMap``) since the last
+        call can have changed: call it after each integrate, from the thread that fuses. The
+        first call hands over the whole map. Returns whether anything was handed over; never
+        raises (a failure is logged: the drone must not stop the mapping)."""
+        try:
+            update = tsdf_map.occupancy_update(self.config.voxel_m, self.R_flight_world)
+            if update is None:
+                return False
+            self.map_region_changed(*update)
+            return True
+        except Exception:
+            log.exception("feeding the flight map from the TSDF failed")
+            return False
 
     def command(self, name: str, command_id: int, *, target=None, pixel=None, seq=None,
                 sticks=None, speed=None) -> None:
@@ -274,9 +308,14 @@ class Flight:
     def _tick(self, dt: float) -> list[DroneNotice]:
         with self._lock:
             events = []
-            pending, self._pending_map = self._pending_map, None
-            if pending is not None:
-                self.sim.update_map(*pending)
+            with self._pending_lock:
+                grid, region = self._pending_map, self._pending_region
+                self._pending_map = self._pending_region = None
+            if grid is not None:
+                self.sim.update_map(*grid)
+            if region is not None:
+                self.sim.update_map_region(region)
+            if grid is not None or region is not None:
                 if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
             if self.spawned:

@@ -38,8 +38,9 @@ from server.simulation.control import (
     Setpoint,
     fly_sticks,
 )
-from server.simulation.flight_map import FlightMap
+from server.simulation.flight_map import FlightMap, Region
 from server.simulation.planner import PlanningError, plan_path, route_is_clear
+from server.simulation.polyline import simplify
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,9 @@ NEAR_CHUNK_STEPS = 16  # near obstacles, steps checked together in one query
 COLLISION_REPEAT_S = 1.0
 COLLISION_REPEAT_M = 0.05
 ROUTE_CLIMB_SHARE = 0.7  # routes climb and descend at this share of max_climb_rate_m_s
+# The status's route is the path's corners: straight lines between them stay this close to the
+# smoothed path (m), well under the drone's radius, with a few points instead of hundreds.
+ROUTE_TOLERANCE_M = 0.02
 
 
 class DroneMode(str, Enum):
@@ -100,7 +104,9 @@ class DroneStatus:
     mode: DroneMode
     clearance: float  # distance field at the centre, m
     target: np.ndarray | None  # (3,) goto target
-    route: np.ndarray | None  # (N, 3) remaining route polyline, N <= max_route_points; goto only
+    # (N, 3) the remaining route's corners: the setpoint, then the vertices of the path ahead
+    # (within ROUTE_TOLERANCE_M of it when drawn straight), N <= max_route_points; goto only
+    route: np.ndarray | None
     command_id: int | None
 
 
@@ -135,6 +141,7 @@ class DroneSimulator:
         self._command_id: int | None = None
         # goto
         self._tracker: RouteTracker | None = None
+        self._corners = np.zeros(0, dtype=np.int64)  # indices into the route's path
         self._goal: np.ndarray | None = None
         self._speed = config.cruise_speed_m_s
         self._planned_at = 0.0
@@ -271,9 +278,18 @@ class DroneSimulator:
             self.on_map_update(changed)
             return changed
 
+    def update_map_region(self, region: Region):
+        """``flight_map.update_region`` (a sub-box, flight_map.Region) and ``on_map_update``
+        under the simulator's lock; returns the changed box (or None)."""
+        with self._lock:
+            changed = self.flight_map.update_region(region.origin, region.occupied,
+                                                    region.observed, region.written)
+            self.on_map_update(changed)
+            return changed
+
     def on_map_update(self, changed_box) -> None:
         """The flight map changed inside ``changed_box`` (the flight_map.Box that
-        ``FlightMap.update`` returns; None: nothing changed).
+        ``FlightMap.update`` and ``update_region`` return; None: nothing changed).
 
         Moves the drone out if the map grew into it; during a goto, replans when the remaining
         route is blocked (``replanned``, or ``blocked`` and hold), and at most every
@@ -506,6 +522,7 @@ class DroneSimulator:
         cfg = self.config
         self._tracker = RouteTracker(route, cfg.dt_s, cfg.max_tracking_lag_m,
                                      self._limits.max_yaw_rate_rad_s)
+        self._corners = simplify(route.path, ROUTE_TOLERANCE_M)  # once: the status is at 20 Hz
         self._planned_at = self._time_s
         self._mode = DroneMode.GOTO
 
@@ -535,8 +552,18 @@ class DroneSimulator:
         return np.array([self._sp.x, self._sp.y, self._sp.z])
 
     def _remaining_route(self) -> np.ndarray:
-        """The route ahead for the status, thinned evenly (ends kept) to max_route_points."""
-        rest = self._tracker.remaining(self._setpoint())
+        """The route ahead for the status: the setpoint, then the corners of the path ahead
+        (every path sample ahead lies within ROUTE_TOLERANCE_M of the segments between them);
+        thinned evenly (ends kept) to max_route_points in the unlikely case of more."""
+        rest = self._tracker.remaining(self._setpoint())  # setpoint, then path[i:]
+        path = self._tracker.route.path
+        i = len(path) - (len(rest) - 1)
+        ahead = self._corners[self._corners >= i]
+        if len(ahead):
+            # The setpoint lies between two corners: the stretch to the next one is simplified
+            # anew, the corners after it hold as they are.
+            head = rest[: ahead[0] - i + 2]
+            rest = np.vstack([head[simplify(head, ROUTE_TOLERANCE_M)], path[ahead[1:]]])
         limit = self.config.max_route_points
         if len(rest) > limit:
             rest = rest[np.linspace(0, len(rest) - 1, limit).round().astype(int)]

@@ -52,6 +52,38 @@ class Box:
         return np.all((p >= self.lo - margin_m) & (p <= self.hi + margin_m), axis=1)
 
 
+@dataclass(frozen=True)
+class Region:
+    """Occupancy for a sub-box of the flight map, as ``FlightMap.update_region`` takes it:
+    ``origin`` (3,) corner of cell (0, 0, 0), metres, on the map's lattice; ``occupied``,
+    ``observed`` and ``written`` (the cells it sets), (X, Y, Z) bool each."""
+
+    origin: np.ndarray
+    occupied: np.ndarray
+    observed: np.ndarray
+    written: np.ndarray
+
+    @classmethod
+    def whole(cls, origin, occupied: np.ndarray, observed: np.ndarray) -> Region:
+        """A region that sets every cell of its box."""
+        return cls(np.asarray(origin, dtype=np.float64), occupied, observed,
+                   np.ones(np.shape(occupied), dtype=bool))
+
+    def merged(self, newer: Region, voxel_m: float) -> Region:
+        """One region setting what both set (``newer`` wins where both do), in the smallest
+        box holding both; both must sit on one lattice of ``voxel_m`` cells."""
+        step = np.round((newer.origin - self.origin) / voxel_m).astype(np.int64)
+        lo = np.minimum(0, step)
+        hi = np.maximum(self.occupied.shape, step + newer.occupied.shape)
+        out = [np.zeros(hi - lo, dtype=bool) for _ in range(3)]
+        for part, at in ((self, -lo), (newer, step - lo)):
+            box = _slices(at, at + part.occupied.shape)
+            w = part.written
+            for dst, src in zip(out, (part.occupied, part.observed, part.written), strict=True):
+                dst[box][w] = src[w]
+        return Region(self.origin + lo * voxel_m, *out)
+
+
 def _slices(lo, hi) -> tuple[slice, slice, slice]:
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
 
@@ -191,6 +223,44 @@ class FlightMap:
         if lo_new is None:
             return self._rebuild(origin, blocked, first=True)
         return self._update_incremental(origin, lo_new, blocked)
+
+    def update_region(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray,
+                      written: np.ndarray | None = None) -> Box | None:
+        """Overwrite a sub-box of the map and bring the distance field up to date around it.
+
+        origin: (3,) corner of the sub-box's cell (0, 0, 0), metres, on the map's lattice (a
+        whole number of cells from the first grid's origin; ``TSDFMap.occupancy_update`` gives
+        such boxes). occupied, observed: (X, Y, Z) bool; written: (X, Y, Z) bool, the cells to
+        overwrite (None: all), so that several coalesced boxes can go in as one. The grid grows
+        to take the box in (the new cells unobserved); the rest of the map stays as it was. Only
+        the field within ``max_distance_m`` of the cells whose blocked state changed is
+        recomputed (the whole field when that is over half the grid); it equals a full rebuild
+        of the merged grid. The first call on an empty map is ``update``. Returns what
+        ``update`` returns.
+        """
+        origin = np.asarray(origin, dtype=np.float64).reshape(-1)
+        occupied, observed = np.asarray(occupied, dtype=bool), np.asarray(observed, dtype=bool)
+        written = np.ones(occupied.shape, bool) if written is None else np.asarray(written, bool)
+        if occupied.ndim != 3 or not occupied.shape == observed.shape == written.shape:
+            raise FlightMapError(f"occupied, observed and written must be (X, Y, Z) arrays of "
+                                 f"one shape, got {occupied.shape}, {observed.shape} and "
+                                 f"{written.shape}")
+        if self._anchor is None or 0 in self.shape:  # nothing to merge with
+            return self.update(origin, occupied & written, observed & written)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise FlightMapError(f"origin must be 3 finite numbers, got {origin}")
+        box_lo = self._lattice_index(origin)
+        if box_lo is None:
+            raise FlightMapError(f"sub-box origin {origin} is off the flight map's lattice")
+        box_hi = box_lo + occupied.shape
+        # The merged grid: the present one grown to take the box in, then the box written.
+        lo, hi = np.minimum(self._lo, box_lo), np.maximum(self._lo + self.shape, box_hi)
+        merged = np.full(hi - lo, not self.unknown_is_free)
+        merged[_slices(self._lo - lo, self._lo + self.shape - lo)] = self._blocked
+        target = merged[_slices(box_lo - lo, box_hi - lo)]
+        blocked = occupied if self.unknown_is_free else occupied | ~observed
+        target[written] = blocked[written]
+        return self._update_incremental(self._anchor + lo * self.voxel_m, lo, merged)
 
     def _lattice_index(self, origin: np.ndarray) -> np.ndarray | None:
         if self._anchor is None:

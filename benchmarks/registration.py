@@ -114,8 +114,9 @@ def run_ours(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar, dense:
         if i == 0:
             result = tracker.track(frame.colour, frame.depth)  # starts the first keyframe
         else:
-            with Clock(run):
+            with Clock(run):  # the pose, then the keyframe work the server does after sending it
                 result = tracker.track(frame.colour, frame.depth)
+                tracker.update_keyframe()
             run.lost += result.state is TrackingState.LOST
             run.weak += result.state is TrackingState.WEAK
             for name, ms in result.timings_ms.items():

@@ -23,8 +23,13 @@ class FeatureConfig:
 class FlowConfig:
     """Pyramidal Lucas-Kanade tracking with a forward-backward check."""
 
-    window_px: int = 21
+    # 17 px rather than 21: a third less work per iteration, and a smaller window straddles
+    # fewer depth edges (synthetic_room0 ATE 0.39 -> 0.26 cm, 7-Scenes unchanged within noise).
+    window_px: int = 17
     pyramid_levels: int = 3  # LK pyramid levels above the full image
+    # The backward (checking) pass starts where a correct track must land, so it needs no
+    # coarse levels to find it; one level above the full image leaves slack for small errors.
+    fb_pyramid_levels: int = 1
     max_iterations: int = 30
     epsilon: float = 0.01  # px, LK convergence
     max_fb_error_px: float = 1.0  # forward-backward round-trip error
@@ -57,6 +62,9 @@ class SolverConfig:
     dense: bool = True
     dense_stride: int = 8  # sample every n-th pixel of the current depth
     dense_iterations: int = 6
+    # Stop refining when |xi| falls below this (rad and m mixed): steps shrink about tenfold per
+    # iteration, and one of 3e-5 (0.03 mm at 1 m) is far below the per-frame error.
+    dense_convergence_step: float = 3e-5
     dense_max_distance_m: float = 0.05
     dense_weight: float = 0.05  # weight of one dense residual relative to one sparse one
     # Photometric term: intensity of current pixels against the keyframe image (0 = off).
@@ -99,7 +107,11 @@ class RegistrationConfig:
     state: StateConfig = field(default_factory=StateConfig)
 
     def __post_init__(self) -> None:
-        if self.features.pyramid_levels < 1 or self.flow.pyramid_levels < 0:
+        if (
+            self.features.pyramid_levels < 1
+            or self.flow.pyramid_levels < 0
+            or self.flow.fb_pyramid_levels < 0
+        ):
             raise ConfigError("pyramid levels must be >= 1 (FAST) and >= 0 (LK)")
         if not 0 < self.depth.min_depth_m < self.depth.max_depth_m:
             raise ConfigError("need 0 < min_depth_m < max_depth_m")

@@ -68,6 +68,7 @@ def run_odometry(
     for i in bar:
         frame = first if i == 0 else dataset[i]
         result = tracker.track(frame.colour, frame.depth)
+        tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
         results.append(result)
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):

@@ -43,13 +43,15 @@ def track_points(
         criteria=criteria,
         flags=flags,
     )
+    # Back from where the forward pass ended, starting at the original corner: a right track
+    # returns there, so the check needs few pyramid levels (each costs a full LK pass).
     p0_back, st2, _ = cv2.calcOpticalFlowPyrLK(
         grey_to,
         grey_from,
         p1,
         p0.copy(),
         winSize=win,
-        maxLevel=cfg.pyramid_levels,
+        maxLevel=min(cfg.fb_pyramid_levels, cfg.pyramid_levels),
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )

@@ -18,7 +18,8 @@ def to_grey(colour: np.ndarray) -> np.ndarray:
 def clean_depth(depth: np.ndarray, cfg: DepthConfig) -> np.ndarray:
     """Depth in metres with NaN, inf and out-of-range values set to 0 (= no measurement)."""
     d = np.asarray(depth, dtype=np.float32)
-    keep = np.isfinite(d) & (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
+    # NaN fails both comparisons and inf the second: no separate isfinite pass needed.
+    keep = (d >= cfg.min_depth_m) & (d <= cfg.max_depth_m)
     return np.where(keep, d, np.float32(0.0))
 
 

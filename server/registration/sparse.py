@@ -55,6 +55,36 @@ def point_information(points: np.ndarray, K: Intrinsics, cfg: DepthConfig) -> np
     return (s_lateral**2)[:, None, None] * (eye - outer) + (s_axial**2)[:, None, None] * outer
 
 
+def information(cov_P: np.ndarray, cov_Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Information matrices (N, 3, 3) in 1/m^2 of r = p - T q: the inverse of cov_P + R cov_Q R^T,
+    with cov_Q (current camera frame) rotated by R (of T_keyframe_current) into the keyframe."""
+    return _inverse_3x3(cov_P + R @ cov_Q @ R.T)
+
+
+def _inverse_3x3(M: np.ndarray) -> np.ndarray:
+    """Inverses of (N, 3, 3) matrices by their adjugate: np.linalg.inv calls LAPACK once per
+    matrix, several times slower for hundreds of 3x3 covariances (which are well conditioned)."""
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
+    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g  # cofactors of the first row
+    det = a * c00 + b * c01 + c * c02
+    adj = np.stack(
+        [c00, c * h - b * i, b * f - c * e,
+         c01, a * i - c * g, c * d - a * f,
+         c02, b * g - a * h, a * e - b * d],
+        axis=1,
+    ).reshape(-1, 3, 3)  # fmt: skip
+    return adj / det[:, None, None]
+
+
+def mahalanobis(P: np.ndarray, Q: np.ndarray, W: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Mahalanobis distances (N,) of r = p - T q under information matrices W (N, 3, 3): all
+    that robust weights need, without the normal equations."""
+    r = P - (Q @ T[:3, :3].T + T[:3, 3])
+    return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
+
+
 def sparse_equations(
     P: np.ndarray, Q: np.ndarray, W: np.ndarray, T: np.ndarray, weights: np.ndarray
 ) -> tuple[NormalEquations, np.ndarray]:
@@ -68,11 +98,14 @@ def sparse_equations(
     J[:, 1, 0], J[:, 1, 2] = y[:, 2], -y[:, 0]
     J[:, 2, 0], J[:, 2, 1] = -y[:, 1], y[:, 0]
     J[:, :, 3:] = -np.eye(3)
-    Wr = np.einsum("nij,nj->ni", W, r)
+    Wr = (W @ r[:, :, None])[:, :, 0]
     mahalanobis = np.sqrt(np.maximum(np.einsum("ni,ni->n", r, Wr), 0.0))
-    WJ = np.einsum("nij,njk->nik", W, J)
-    H = np.einsum("n,nji,njk->ik", weights, J, WJ)
-    g = np.einsum("n,nji,nj->i", weights, J, Wr)
+    # Sum over points of J^T w W J as one (3N, 6)^T (3N, 6) product: a multi-operand einsum
+    # would loop in numpy's own kernel instead of BLAS.
+    WJ = (W @ J) * weights[:, None, None]
+    Jf = J.reshape(-1, 6)
+    H = Jf.T @ WJ.reshape(-1, 6)
+    g = Jf.T @ (Wr * weights[:, None]).reshape(-1)
     return NormalEquations(H, g), mahalanobis
 
 
@@ -117,20 +150,17 @@ def solve_sparse(
     it = 0
     huber_only = max(2, cfg.max_iterations // 3)
     for it in range(1, cfg.max_iterations + 1):
-        R = T[:3, :3]
-        W = np.linalg.inv(cov_P + R @ cov_Q @ R.T)
-        eq, m = sparse_equations(P, Q, W, T, weights)
-        weights = robust_weights(m, cfg, reject=it > huber_only)
-        eq, m = sparse_equations(P, Q, W, T, weights)
+        W = information(cov_P, cov_Q, T[:3, :3])
+        weights = robust_weights(mahalanobis(P, Q, W, T), cfg, reject=it > huber_only)
         if not np.any(weights > 0):
             break
+        eq, _ = sparse_equations(P, Q, W, T, weights)
         xi = np.linalg.lstsq(eq.H, -eq.g, rcond=None)[0]
         T = orthonormalize(exp_se3(xi) @ T)
         if np.linalg.norm(xi) < cfg.convergence_step and it > huber_only:
             break
-    R = T[:3, :3]
-    W = np.linalg.inv(cov_P + R @ cov_Q @ R.T)
-    _, m = sparse_equations(P, Q, W, T, np.ones(n))
+    W = information(cov_P, cov_Q, T[:3, :3])
+    m = mahalanobis(P, Q, W, T)
     inliers = m <= cfg.outlier_chi
     eq, _ = sparse_equations(P, Q, W, T, robust_weights(m, cfg, reject=True))
     rmse = float(np.sqrt(np.mean(m[inliers] ** 2))) if inliers.any() else np.inf

@@ -2,6 +2,10 @@
 
 Read ``Tracker.track`` top to bottom: it follows the paper's section III with the additions that
 make it hold up on real hand-held data (keyframes, robust weights, a tracking state, recovery).
+
+A frame is registered in two phases, so that a live session can publish the pose before the
+slower keyframe work: :meth:`Tracker.track` returns the pose and says whether a keyframe change
+is due; :meth:`Tracker.update_keyframe` then switches to an old keyframe or builds a new one.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from server.registration.keyframe import Keyframe, make_keyframe
 from server.registration.preprocess import clean_depth, sample_stable_depth, to_grey
 from server.registration.sparse import (
     SparseSolution,
+    information,
+    mahalanobis,
     point_information,
     robust_weights,
     solve_sparse,
@@ -56,9 +62,22 @@ class TrackResult:
     inliers: int
     rmse: float  # Mahalanobis RMSE of the sparse inliers
     condition: float  # scaled conditioning of J^T W J, 0 = degenerate
-    keyframe_id: int
-    new_keyframe: bool
+    keyframe_id: int  # the keyframe this frame is tracked against, or, after update_keyframe,
+    # the one the next frame will be tracked against
+    new_keyframe: bool  # this frame became a keyframe (set by update_keyframe, or at the start)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    keyframe_due: bool = False  # track() left a keyframe switch or a new keyframe pending
+
+
+@dataclass
+class _PendingKeyframe:
+    """A keyframe change that ``track`` found due, for ``update_keyframe`` to carry out."""
+
+    index: int
+    grey: np.ndarray
+    depth: np.ndarray  # cleaned, metres
+    T_world_camera: np.ndarray
+    result: TrackResult  # updated in place when the change is made
 
 
 @dataclass
@@ -96,7 +115,9 @@ class Tracker:
     """Frame-to-keyframe RGB-D odometry (FAST + pyramidal LK + Gauss-Newton on SE(3)).
 
     Feed frames in order to :meth:`track`; poses are T_world_camera with the first frame at
-    ``T_world_first`` (identity by default).
+    ``T_world_first`` (identity by default). Call :meth:`update_keyframe` after each ``track``
+    (once the pose is sent): otherwise the next ``track`` does it first, which gives the same
+    trajectory but leaves the earlier result's ``new_keyframe`` unknown to its caller.
     """
 
     def __init__(
@@ -117,10 +138,18 @@ class Tracker:
         self.lost = False
         self.frame_count = 0
         self.keyframe_count = 0
+        self.pending: _PendingKeyframe | None = None
 
     # ------------------------------------------------------------------ per frame
     def track(self, colour: np.ndarray, depth: np.ndarray) -> TrackResult:
-        """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none)."""
+        """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none).
+
+        Returns as soon as the pose T_world_camera is accepted; a keyframe change it calls for is
+        only recorded (``keyframe_due``), for :meth:`update_keyframe`. The very first frame (and
+        a restart after a failed first frame) builds its keyframe here, as its state depends on it.
+        """
+        if self.pending is not None:
+            self.update_keyframe()  # the caller skipped it: keep the trajectory the same
         index = self.frame_count
         self.frame_count += 1
         t0 = time.perf_counter()
@@ -157,7 +186,7 @@ class Tracker:
             T_kf_cur = self._refine(found, depth, grey)
             timings["dense"] = _ms(t)
 
-        # 5. Accept the pose, keep the surviving tracks, and decide on a new keyframe.
+        # 5. Accept the pose, keep the surviving tracks, and note whether a keyframe change is due.
         T_world_cur = orthonormalize(kf.T_world_keyframe @ T_kf_cur)
         self.velocity = invert(self.T_world_last) @ T_world_cur if not self.lost else np.eye(4)
         self.T_world_last = T_world_cur
@@ -166,26 +195,46 @@ class Tracker:
         keep = found.surviving()
         self.tracks = _Tracks(found.ids[keep], found.uv[keep])
         self.prev_grey = grey
-        inliers = int(solution.inliers.sum())
-        new_kf = False
-        if self._needs_keyframe(kf, T_kf_cur, len(self.tracks.ids)):
-            t = time.perf_counter()
-            new_kf = not self._switch_keyframe(grey, depth, T_world_cur)
-            if new_kf:
-                self._new_keyframe(index, grey, depth, T_world_cur)
-            timings["keyframe"] = _ms(t)
+        due = self._needs_keyframe(kf, T_kf_cur, len(self.tracks.ids))
         timings["total"] = _ms(t0)
-        return TrackResult(
+        result = TrackResult(
             index,
             T_world_cur.copy(),
             state,
-            inliers,
+            int(solution.inliers.sum()),
             solution.rmse,
             solution.condition,
-            self.keyframe.id,
-            new_kf,
+            kf.id,
+            False,
             timings,
+            keyframe_due=due,
         )
+        if due:
+            self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result)
+        return result
+
+    def update_keyframe(self) -> bool:
+        """Carry out the keyframe change the last :meth:`track` found due: go back to an earlier
+        keyframe that sees this view, else make this frame a new keyframe.
+
+        Returns True when a new keyframe was made. The last result is updated in place:
+        ``new_keyframe``, ``keyframe_id`` (the keyframe the next frame is tracked against),
+        ``keyframe_due`` cleared, ``timings_ms["keyframe"]`` added to ``timings_ms["total"]``.
+        Does nothing (False) when no change is due, e.g. a second call.
+        """
+        p, self.pending = self.pending, None
+        if p is None:
+            return False
+        t = time.perf_counter()
+        new_kf = not self._switch_keyframe(p.grey, p.depth, p.T_world_camera)
+        if new_kf:
+            self._new_keyframe(p.index, p.grey, p.depth, p.T_world_camera)
+        ms = _ms(t)
+        r = p.result
+        r.new_keyframe, r.keyframe_id, r.keyframe_due = new_kf, self.keyframe.id, False
+        r.timings_ms["keyframe"] = ms
+        r.timings_ms["total"] = r.timings_ms.get("total", 0.0) + ms
+        return new_kf
 
     # ------------------------------------------------------------------ stages
     def _start(self, index: int, grey: np.ndarray, depth: np.ndarray, timings: dict) -> TrackResult:
@@ -261,15 +310,12 @@ class Tracker:
         inl = solution.inliers
         d_ids = reg.ids[reg.with_depth][inl]
         P_in, Q_in = kf.points[d_ids], reg.points[inl]
-        R = solution.T[:3, :3]
-        W = np.linalg.inv(
-            kf.covariances[d_ids] + R @ point_information(Q_in, self.K, self.cfg.depth) @ R.T
-        )
+        cov_Q = point_information(Q_in, self.K, self.cfg.depth)
+        W = information(kf.covariances[d_ids], cov_Q, solution.T[:3, :3])
 
         def sparse_terms(T):
-            _, m = sparse_equations(P_in, Q_in, W, T, np.ones(len(P_in)))
-            eq, _ = sparse_equations(P_in, Q_in, W, T, robust_weights(m, self.cfg.solver, True))
-            return eq
+            weights = robust_weights(mahalanobis(P_in, Q_in, W, T), self.cfg.solver, True)
+            return sparse_equations(P_in, Q_in, W, T, weights)[0]
 
         photometric = self.cfg.solver.photometric_weight > 0
         points, intensity = sample_dense_points(

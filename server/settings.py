@@ -28,6 +28,9 @@ class Settings(BaseSettings):
     fuse_every: int = Field(3, ge=1)  # integrate every n-th tracked frame (and every keyframe)
     voxel_m: float = Field(0.02, gt=0.001, le=0.2)  # TSDF voxel edge
     preview_points: int = Field(4000, ge=100)  # points per map preview chunk
+    # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
+    # cores among the live sessions, rebalanced as they come and go.
+    worker_threads: int = Field(0, ge=0, le=256)
     demo: bool = False  # start a session that replays the bundled demo sequence
     demo_fps: float = Field(15.0, gt=0, le=60)
     cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
@@ -40,6 +43,11 @@ class Settings(BaseSettings):
     # "jemalloc": serve restarts itself on jemalloc when installed (see server/memory.py);
     # "system": keep the C library's malloc.
     allocator: Literal["jemalloc", "system"] = "jemalloc"
+    # Run each session as a Ray actor on this cluster instead of a local worker process:
+    # "auto" (the cluster this machine is part of), "ray://head:10001" (Ray Client), "host:6379",
+    # or "local" (start a local instance). None: local processes, Ray not imported. Needs the
+    # [ray] extra; see server/sessions/ray_workers.py and the README.
+    ray: str | None = None
 
     @field_validator("data_dir")
     @classmethod

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import shutil
 import signal
 import time
@@ -188,6 +189,65 @@ def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room
     assert len(saved["trajectory"]) == 25
     np.testing.assert_allclose(saved["trajectory"].poses[:, :3, 3], stream.matrices()[:, :3, 3],
                                atol=1e-6)
+
+
+# ---- a session's worker dies --------------------------------------------------------------------
+
+
+def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(live_server,
+                                                                                 room):
+    """SIGKILL one session's worker process (as a native crash or the OOM killer would): its
+    client gets session_failed and close 4010 at once (never a hung socket); the session is
+    closed, downloadable as its last snapshot left it; the neighbour session goes on."""
+    server = live_server(snapshot_interval_s=1.0)
+    sid, token = server.create_session()
+    other_sid, other_token = server.create_session()
+    folder = server.settings.data_dir / "sessions" / sid
+    stream = Stream(server.ws_url, sid, token, room)
+    neighbour = Stream(server.ws_url, other_sid, other_token, room)
+
+    async def stream_then_crash():
+        await stream.open()
+        await neighbour.open()
+        await neighbour.send_range(range(5))
+        seq, deadline = 0, time.monotonic() + 60
+        while not (folder / "map.ply").is_file() and time.monotonic() < deadline:
+            await stream.send(seq)  # until a snapshot with a map is on disk
+            seq += 1
+        await stream.send_range(range(seq, seq + 3))
+        pid = session_status(server.url, sid, token)["worker"]["pid"]
+        assert pid != session_status(server.url, other_sid, other_token)["worker"]["pid"]
+        os.kill(pid, signal.SIGKILL)
+        error = await stream._answer()
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await stream._answer()
+        await neighbour.send_range(range(5, 10))  # the other session never noticed
+        return error, closed.value.rcvd.code
+
+    started = time.monotonic()
+    error, close_code = asyncio.run(stream_then_crash())
+    assert time.monotonic() - started < 90
+    assert error["type"] == "error" and error["name"] == "session_failed", error
+    assert "SIGKILL" in error["message"] and "last snapshot" in error["message"]
+    assert close_code == P.CLOSE_CODES["session_failed"]
+    assert len(neighbour.poses) == 10
+    status = session_status(server.url, sid, token)
+    assert status["closed"] is True and "SIGKILL" in status["failure"]
+    saved = assert_session_files_whole(folder)
+    assert 0 < len(saved["trajectory"]) <= len(stream.poses)
+    assert saved["meta"]["closed"] is True
+    ply = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
+    assert ply.status_code == 200 and ply.content == (folder / "map.ply").read_bytes()
+
+    async def come_back():  # the session is closed: a new socket is refused, not hung
+        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}") as ws:
+            msg = P.decode(await asyncio.wait_for(ws.recv(), 30))
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                await asyncio.wait_for(ws.recv(), 30)
+            return msg, closed.value.rcvd.code
+
+    msg, code = asyncio.run(come_back())
+    assert msg["name"] == "unauthorized" and code == P.CLOSE_CODES["unauthorized"]
 
 
 # ---- the client drops off ----------------------------------------------------------------------

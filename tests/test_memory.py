@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import time
 import weakref
+from pathlib import Path
 
 import httpx
 import pytest
-from conftest import missing
+from conftest import missing, session_status
 
 from server.client.replay import replay
 from server.client.server_process import ServerProcess
@@ -30,6 +32,8 @@ def no_automatic_gc():
 
 def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_data,
                                                          no_automatic_gc):
+    """Its worker process ends (all its memory goes back with it), and the web process's handle
+    on it is freed at once, not at Python's next full collection."""
     server = live_server(session_ttl_s=1.0)
     sid, token = server.create_session()
     session = weakref.ref(server.app.state.manager._live[sid])
@@ -37,15 +41,27 @@ def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_dat
     stats = asyncio.run(replay(f"{server.ws_url}/ws/sessions/{sid}", token, room, fps=30,
                                max_frames=20, drop_when_busy=False))
     assert len(stats.poses) == 20
-    assert session() is not None and session().flight is not None  # threads, drone, map: cycles
+    pid = session_status(server.url, sid, token)["worker"]["pid"]
+    assert pid != os.getpid() and Path(f"/proc/{pid}").exists()
+    assert session() is not None and session().worker is not None  # threads, pipe: cycles
     deadline = time.monotonic() + 30
     while httpx.get(f"{server.url}/healthz").json()["live_sessions"]:
         assert time.monotonic() < deadline, "the session was not closed after its TTL"
         time.sleep(0.1)
     deadline = time.monotonic() + 5  # the reaper thread returns after the close
-    while session() is not None and time.monotonic() < deadline:
+    while (session() is not None or _running(pid)) and time.monotonic() < deadline:
         time.sleep(0.05)
+    assert not _running(pid), "the closed session's worker process is still there"
     assert session() is None, "a closed session stays in memory until Python's next full GC"
+
+
+def _running(pid: int) -> bool:
+    """A process that exists and is not a zombie waiting to be reaped."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
 
 
 def test_serve_runs_on_jemalloc_when_installed_and_on_glibc_when_told(tmp_path):

@@ -9,7 +9,7 @@ const STORE_KEY = "dronesim.session";
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
 // Closes (protocol.json names) after which reconnecting cannot help: the hello or the session
 // itself is refused.
-const FINAL_CLOSES = new Set(["version_mismatch", "bad_hello", "unauthorized"]);
+const FINAL_CLOSES = new Set(["version_mismatch", "bad_hello", "unauthorized", "session_failed"]);
 const LATENCY_WINDOW = 30;
 
 export const State = Object.freeze({

@@ -5,17 +5,21 @@ No web code here: the transport hands decoded frames and commands in and gets up
 
 from server.sessions.errors import SessionError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate
+from server.sessions.live import LiveSession, SessionFailed
 from server.sessions.manager import SessionManager
-from server.sessions.session import FrameData, MapUpdate, PoseUpdate, Session
+from server.sessions.session import FrameData, FrameRefused, MapUpdate, PoseUpdate, Session
 
 __all__ = [
     "CommandRefused",
     "DroneNotice",
     "DroneUpdate",
     "FrameData",
+    "FrameRefused",
+    "LiveSession",
     "MapUpdate",
     "PoseUpdate",
     "Session",
     "SessionError",
+    "SessionFailed",
     "SessionManager",
 ]

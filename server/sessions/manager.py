@@ -1,32 +1,75 @@
-"""All sessions of a server: creation with a capacity cap, token checks, closing, restoring."""
+"""All sessions of a server: creation with a capacity cap, token checks, closing, restoring, and
+sessions whose worker died."""
 
 from __future__ import annotations
 
 import hmac
 import logging
+import os
 import secrets
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
 
-from server.memory import release_session_memory
-from server.sessions.errors import SnapshotError
-from server.sessions.session import Session, SessionConfig, SessionError, hash_token
+from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.host import HostArgs
+from server.sessions.live import LiveSession
+from server.sessions.session import SessionConfig, hash_token
 from server.sessions.store import SessionStore, StoreError
+from server.sessions.worker import ProcessWorker
 
 log = logging.getLogger(__name__)
 
 _NO_SESSION_HASH = hash_token(secrets.token_urlsafe(32))  # compared against for unknown ids
 
 
+@dataclass
+class FoundSession:
+    """A live session found on a shared cluster (``workers.find``): who owns it, and how to
+    attach this front-end to its worker."""
+
+    token_hash: str
+    created_at: float
+    attach: Callable[[LiveSession], object]  # -> the worker, delivering to this LiveSession
+
+
+class ProcessWorkers:
+    """Runs each session in a local worker process (the default; ``server.sessions.ray_workers``
+    runs them as Ray actors instead). A back-end offers ``kind``, ``start``, ``find`` and
+    ``close``; its workers offer ``call``, ``post``, ``stop``, ``kill``, ``describe``, ``alive``
+    and ``dropped`` (see ``server.sessions.worker.ProcessWorker``)."""
+
+    kind = "process"
+
+    def start(self, args: HostArgs, session: LiveSession) -> ProcessWorker:
+        return ProcessWorker(args, session.deliver, session.lost)
+
+    def find(self, session_id: str) -> FoundSession | None:
+        """A live session this front-end did not start: another front-end's, or its own
+        before a restart. Local processes die with their front-end: never any."""
+        return None
+
+    def close(self) -> None:
+        pass
+
+
 class SessionManager:
-    """Live sessions in memory; closed ones on disk under the store, loaded back on start."""
+    """Live sessions in memory; closed ones on disk under the store, loaded back on start.
+
+    ``threads``: native threads per session's libraries; 0 shares the cores among the live
+    sessions (rebalanced as sessions come and go)."""
 
     def __init__(self, store: SessionStore, config: SessionConfig | None = None,
-                 max_sessions: int = 16) -> None:
+                 max_sessions: int = 16, workers=None, threads: int = 0) -> None:
         self.store = store
         self.config = config or SessionConfig()
         self.max_sessions = max_sessions
-        self._live: dict[str, Session] = {}
+        self.workers = workers or ProcessWorkers()
+        self.threads = threads
+        self._live: dict[str, LiveSession] = {}
         self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
         self._closing: set[str] = set()  # live sessions being stopped and saved
         self._lock = threading.Lock()
@@ -46,22 +89,76 @@ class SessionManager:
                             sid, len(removed), ", ".join(removed))
         return len(self._saved)
 
-    def create(self) -> tuple[Session, str]:
-        """A new live session and its secret token (shown once; only its hash is kept)."""
+    def _threads_each(self, sessions: int) -> int:
+        return self.threads or max(1, (os.cpu_count() or 1) // max(1, sessions))
+
+    def create(self) -> tuple[LiveSession, str]:
+        """A new live session, its worker started, and its secret token (shown once; only its
+        hash is kept)."""
         with self._lock:
-            if len(self._live) >= self.max_sessions:
+            if len(self._live) + len(self._closing) >= self.max_sessions:
                 raise SessionError("server_full", f"the server holds its maximum of "
                                    f"{self.max_sessions} live sessions; try again later")
             sid = secrets.token_hex(8)
             while sid in self._live or sid in self._saved:
                 sid = secrets.token_hex(8)
-            token = secrets.token_urlsafe(32)
-            session = Session(sid, hash_token(token), self.store, self.config)
+            self._closing.add(sid)  # holds its place while the worker starts
+            threads = self._threads_each(len(self._live) + 1)
+        token = secrets.token_urlsafe(32)
+        args = HostArgs(sid, hash_token(token), str(Path(self.store.root).parent), self.config,
+                        time.time(), threads)
+        try:
+            session = LiveSession(sid, args.token_hash, args.created_at,
+                                  lambda s: self.workers.start(args, s), self.session_lost)
+            session.worker.call("save_meta")
+        except BaseException:
+            with self._lock:
+                self._closing.discard(sid)
+            raise
+        with self._lock:
+            self._closing.discard(sid)
             self._live[sid] = session
-        session.store.write_meta(sid, session.meta())
+        self._rebalance()
         return session, token
 
-    def authorize(self, session_id: str, token: str | None) -> Session | dict:
+    def _rebalance(self) -> None:
+        """Share the cores among the live sessions' thread pools (when ``threads`` is auto)."""
+        if self.threads:
+            return
+        with self._lock:
+            sessions = list(self._live.values())
+        each = self._threads_each(len(sessions))
+        for session in sessions:
+            try:
+                session.worker.call("set_threads", each, timeout_s=10)
+            except SessionError:
+                pass  # a worker that died is reported by its own path
+
+    def session_lost(self, session: LiveSession, reason: str) -> None:
+        """A worker died on its own: the session is closed and kept as its last snapshot left
+        it (the meta on disk, marked failed), downloadable as before."""
+        log.error("session %s: %s; closed, kept as of its last snapshot", session.id, reason)
+        with self._lock:
+            if self._live.get(session.id) is not session:
+                return
+            del self._live[session.id]
+        try:
+            meta = self.store.read_meta(session.id)
+        except StoreError:
+            meta = {"id": session.id, "token_sha256": session.token_hash,
+                    "created_at": session.created_at, "status": {}}
+        meta["closed"] = True
+        meta["failure"] = reason
+        meta["status"] = dict(meta.get("status") or {}, closed=True, failure=reason)
+        try:
+            self.store.write_meta(session.id, meta)
+        except OSError as exc:
+            log.error("session %s: could not mark it failed on disk (%s)", session.id, exc)
+        with self._lock:
+            self._saved[session.id] = meta
+        self._rebalance()
+
+    def authorize(self, session_id: str, token: str | None) -> LiveSession | dict:
         """The live session, or the saved meta of a closed one, that ``token`` opens.
 
         Unknown ids and wrong tokens raise the same error after the same work (one hash, one
@@ -71,13 +168,30 @@ class SessionManager:
             raise SessionError("unauthorized", "this request needs the session's token")
         with self._lock:
             found = self._live.get(session_id) or self._saved.get(session_id)
-        if isinstance(found, Session):
+        if found is None:
+            found = self._adopt(session_id)
+        if isinstance(found, LiveSession):
             expected = found.token_hash
         else:
             expected = (found or {}).get("token_sha256", _NO_SESSION_HASH)
         if hmac.compare_digest(hash_token(token), expected) and found is not None:
             return found
         raise SessionError("not_found", "no session with this id for this token")
+
+    def _adopt(self, session_id: str) -> LiveSession | None:
+        """A live session this front-end did not start (another front-end of the same cluster,
+        or this one before a restart), found by its id."""
+        try:
+            found = self.workers.find(session_id)
+        except Exception:  # a cluster that does not answer: as if the session were unknown
+            log.exception("looking up session %s on the cluster failed", session_id)
+            return None
+        if found is None:
+            return None
+        session = LiveSession(session_id, found.token_hash, found.created_at, found.attach,
+                              self.session_lost)
+        with self._lock:
+            return self._live.setdefault(session_id, session)
 
     def close(self, session_id: str) -> bool:
         """Stop a live session and keep its map and trajectory on disk; False when it could not
@@ -92,24 +206,26 @@ class SessionManager:
                 return False
             self._closing.add(session_id)
             session.closed = True  # a hello now gets "closed"; frames no longer arrive
-        saved = False
+        saved, meta = False, None
         try:
-            session.stop(save=True)
+            meta = session.stop(save=True)
             saved = True
         except SnapshotError as exc:
             log.error("%s: the session stays in memory, closed to frames; retrying later", exc)
+        except SessionError as exc:  # the worker died while stopping: keep its last snapshot
+            self.session_lost(session, str(exc))
+            return False
         finally:
             with self._lock:
                 self._closing.discard(session_id)
                 deleted = session_id not in self._live
                 if saved and not deleted:
                     del self._live[session_id]
-                    self._saved[session_id] = session.meta()
+                    self._saved[session_id] = meta
         if deleted:
             self.store.delete(session_id)  # the final snapshot wrote after the delete
-        if saved or deleted:
-            del session
-            release_session_memory()
+        if saved:
+            self._rebalance()
         return saved
 
     def delete(self, session_id: str) -> None:
@@ -119,8 +235,7 @@ class SessionManager:
             self._saved.pop(session_id, None)
         if session is not None:
             session.stop(save=False)
-            del session
-            release_session_memory()
+            self._rebalance()
         self.store.delete(session_id)
 
     def reap(self, ttl_s: float, connected: set[str]) -> list[str]:
@@ -141,8 +256,12 @@ class SessionManager:
     def shutdown(self) -> list[str]:
         """Close every live session, saving each; returns the ids that could not be saved (not
         those another thread, the reaper, is still closing)."""
-        for sid in list(self._live):
-            self.close(sid)
+        with self._lock:
+            live = list(self._live)
+        if live:
+            # Each worker saves in its own process: in parallel, a stop takes the slowest save.
+            with ThreadPoolExecutor(max_workers=len(live)) as pool:
+                list(pool.map(self.close, live))
         with self._lock:
             return [sid for sid in self._live if sid not in self._closing]
 

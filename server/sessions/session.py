@@ -91,8 +91,19 @@ class MapUpdate:
     total_points: int
 
 
+@dataclass
+class FrameRefused:
+    """A frame that got no pose: unusable (corrupt image, size mismatch, bad depth) or one the
+    server failed on (internal_error). The client gets the error with the frame's seq; the
+    session goes on."""
+
+    seq: int | None
+    code: str
+    message: str
+
+
 # What a session hands its client, from its worker threads.
-Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice
+Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused
 
 
 @dataclass
@@ -144,6 +155,7 @@ class Session:
         self._trajectory: list[tuple[float, np.ndarray]] = list(trajectory or [])
         self._states = {s.value: 0 for s in TrackingState}
         self.received = self.processed = self.dropped = 0
+        self.failed_frames = 0  # frames the server failed on (each answered internal_error)
         self._last_seq = -1
         self._fusions = 0
         self._lock = threading.Lock()  # guards the trajectory and counters
@@ -257,12 +269,14 @@ class Session:
                 stopping = self._stopping
             if frame is not None:
                 try:
-                    update = self._process(frame)
-                except Exception:  # one bad frame must not end the session's worker
+                    self._process(frame)
+                except Exception as exc:  # one bad frame must not end the session's worker
                     log.exception("session %s: frame %d failed", self.id, frame.seq)
-                    update = None
-                if update is not None:
-                    self._publish(update)
+                    with self._lock:
+                        self.failed_frames += 1
+                    self._publish(FrameRefused(frame.seq, "internal_error",
+                                               f"the server failed on this frame "
+                                               f"({type(exc).__name__}: {exc})"))
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()  # for drain()
@@ -280,7 +294,10 @@ class Session:
         except SnapshotError as exc:
             log.error("%s; the previous one stays whole and the map stays in memory", exc)
 
-    def _process(self, frame: FrameData) -> PoseUpdate:
+    def _process(self, frame: FrameData) -> None:
+        """Track the frame and publish its pose at once; then the keyframe work the tracker
+        deferred (a new keyframe, or a switch to an earlier one), and the frame's fusion job:
+        the client never waits for either."""
         K = self.intrinsics
         t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
@@ -294,13 +311,8 @@ class Session:
         # interval, so that it never exceeds it.
         timings["track_cpu"] = (time.thread_time() - cpu0) * 1e3
         timings["track"] = (time.perf_counter() - t0) * 1e3
-        if result.state is not TrackingState.LOST and (
-            result.new_keyframe or self.processed % self.config.fuse_every == 0
-        ):
-            self._queue_fusion(
-                _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, result.new_keyframe)
-            )
-        if self.flight is not None and result.state is not TrackingState.LOST:
+        tracked = result.state is not TrackingState.LOST
+        if self.flight is not None and tracked:  # before the pose: a tap may name this frame
             self.flight.camera_moved(frame.seq, result.T_world_camera, depth)
         with self._lock:
             self._trajectory.append((frame.timestamp, result.T_world_camera))
@@ -309,17 +321,24 @@ class Session:
             dropped, processed = self.dropped, self.processed
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
-        return PoseUpdate(
+        self._publish(PoseUpdate(
             frame.seq,
             frame.timestamp,
             result.T_world_camera,
             result.state.value,
             result.inliers,
-            result.new_keyframe,
+            result.new_keyframe or result.keyframe_due,
             timings,
             dropped,
             processed,
-        )
+        ))
+        new_keyframe = result.new_keyframe
+        if result.keyframe_due:
+            new_keyframe = self.tracker.update_keyframe()
+        if tracked and (new_keyframe or (processed - 1) % self.config.fuse_every == 0):
+            self._queue_fusion(
+                _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, new_keyframe)
+            )
 
     # ------------------------------------------------------------------ mapping worker
     def _queue_fusion(self, job: _FuseJob) -> None:
@@ -362,18 +381,16 @@ class Session:
             self._feed_flight_map()
 
     def _feed_flight_map(self) -> None:
-        """Hand the drone a fresh occupancy grid, at most every flight_map_interval_s."""
+        """Hand the drone the map's changes, at most every flight_map_interval_s: a fused
+        frame's changes span most of the room (its carved free space reaches the far walls),
+        so feeding every frame would cost more than this, measured in
+        benchmarks/flight_map_update.py."""
         if self.flight is None or (
             time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s
         ):
             return
         self._flight_map_at = time.monotonic()
-        try:
-            grid = self.map.occupancy(self.flight.config.voxel_m, self.flight.R_flight_world)
-        except Exception:
-            log.exception("session %s: occupancy for the drone failed", self.id)
-            return
-        self.flight.map_changed(*grid)
+        self.flight.feed_from_map(self.map)
 
     # ------------------------------------------------------------------ results
     def trajectory(self) -> Trajectory:
@@ -392,6 +409,7 @@ class Session:
                 "frames_received": self.received,
                 "frames_processed": self.processed,
                 "frames_dropped": self.dropped,
+                "frames_failed": self.failed_frames,
                 "fusion_skipped": self.fusion_skipped,
                 "tracking_states": dict(self._states),
                 "trajectory_poses": len(self._trajectory),

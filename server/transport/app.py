@@ -18,6 +18,7 @@ from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
 from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
+from server.sessions.worker import warm_up
 from server.settings import Settings
 from server.transport import routes_client, routes_sessions, websocket
 from server.transport.deps import RateLimiter
@@ -47,12 +48,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         preview_points=settings.preview_points,
         snapshot_interval_s=settings.snapshot_interval_s,
     )
-    manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions)
+    workers = None
+    if settings.ray:  # sessions as Ray actors on a cluster (the optional extra [ray])
+        from server.sessions.ray_workers import RayWorkers
+
+        workers = RayWorkers(settings.ray)
+    manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions,
+                             workers=workers, threads=settings.worker_threads)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         restored = manager.load_saved()
         log.info("data dir %s: %d saved sessions", settings.data_dir.resolve(), restored)
+        # The workers' forkserver imports the numerical stack once (seconds): before the server
+        # says it is up, so that creating a session never waits for it.
+        if not settings.ray:
+            await asyncio.to_thread(warm_up)
         reaper = asyncio.create_task(_reap(app))
         demo = None
         if settings.demo:
@@ -65,7 +76,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             for task in (reaper, demo):
                 if task is not None:
                     task.cancel()
+            if settings.ray:  # the sessions live on in the cluster: let go of them, unstopped
+                manager.workers.detach()
             unsaved = await asyncio.to_thread(manager.shutdown)
+            await asyncio.to_thread(manager.workers.close)
             if unsaved:
                 log.critical("could not save sessions %s at shutdown (see the errors above): "
                              "their maps since the last snapshot are lost", ", ".join(unsaved))

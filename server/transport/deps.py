@@ -10,7 +10,7 @@ from typing import Annotated
 
 from fastapi import Depends, Header, Request
 
-from server.sessions import Session, SessionError, SessionManager
+from server.sessions import LiveSession, SessionError, SessionManager
 from server.settings import Settings
 
 
@@ -74,8 +74,8 @@ def authorized_session(
     session_id: str,
     manager: Annotated[SessionManager, Depends(get_manager)],
     token: Annotated[str | None, Depends(bearer_token)],
-) -> Session | dict:
-    """The live Session, or a closed session's saved meta, that the token opens."""
+) -> LiveSession | dict:
+    """The live session, or a closed session's saved meta, that the token opens."""
     return manager.authorize(session_id, token)
 
 
@@ -90,4 +90,4 @@ def creation_allowed(request: Request) -> None:
 
 ManagerDep = Annotated[SessionManager, Depends(get_manager)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SessionDep = Annotated[Session | dict, Depends(authorized_session)]
+SessionDep = Annotated[LiveSession | dict, Depends(authorized_session)]

@@ -8,9 +8,8 @@ from pathlib import Path
 
 from fastapi import APIRouter, Depends, Request, Response, status
 
-from server.evaluation.trajectory import write_tum
 from server.mapping.tsdf import MapError, TSDFMap
-from server.sessions import Session
+from server.sessions import LiveSession
 from server.transport.deps import ManagerDep, SessionDep, creation_allowed
 from server.transport.websocket import end_connection
 
@@ -37,10 +36,9 @@ def create_session(request: Request, manager: ManagerDep) -> dict:
 def session_status(session: SessionDep) -> dict:
     """Statistics of a live or closed session. ``tracking_lost``: the latest frame was lost (the
     pose holds the last good one and the map takes no frames until tracking recovers)."""
-    if not isinstance(session, Session):
+    if not isinstance(session, LiveSession):
         return session["status"] | {"closed": True, "tracking_lost": False}
-    lost = session.tracker is not None and session.tracker.lost
-    return session.status() | {"tracking_lost": bool(lost)}
+    return session.status()
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)
@@ -53,17 +51,17 @@ async def delete_session(request: Request, session_id: str, session: SessionDep,
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-def _via_file(suffix: str, write) -> bytes:
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / f"out{suffix}"
-        write(path)
-        return path.read_bytes()
-
-
 def _saved(path: Path, read: bool = True) -> bytes:
     if not path.is_file():
         raise MapError("this session fused no map before it closed")
     return path.read_bytes() if read else b""
+
+
+def _mesh_bytes(tsdf: TSDFMap) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "mesh.ply"
+        tsdf.write_mesh_ply(path)
+        return path.read_bytes()
 
 
 def _download(data: bytes, filename: str, media_type: str) -> Response:
@@ -74,8 +72,8 @@ def _download(data: bytes, filename: str, media_type: str) -> Response:
 @router.get("/{session_id}/map.ply")
 def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
     """The fused map's surface points with colours, binary PLY, world frame, metres."""
-    if isinstance(session, Session):
-        data = _via_file(".ply", session.map.write_point_cloud_ply)
+    if isinstance(session, LiveSession):
+        data = session.download("map.ply")
     else:
         data = _saved(manager.store.file(session_id, "map.ply"))
     return _download(data, f"{session_id}-map.ply", PLY)
@@ -84,20 +82,19 @@ def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> R
 @router.get("/{session_id}/mesh.ply")
 def download_mesh(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
     """The TSDF surface as a triangle mesh with vertex colours, binary PLY."""
-    if isinstance(session, Session):
-        tsdf = session.map
+    if isinstance(session, LiveSession):
+        data = session.download("mesh.ply")
     else:
         _saved(manager.store.file(session_id, "map.npz"), read=False)
-        tsdf = TSDFMap.load(manager.store.file(session_id, "map.npz"))
-    data = _via_file(".ply", tsdf.write_mesh_ply)
+        data = _mesh_bytes(TSDFMap.load(manager.store.file(session_id, "map.npz")))
     return _download(data, f"{session_id}-mesh.ply", PLY)
 
 
 @router.get("/{session_id}/trajectory.tum")
 def download_trajectory(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
     """Camera poses T_world_camera, one line per processed frame: ``t tx ty tz qx qy qz qw``."""
-    if isinstance(session, Session):
-        data = _via_file(".tum", lambda p: write_tum(p, session.trajectory()))
+    if isinstance(session, LiveSession):
+        data = session.download("trajectory.tum")
     else:
         data = manager.store.file(session_id, "trajectory.tum").read_bytes()
     return _download(data, f"{session_id}-trajectory.tum", "text/plain")

@@ -1,7 +1,8 @@
 """The session WebSocket: decode messages, hand frames to the session, send poses back.
 
-This module knows the protocol and asyncio; the math happens in the session's worker thread, and
-image decoding in a thread pool, so one slow session never stalls the event loop.
+This module knows the protocol and asyncio; frames go on to the session's worker (a process of
+its own) as the bytes that arrived, and the worker decodes and registers them, so one slow
+session never stalls the event loop or another session.
 """
 
 from __future__ import annotations
@@ -13,16 +14,15 @@ from dataclasses import dataclass, field
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from server.errors import ConfigError
-from server.geometry import Intrinsics
 from server.sessions import (
     CommandRefused,
     DroneNotice,
     DroneUpdate,
-    FrameData,
+    FrameRefused,
+    LiveSession,
     MapUpdate,
-    Session,
     SessionError,
+    SessionFailed,
 )
 from server.transport import protocol as proto
 
@@ -35,6 +35,7 @@ _SESSION_CODES = {
     "bad_sequence": "bad_sequence",
     "intrinsics_changed": "bad_intrinsics",
     "session_closed": "unauthorized",
+    "session_failed": "session_failed",
 }
 _OUTBOX = 256  # updates waiting for a slow client; beyond this the oldest are skipped
 
@@ -86,7 +87,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         session = manager.authorize(session_id, token)
     except SessionError as exc:
         return await _refuse(ws, proto.ProtocolError("unauthorized", str(exc)))
-    if not isinstance(session, Session):
+    if not isinstance(session, LiveSession):
         return await _refuse(ws, proto.ProtocolError("unauthorized", "this session is closed"))
     # The newest socket wins: a phone whose Wi-Fi dropped silently comes back on a new socket
     # while the server still holds the old one (until idle_timeout_s), and the token proves it
@@ -106,9 +107,13 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
     def deliver(item) -> None:  # any thread
         loop.call_soon_threadsafe(outbox.put, item)
 
-    sender = asyncio.create_task(_send_updates(ws, outbox, settings.preview_points))
+    errors = _ErrorRun(proto.LIMITS["max_consecutive_errors"])
+    sender = asyncio.create_task(
+        _send_updates(ws, outbox, settings.preview_points, connection, errors)
+    )
     try:
-        await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection)
+        await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection,
+                       errors)
     except WebSocketDisconnect:
         pass
     finally:
@@ -170,7 +175,25 @@ class _Outbox:
         return self.queue.empty()
 
 
-async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int) -> None:
+class _ErrorRun:
+    """Non-fatal errors in a row; ``limit`` of them close the socket (too_many_errors). A pose,
+    or any other message handled, ends the run. Event-loop thread only: the receiving task
+    counts the client's bad messages, the sending task the frames the worker refused."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.count = limit, 0
+
+    def reset(self) -> None:
+        self.count = 0
+
+    def add(self) -> bool:
+        """Count one more; True when the run reached the limit."""
+        self.count += 1
+        return self.count >= self.limit
+
+
+async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
+                        connection: _Connection, errors: _ErrorRun) -> None:
     chunk = 0
     try:
         while True:
@@ -202,6 +225,19 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int) -> No
                     ),
                 )
                 continue
+            if isinstance(item, FrameRefused):
+                code = _SESSION_CODES.get(item.code, item.code)
+                await _send(ws, proto.make_error(code, item.message, seq=item.seq))
+                if errors.add():
+                    await ws.close(code=proto.CLOSE_CODES["too_many_errors"],
+                                   reason="too_many_errors")
+                    return
+                continue
+            if isinstance(item, SessionFailed):
+                connection.end("session_failed", f"{item.message}; the session is closed and "
+                               "kept as of its last snapshot, downloadable with its token")
+                return
+            errors.reset()
             await _send(
                 ws,
                 proto.make_pose(
@@ -215,11 +251,14 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int) -> No
                     item.keyframe,
                 ),
             )
-    except (WebSocketDisconnect, RuntimeError, asyncio.CancelledError):
+    except (WebSocketDisconnect, RuntimeError, OSError, asyncio.CancelledError):
         return
+    except Exception:  # a bug in sending must not leave the client waiting on a dead socket
+        log.exception("session socket: sending an update failed")
+        connection.end("internal_error", "the server failed to send an update; reconnect")
 
 
-async def _close_after_answers(ws: WebSocket, session: Session, outbox: _Outbox) -> None:
+async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Outbox) -> None:
     """After a bye: answer the frames in flight (bounded), then close normally."""
     await asyncio.to_thread(session.drain, 5.0)
     deadline = time.monotonic() + 2.0
@@ -244,13 +283,12 @@ def _drone_state(s: DroneUpdate) -> dict:
 
 
 async def _receive(
-    ws: WebSocket, session: Session, deliver, max_bytes: int, outbox: _Outbox,
-    connection: _Connection,
+    ws: WebSocket, session: LiveSession, deliver, max_bytes: int, outbox: _Outbox,
+    connection: _Connection, errors: _ErrorRun,
 ) -> None:
     """Handle the client's messages until it leaves, is closed, or ``connection`` is ended."""
     order = proto.ClientOrder()
-    errors_in_a_row = 0
-    limit, idle_s = proto.LIMITS["max_consecutive_errors"], proto.LIMITS["idle_timeout_s"]
+    idle_s = proto.LIMITS["idle_timeout_s"]
     ending = asyncio.ensure_future(connection.ending.wait())
     try:
         while True:
@@ -268,11 +306,13 @@ async def _receive(
             data = received.get("bytes")
             if data is None:
                 data = (received.get("text") or "").encode()  # text frames are not msgpack
+            closed = False
             try:
                 message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes)
                 order.check(message)
-                await _handle(ws, session, message, order, deliver)
-                errors_in_a_row = 0
+                await _handle(ws, session, message, data, deliver)
+                if message["type"] != "frame":  # a frame's run ends with its pose
+                    errors.reset()
             except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
                 error = proto.make_error(
                     exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
@@ -283,9 +323,9 @@ async def _receive(
                     _SESSION_CODES.get(exc.code, "internal_error"), str(exc),
                     seq=message.get("seq"),  # decoded already: a session refused it
                 )
-                errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
+                closed = await _report(ws, error, errors)
             except proto.ProtocolError as exc:
-                errors_in_a_row = await _report(ws, exc, errors_in_a_row, limit)
+                closed = await _report(ws, exc, errors)
             except (WebSocketDisconnect, OSError):
                 raise
             except Exception:  # a bug on one message: say so with a documented code, keep going
@@ -293,8 +333,8 @@ async def _receive(
                 error = proto.ProtocolError(
                     "internal_error", "the server failed on this message", seq=_seq(data)
                 )
-                errors_in_a_row = await _report(ws, error, errors_in_a_row, limit)
-            if errors_in_a_row < 0:
+                closed = await _report(ws, error, errors)
+            if closed:
                 return
             if order.closed:
                 await _close_after_answers(ws, session, outbox)
@@ -310,30 +350,24 @@ def _seq(data: bytes) -> int | None:
         return None
 
 
-async def _report(ws: WebSocket, error: proto.ProtocolError, in_a_row: int, limit: int) -> int:
-    """Send the error; close on a fatal one or too many in a row. Returns the new count, or -1
-    when the socket was closed."""
+async def _report(ws: WebSocket, error: proto.ProtocolError, errors: _ErrorRun) -> bool:
+    """Send the error; close on a fatal one or too many in a row. True when the socket was
+    closed."""
     if error.fatal:
         await _refuse(ws, error)
-        return -1
+        return True
     await _send(ws, error.to_message())
-    in_a_row += 1
-    if in_a_row >= limit:
+    if errors.add():
         await ws.close(code=proto.CLOSE_CODES["too_many_errors"], reason="too_many_errors")
-        return -1
-    return in_a_row
+        return True
+    return False
 
 
-async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver) -> None:
+async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: bytes,
+                  deliver) -> None:
     kind = message["type"]
     if kind == "hello":
-        fx, fy, cx, cy = message["intrinsics"]
-        width, height = message["colour_size"]
-        try:
-            intrinsics = Intrinsics(fx, fy, cx, cy, int(width), int(height))
-        except ConfigError as exc:
-            raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
-        session.configure(intrinsics, message["client_name"], message.get("gravity"))
+        await asyncio.to_thread(session.configure, message)
         session.start(deliver)
         await _send(
             ws,
@@ -342,16 +376,7 @@ async def _handle(ws: WebSocket, session: Session, message: dict, order, deliver
             ),
         )
     elif kind == "frame":
-        t0 = time.perf_counter()
-        colour, depth = await asyncio.to_thread(proto.decode_frame_images, message, order.hello)
-        frame = FrameData(
-            message["seq"],
-            message["timestamp"],
-            colour,
-            depth,
-            decode_ms=(time.perf_counter() - t0) * 1e3,
-        )
-        session.submit(frame)
+        session.submit(message["seq"], data)
     elif kind == "command":
         fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}
         await asyncio.to_thread(session.command, message["name"], message["id"], **fields)

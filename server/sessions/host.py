@@ -1,0 +1,203 @@
+"""A session's host: the side of a live session that runs in its worker (a process of its own,
+or a Ray actor), apart from the web process.
+
+The web process forwards what the client sent: the hello as a dict, frames as the bytes that
+arrived (decoded here, so image decoding never costs the event loop), pilot commands. The host
+answers calls with plain values and hands updates (poses, map points, drone states and events,
+refused frames) to ``publish``. Errors cross as :class:`RemoteError` values, which pickle
+whatever the exception class looks like, and are raised again on the web side by
+:func:`raise_remote`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from server.errors import ConfigError
+from server.evaluation.trajectory import write_tum
+from server.geometry import Intrinsics
+from server.mapping.tsdf import MapError
+from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.flight import CommandRefused
+from server.sessions.session import FrameData, FrameRefused, Session, SessionConfig
+from server.sessions.store import SessionStore
+from server.transport import protocol as proto
+
+log = logging.getLogger(__name__)
+
+DOWNLOADS = ("map.ply", "mesh.ply", "trajectory.tum")
+
+
+@dataclass
+class RemoteError:
+    """An exception raised in the worker, as plain values (``kind`` names its class)."""
+
+    kind: str
+    code: str
+    message: str
+    nearest: list[float] | None = None
+
+
+def as_remote(exc: BaseException) -> RemoteError:
+    if isinstance(exc, CommandRefused):
+        nearest = None if exc.nearest is None else [float(v) for v in exc.nearest]
+        return RemoteError("command", exc.code, str(exc), nearest)
+    if isinstance(exc, SessionError):
+        return RemoteError("session", exc.code, str(exc))
+    if isinstance(exc, proto.ProtocolError):
+        return RemoteError("protocol", exc.code, str(exc))
+    if isinstance(exc, SnapshotError):
+        return RemoteError("snapshot", "snapshot_failed", str(exc))
+    if isinstance(exc, MapError):
+        return RemoteError("map", "map_unavailable", str(exc))
+    return RemoteError("internal", "internal_error", f"{type(exc).__name__}: {exc}")
+
+
+def raise_remote(error: RemoteError) -> None:
+    """Raise, on the web side, the exception a worker's call raised."""
+    import numpy as np
+
+    if error.kind == "command":
+        nearest = None if error.nearest is None else np.asarray(error.nearest)
+        raise CommandRefused(error.code, error.message, nearest)
+    if error.kind == "session":
+        raise SessionError(error.code, error.message)
+    if error.kind == "protocol":
+        raise proto.ProtocolError(error.code, error.message)
+    if error.kind == "snapshot":
+        raise SnapshotError(error.message)
+    if error.kind == "map":
+        raise MapError(error.message)
+    raise RuntimeError(f"the session's worker failed: {error.message}")
+
+
+def limit_threads(threads: int) -> None:
+    """Size this process's native thread pools (OpenCV, Open3D's TBB, BLAS/OpenMP): sessions
+    in worker processes beside each other must not each assume every core is theirs."""
+    import cv2
+    import open3d as o3d
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(threads)
+    o3d.utility.set_max_threads(threads)
+    threadpool_limits(threads)
+
+
+@dataclass
+class HostArgs:
+    """What a worker needs to host a session (pickled to the worker)."""
+
+    session_id: str
+    token_hash: str
+    data_dir: str
+    config: SessionConfig
+    created_at: float
+    threads: int  # native threads for this session's libraries
+
+
+class SessionHost:
+    """A live session in its worker: frames in as bytes, updates out through ``publish``."""
+
+    def __init__(self, args: HostArgs, publish: Callable[[object], None]) -> None:
+        limit_threads(args.threads)
+        self.args = args
+        self.publish = publish
+        self.session = Session(args.session_id, args.token_hash, SessionStore(Path(args.data_dir)),
+                               args.config, created_at=args.created_at)
+        self._hello: dict | None = None
+
+    def describe(self) -> dict:
+        """Where this session runs, for its status."""
+        return {"pid": os.getpid()}
+
+    # ------------------------------------------------------------------ the client's messages
+    def configure(self, hello: dict) -> None:
+        """The client's (validated) hello: camera, name, gravity. Raises ProtocolError
+        (bad_intrinsics) or SessionError (closed, another camera)."""
+        fx, fy, cx, cy = hello["intrinsics"]
+        width, height = hello["colour_size"]
+        try:
+            intrinsics = Intrinsics(fx, fy, cx, cy, int(width), int(height))
+        except ConfigError as exc:
+            raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
+        self.session.configure(intrinsics, hello.get("client_name", ""), hello.get("gravity"))
+        self.session.start(self.publish)
+        self._hello = hello
+
+    def frame(self, data: bytes, received_at: float) -> None:
+        """A frame message as it arrived (already validated by the web process): decode its
+        images and hand it to the tracker; a frame that cannot be used is answered with a
+        FrameRefused update. ``received_at``: when the web process got it (its monotonic
+        clock, handed back in the pose's timings)."""
+        message = proto.decode(data)
+        seq = message.get("seq")
+        t0 = time.perf_counter()
+        try:
+            if self._hello is None:
+                raise SessionError("no_hello", "send a hello before frames")
+            colour, depth = proto.decode_frame_images(message, self._hello)
+            frame = FrameData(seq, message["timestamp"], colour, depth, received_at=received_at,
+                              decode_ms=(time.perf_counter() - t0) * 1e3)
+            self.session.submit(frame)
+        except proto.ProtocolError as exc:
+            self.publish(FrameRefused(seq, exc.code, str(exc)))
+        except SessionError as exc:
+            self.publish(FrameRefused(seq, exc.code, str(exc)))
+        except Exception as exc:  # a bug on one frame: the client hears internal_error
+            log.exception("session %s: frame %s failed to decode", self.session.id, seq)
+            self.publish(FrameRefused(seq, "internal_error", f"{type(exc).__name__}: {exc}"))
+
+    def command(self, name: str, command_id: int, fields: dict) -> None:
+        """A pilot command; raises CommandRefused."""
+        self.session.command(name, command_id, **fields)
+
+    def drain(self, timeout_s: float) -> bool:
+        return self.session.drain(timeout_s)
+
+    # ------------------------------------------------------------------ REST
+    def status(self) -> dict:
+        tracker = self.session.tracker
+        lost = tracker is not None and tracker.lost
+        return self.session.status() | {"tracking_lost": bool(lost), "threads": self.args.threads}
+
+    def meta(self) -> dict:
+        return self.session.meta()
+
+    def download(self, name: str) -> bytes:
+        """One of DOWNLOADS, as the bytes of its file. Raises MapError when there is no map."""
+        if name not in DOWNLOADS:
+            raise ValueError(f"unknown download {name!r}")
+        write = {
+            "map.ply": self.session.map.write_point_cloud_ply,
+            "mesh.ply": self.session.map.write_mesh_ply,
+            "trajectory.tum": lambda path: write_tum(path, self.session.trajectory()),
+        }[name]
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / name
+            write(path)
+            return path.read_bytes()
+
+    def snapshot(self) -> None:
+        self.session.snapshot()
+
+    def save_meta(self) -> None:
+        """Write the session's meta now (a new session is on disk from its first moment)."""
+        self.session.store.write_meta(self.session.id, self.session.meta())
+
+    def set_threads(self, threads: int) -> None:
+        """Resize the native thread pools (the server's share of cores for this session)."""
+        self.args.threads = threads
+        limit_threads(threads)
+
+    def stop(self, save: bool) -> dict:
+        """Stop after the frame in hand and (optionally) write the final snapshot; returns the
+        session's meta as saved. Raises SnapshotError when the save failed (the session is
+        stopped either way)."""
+        self.session.stop(save=save)
+        return self.session.meta()

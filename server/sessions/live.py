@@ -1,0 +1,182 @@
+"""A live session as the web process holds it: identity, the client's frame order, and a worker
+(a local process, or a Ray actor) that does the work.
+
+The transport and the REST routes talk to this object only; it forwards to the worker and turns
+the worker's updates into the client's. Nothing here decodes an image or touches a map.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+from server.sessions.errors import SessionError
+from server.sessions.session import FrameRefused, PoseUpdate
+from server.sessions.worker import WorkerLost
+
+_RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)
+
+
+class SessionFailed:
+    """The update a client gets when its session's worker died: the session is closed and
+    saved from its last snapshot."""
+
+    def __init__(self, message: str) -> None:
+        self.message = message
+
+
+class SessionTakenOver:
+    """The update a client gets when a newer connection to the same session, on another
+    front-end of a shared cluster, took the session over (its socket ends with
+    ``session_taken_over``); ``closed``: the session was closed or deleted there."""
+
+    def __init__(self, message: str, closed: bool = False) -> None:
+        self.message = message
+        self.closed = closed
+
+
+class LiveSession:
+    """One live session in the web process. ``worker`` offers ``call``, ``post``, ``stop``,
+    ``kill``, ``describe`` and ``alive`` (``server.sessions.worker.ProcessWorker``, or the Ray
+    actor's handle); ``on_lost`` is told when the worker dies on its own."""
+
+    def __init__(self, session_id: str, token_hash: str, created_at: float,
+                 start_worker: Callable[[LiveSession], object],
+                 on_lost: Callable[[LiveSession, str], None] | None = None) -> None:
+        self.id = session_id
+        self.token_hash = token_hash
+        self.created_at = created_at
+        self.closed = False
+        self.failed: str | None = None  # why the worker died, if it did
+        self.final_meta: dict | None = None  # as saved by the worker's final snapshot
+        self._stopping = False
+        self._stopped = threading.Event()
+        self.last_seen = time.monotonic()
+        self.on_update: Callable[[object], None] | None = None
+        self._last_seq = -1
+        self.received = 0  # frames accepted from the client (some dropped before the worker)
+        self._received: OrderedDict[int, float] = OrderedDict()  # seq -> arrival (monotonic)
+        self._lock = threading.Lock()
+        self._on_lost = on_lost
+        self.worker = start_worker(self)
+
+    @property
+    def last_seen(self) -> float:
+        """When the client last said something (monotonic). A worker on a shared cluster also
+        reports ``last_active``: the session is busy while any front-end feeds it."""
+        remote = getattr(self.__dict__.get("worker"), "last_active", None)
+        return self._last_seen if remote is None else max(self._last_seen, remote)
+
+    @last_seen.setter
+    def last_seen(self, value: float) -> None:
+        self._last_seen = value
+
+    # ------------------------------------------------------------------ from the worker
+    def deliver(self, item) -> None:
+        """An update from the worker (its reader thread): a pose's server time is measured
+        here, from the frame's arrival in this process to its pose leaving it."""
+        if isinstance(item, PoseUpdate | FrameRefused):
+            with self._lock:
+                received = self._received.pop(item.seq, None)
+            if isinstance(item, PoseUpdate):
+                item.dropped += self.worker.dropped  # dropped before the worker saw them
+                if received is not None:
+                    item.timings_ms["server_total"] = (time.monotonic() - received) * 1e3
+        elif isinstance(item, SessionTakenOver) and item.closed:
+            self.closed = True  # ended by another front-end: the reaper lets go of it here
+        on_update = self.on_update
+        if on_update is not None:
+            on_update(item)
+
+    def lost(self, reason: str) -> None:
+        """The worker died on its own: the client is told; the manager saves what is on disk."""
+        self.failed = reason
+        self.closed = True
+        self.deliver(SessionFailed(reason))
+        if self._on_lost is not None:
+            self._on_lost(self, reason)
+
+    # ------------------------------------------------------------------ from the client
+    def configure(self, hello: dict) -> None:
+        """The client's validated hello. Raises SessionError or ProtocolError."""
+        if self.closed:
+            raise SessionError("session_closed", "this session is closed; create a new one")
+        self.worker.call("configure", hello)
+        self.last_seen = time.monotonic()
+        with self._lock:  # a new connection numbers its frames afresh (a reloaded page)
+            self._last_seq = -1
+
+    def start(self, on_update: Callable[[object], None] | None) -> None:
+        self.on_update = on_update
+
+    def submit(self, seq: int, data: bytes) -> None:
+        """A frame message as it arrived; the worker decodes it. Raises SessionError
+        (bad_sequence) at once, without the worker."""
+        now = time.monotonic()
+        with self._lock:
+            if seq <= self._last_seq:
+                raise SessionError(
+                    "bad_sequence",
+                    f"sequence number {seq} is not above the last one ({self._last_seq})",
+                )
+            self._last_seq = seq
+            self.received += 1
+            self._received[seq] = now
+            while len(self._received) > _RECEIVED_KEPT:
+                self._received.popitem(last=False)
+        self.last_seen = now
+        self.worker.post("frame", data, now)
+
+    def command(self, name: str, command_id: int, **fields) -> None:
+        """A pilot command; raises CommandRefused."""
+        self.worker.call("command", name, command_id, fields)
+
+    def drain(self, timeout_s: float = 5.0) -> bool:
+        return self.worker.call("drain", timeout_s, timeout_s=timeout_s + 5)
+
+    # ------------------------------------------------------------------ REST
+    def status(self) -> dict:
+        try:
+            status = self.worker.call("status")
+        except WorkerLost:
+            if self._saved_meta() is None:
+                raise
+            return self.final_meta["status"]
+        status["frames_dropped"] += self.worker.dropped
+        status["frames_received"] = self.received
+        threads = status.pop("threads")
+        return status | {"worker": self.worker.describe() | {"threads": threads}}
+
+    def _saved_meta(self) -> dict | None:
+        """The final meta of a session being stopped and saved (a query that met its worker
+        just gone waits for the stop to finish), else None."""
+        if self._stopping:
+            self._stopped.wait(30)
+        return self.final_meta
+
+    def download(self, name: str) -> bytes:
+        """Raises WorkerLost when the worker ended meanwhile (``final_meta`` then says whether
+        the session was saved: its files are on disk)."""
+        return self.worker.call("download", name, timeout_s=300)
+
+    def meta(self) -> dict:
+        return self.worker.call("meta")
+
+    # ------------------------------------------------------------------ the end
+    def stop(self, save: bool = True) -> dict | None:
+        """Stop the worker; with ``save``, after its final snapshot (returns the saved meta;
+        raises SnapshotError when the save failed and the worker stays). Without, the worker
+        is ended at once."""
+        self.closed = True
+        if not save:
+            self.worker.kill()
+            return None
+        self._stopping = True
+        try:
+            self.final_meta = self.worker.stop(save=True)
+        finally:
+            self._stopping = False
+            self._stopped.set()
+        return self.final_meta

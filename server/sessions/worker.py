@@ -1,0 +1,330 @@
+"""Session worker processes: each live session's tracking, mapping and flight run in a process
+of its own, apart from the web process.
+
+Why processes: the web process's event loop then only moves bytes; a session's native crash
+(OpenCV, Open3D) ends that session alone; and each process's thread pools are sized for its
+share of the cores. Processes come from a forkserver that has already imported the numerical
+stack, so starting one takes tens of milliseconds, not the seconds of a fresh interpreter.
+
+The two sides talk over one duplex pipe:
+- web -> worker: ``(call_id, method, args)``; call_id None for a message that wants no answer
+  (frames, which arrive at camera rate and are answered by poses);
+- worker -> web: ``("reply", call_id, ok, value)`` and ``("update", item)``.
+Frames, the hello, commands, drain and stop are handled in arrival order on the worker's main
+thread (a drain after a bye must come after its frames); slow queries (status, downloads,
+snapshot) run beside it so that they never hold up a frame.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import multiprocessing
+import os
+import queue
+import signal
+import threading
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+
+from server.sessions.errors import SessionError
+
+log = logging.getLogger(__name__)
+
+_INLINE = {"configure", "frame", "command", "drain", "stop"}  # in order, on the main thread
+_PRELOAD = ["server.sessions.host"]  # imported once in the forkserver, shared by every worker
+
+
+class WorkerLost(SessionError):
+    """The session's worker is gone (crashed, killed, or stopped)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("session_failed", message)
+
+
+# ---- the worker's side ------------------------------------------------------------------------
+
+
+def _worker_main(conn, args) -> None:
+    """Entry point of a worker process: host the session and serve the pipe until told to stop
+    or until the web process goes away."""
+    # A Ctrl-C or SIGTERM meant for the server reaches the whole process group; the web process
+    # then stops each session with a final save, which must find its worker alive.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from server.sessions.host import SessionHost, as_remote
+
+    # Everything the worker says goes through one queue and one thread, in order: a reply (to
+    # a drain, say) never overtakes the poses published before it.
+    outgoing: queue.SimpleQueue = queue.SimpleQueue()
+
+    def forward() -> None:
+        while (message := outgoing.get()) is not None:
+            try:
+                conn.send(message)
+            except (OSError, ValueError):
+                return
+
+    sender = threading.Thread(target=forward, name="outgoing", daemon=True)
+    sender.start()
+    try:
+        host = SessionHost(args, lambda item: outgoing.put(("update", item)))
+    except Exception as exc:
+        outgoing.put(("reply", 0, False, as_remote(exc)))
+        outgoing.put(None)
+        sender.join()
+        return
+    outgoing.put(("reply", 0, True, host.describe()))
+    side = ThreadPoolExecutor(max_workers=2, thread_name_prefix="query")
+
+    def answer(call_id, method, call_args) -> bool:
+        try:
+            value, ok = getattr(host, method)(*call_args), True
+        except Exception as exc:
+            value, ok = as_remote(exc), False
+            if value.kind == "internal":  # a bug, not an answer: keep its traceback
+                log.exception("session %s: %s failed", args.session_id, method)
+        if call_id is not None:
+            outgoing.put(("reply", call_id, ok, value))
+        return ok
+
+    while True:
+        try:
+            call_id, method, call_args = conn.recv()
+        except (EOFError, OSError):
+            # The web process is gone (killed): its snapshots on disk are whole; end at once, so
+            # that a restarted server does not find this process still writing beside it.
+            os._exit(0)
+        if method in _INLINE:
+            if answer(call_id, method, call_args) and method == "stop":
+                break
+        else:
+            side.submit(answer, call_id, method, call_args)
+    side.shutdown(wait=True)
+    outgoing.put(None)
+    sender.join()
+
+
+# ---- the web process's side -------------------------------------------------------------------
+
+
+class ProcessWorker:
+    """The web process's handle on one worker process.
+
+    ``call`` blocks until the worker answers (run it off the event loop); ``post`` only queues:
+    a writer thread sends, so a worker busy with a command never blocks the caller. Frames
+    waiting beyond ``max_waiting_frames`` (a stalled worker) are dropped, oldest first, and
+    counted in ``dropped``. Updates arrive on a reader thread and go to ``on_update``; when the process ends without
+    having been stopped, every waiting call fails with WorkerLost and ``on_lost`` is called once
+    with the reason."""
+
+    kind = "process"
+
+    def __init__(self, args, on_update: Callable[[object], None],
+                 on_lost: Callable[[str], None], start_timeout_s: float = 60.0,
+                 max_waiting_frames: int = 4) -> None:
+        ctx = _context()
+        self._conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=_worker_main, args=(child, args), daemon=True,
+                                   name=f"session-{args.session_id}")
+        self.on_update, self.on_lost = on_update, on_lost
+        started: Future = Future()
+        self._calls: dict[int, Future] = {0: started}  # 0: the host's start-up
+        self._ids = itertools.count(1)
+        self._lock = threading.Lock()  # sending, and the table of calls
+        self._stopped = False  # the worker was told to stop: its end is expected
+        self._lost: str | None = None
+        self._outgoing: deque = deque()  # messages for the writer thread, in order
+        self._waiting_frames = 0
+        self.max_waiting_frames = max_waiting_frames
+        self.dropped = 0  # frames dropped here, before the worker saw them
+        self._wake = threading.Condition(self._lock)
+        self.process.start()
+        child.close()
+        self._reader = threading.Thread(target=self._read, name=f"worker-{args.session_id}",
+                                        daemon=True)
+        self._reader.start()
+        threading.Thread(target=self._write, name=f"worker-out-{args.session_id}",
+                         daemon=True).start()
+        self.info = self._wait(started, start_timeout_s, "start")
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid
+
+    @property
+    def alive(self) -> bool:
+        return self._lost is None and self.process.is_alive()
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, **self.info}
+
+    # ------------------------------------------------------------------ calls
+    def post(self, method: str, *args) -> None:
+        """Queue without waiting for an answer; raises WorkerLost when the worker is gone."""
+        self._send((None, method, args))
+
+    def call(self, method: str, *args, timeout_s: float = 60.0):
+        """Run ``method`` on the session's host and return its value (or raise its error)."""
+        future: Future = Future()
+        with self._lock:
+            call_id = next(self._ids)
+            self._calls[call_id] = future
+        try:
+            self._send((call_id, method, args))
+        except WorkerLost:
+            with self._lock:
+                self._calls.pop(call_id, None)
+            raise
+        return self._wait(future, timeout_s, method, call_id)
+
+    def _wait(self, future: Future, timeout_s: float, method: str, call_id: int = 0):
+        from server.sessions.host import raise_remote
+
+        try:
+            ok, value = future.result(timeout_s)
+        except FutureTimeout:
+            with self._lock:
+                self._calls.pop(call_id, None)
+            raise WorkerLost(f"the session's worker did not answer {method} within "
+                             f"{timeout_s:.0f} s") from None
+        if not ok:
+            raise_remote(value)
+        return value
+
+    def _send(self, message) -> None:
+        with self._wake:
+            if self._lost is not None:
+                raise WorkerLost(self._lost)
+            if message[1] == "frame":
+                if self._waiting_frames >= self.max_waiting_frames:
+                    self._drop_oldest_frame()
+                self._waiting_frames += 1
+            self._outgoing.append(message)
+            self._wake.notify()
+
+    def _drop_oldest_frame(self) -> None:
+        for i, (_, method, _) in enumerate(self._outgoing):
+            if method == "frame":
+                del self._outgoing[i]
+                self._waiting_frames -= 1
+                self.dropped += 1
+                return
+
+    def _write(self) -> None:
+        """The writer thread: sends queued messages in order until the worker is gone."""
+        while True:
+            with self._wake:
+                while not self._outgoing and self._lost is None:
+                    self._wake.wait()
+                if self._lost is not None:
+                    return
+                message = self._outgoing.popleft()
+                if message[1] == "frame":
+                    self._waiting_frames -= 1
+            try:
+                self._conn.send(message)
+            except (OSError, ValueError):
+                return  # the reader sees the end and reports it
+
+    # ------------------------------------------------------------------ the reader thread
+    def _read(self) -> None:
+        while True:
+            try:
+                message = self._conn.recv()
+            except (EOFError, OSError):
+                break
+            if message[0] == "update":
+                try:
+                    self.on_update(message[1])
+                except Exception:  # the listener's bug must not stop the answers
+                    log.exception("delivering a session update failed")
+                continue
+            _, call_id, ok, value = message
+            with self._lock:
+                future = self._calls.pop(call_id, None)
+            if future is not None:
+                future.set_result((ok, value))
+        self.process.join(timeout=5)
+        code = self.process.exitcode
+        reason = ("the session's worker process ended" if code in (0, None) and self._stopped
+                  else f"the session's worker process died ({_describe_exit(code)})")
+        with self._wake:
+            self._lost = reason
+            waiting, self._calls = list(self._calls.values()), {}
+            self._outgoing.clear()
+            self._wake.notify_all()
+        for future in waiting:
+            future.set_exception(WorkerLost(reason))
+        self._conn.close()
+        on_lost = self.on_lost
+        # The listeners hold the session, which holds this worker: let go, so that a closed
+        # session is freed at once rather than at Python's next cyclic collection.
+        self.on_update = self.on_lost = _ignore
+        if not self._stopped:
+            on_lost(reason)
+
+    # ------------------------------------------------------------------ the end
+    def stop(self, save: bool, timeout_s: float = 120.0) -> dict:
+        """Stop the session (final snapshot when ``save``) and let the process end. Raises
+        SnapshotError when the save failed: the worker then stays, to be stopped again."""
+        self._stopped = True
+        try:
+            meta = self.call("stop", save, timeout_s=timeout_s)
+        except Exception:
+            if self.process.is_alive():
+                self._stopped = False
+            raise
+        self.process.join(timeout=10)
+        return meta
+
+    def kill(self) -> None:
+        """End the process at once (a session deleted, or one whose worker stopped answering)."""
+        self._stopped = True
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join(timeout=10)
+
+
+def _ignore(*_) -> None:
+    pass
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is None:
+        return "still running, not answering"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
+_CONTEXT = None
+_CONTEXT_LOCK = threading.Lock()
+
+
+def _context():
+    """The forkserver context, its server preloaded with the session stack (once per process)."""
+    global _CONTEXT
+    with _CONTEXT_LOCK:
+        if _CONTEXT is None:
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(_PRELOAD)
+            _CONTEXT = ctx
+        return _CONTEXT
+
+
+def _nothing() -> None:
+    pass
+
+
+def warm_up() -> None:
+    """Start the forkserver and wait until it has imported the session stack (seconds), so
+    that the first session does not wait for it."""
+    process = _context().Process(target=_nothing, name="warm-up", daemon=True)
+    process.start()
+    process.join()

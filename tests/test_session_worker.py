@@ -1,0 +1,159 @@
+"""Sessions in worker processes (server/sessions/worker.py, host.py, live.py, manager.py): what
+crosses the pipe, errors as their own types, thread pools shared among sessions, and a frame the
+tracker fails on answered, not lost. The end-to-end paths (crash, takeover, SIGTERM) are in
+test_faults.py against real servers."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from server.geometry import Intrinsics
+from server.sessions import CommandRefused, FrameRefused, PoseUpdate, SessionError
+from server.sessions.manager import SessionManager
+from server.sessions.session import FrameData, Session
+from server.sessions.store import SessionStore
+from server.transport import protocol as P
+
+
+class Updates:
+    """Collects a session's updates (any thread) and waits for the ones a test expects."""
+
+    def __init__(self) -> None:
+        self.items: list = []
+        self._cond = threading.Condition()
+
+    def __call__(self, item) -> None:
+        with self._cond:
+            self.items.append(item)
+            self._cond.notify_all()
+
+    def wait_for(self, kind, n: int = 1, timeout_s: float = 60.0) -> list:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while len(found := [i for i in self.items if isinstance(i, kind)]) < n:
+                remaining = deadline - time.monotonic()
+                assert remaining > 0, f"only {len(found)} {kind.__name__} of {n}: {self.items}"
+                self._cond.wait(remaining)
+            return found
+
+
+@pytest.fixture
+def manager(tmp_path):
+    manager = SessionManager(SessionStore(tmp_path / "data"))
+    yield manager
+    manager.shutdown()
+
+
+@pytest.fixture(scope="module")
+def room(shared_data):
+    from server.datasets import open_dataset
+
+    return open_dataset(shared_data / "synthetic_room0")
+
+
+def hello(ds) -> dict:
+    K = ds.intrinsics
+    return P.decode(P.encode(P.make_hello("t", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))))
+
+
+def frame_bytes(ds, seq: int) -> bytes:
+    f = ds[seq]
+    return P.encode(P.make_frame(seq, f.timestamp, f.colour, f.depth))
+
+
+def test_frames_cross_as_bytes_and_poses_come_back_from_another_process(manager, room):
+    session, _ = manager.create()
+    updates = Updates()
+    session.start(updates)
+    session.configure(hello(room))
+    for seq in range(3):
+        session.submit(seq, frame_bytes(room, seq))
+        assert session.drain(30)  # one at a time: the newest would win over a waiting frame
+    poses = updates.wait_for(PoseUpdate, 3)
+    assert [p.seq for p in poses] == [0, 1, 2]
+    assert all(p.timings_ms["server_total"] >= p.timings_ms["track"] for p in poses)
+    status = session.status()
+    assert status["worker"]["kind"] == "process" and status["worker"]["pid"] != os.getpid()
+    assert status["frames_received"] == 3 and status["frames_processed"] == 3
+
+
+def test_errors_in_the_worker_are_raised_here_as_their_own_types(manager, room):
+    session, _ = manager.create()
+    with pytest.raises(CommandRefused) as refused:  # no hello yet: no drone
+        session.command("hold", 7)
+    assert refused.value.code == "bad_command"
+    bad = hello(room) | {"intrinsics": [-500.0, 500.0, 320.0, 240.0]}  # past the codec
+    with pytest.raises(P.ProtocolError) as absurd:
+        session.configure(bad)
+    assert absurd.value.code == "bad_intrinsics"
+    session.configure(hello(room))
+    with pytest.raises(SessionError) as order:
+        session.submit(0, frame_bytes(room, 0))
+        session.submit(0, frame_bytes(room, 0))
+    assert order.value.code == "bad_sequence"
+
+
+def test_a_corrupt_frame_is_refused_with_its_seq_by_the_worker(manager, room):
+    session, _ = manager.create()
+    updates = Updates()
+    session.start(updates)
+    session.configure(hello(room))
+    message = P.decode(frame_bytes(room, 0))
+    message["colour"] = message["colour"][: len(message["colour"]) // 2]  # cut short
+    session.submit(0, P.encode(message))
+    session.submit(1, frame_bytes(room, 1))
+    (refused,) = updates.wait_for(FrameRefused)
+    assert refused.seq == 0 and refused.code == "corrupt_image"
+    assert updates.wait_for(PoseUpdate)[0].seq == 1
+
+
+def test_the_cores_are_shared_among_live_sessions(tmp_path):
+    """Automatic sizing: every session's native pools together use the machine's cores, no
+    more (at least one thread each), rebalanced when a session comes or goes."""
+    manager = SessionManager(SessionStore(tmp_path / "data"))
+    cores = os.cpu_count()
+    try:
+        first, _ = manager.create()
+        assert first.status()["worker"]["threads"] == cores
+        second, _ = manager.create()
+        assert first.status()["worker"]["threads"] == max(1, cores // 2)
+        assert second.status()["worker"]["threads"] == max(1, cores // 2)
+        manager.delete(second.id)
+        assert first.status()["worker"]["threads"] == cores
+    finally:
+        manager.shutdown()
+
+
+def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
+    """A bug on one frame: the client hears internal_error with the seq, the status counts it,
+    and the next frame gets its pose."""
+    session = Session("0" * 16, "hash", SessionStore(tmp_path / "data"))
+    K = room.intrinsics
+    session.configure(Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height))
+    updates = Updates()
+    session.start(updates)
+    track = session.tracker.track
+    calls = iter(range(100))
+
+    def fails_once(colour, depth):
+        if next(calls) == 1:
+            raise FloatingPointError("a bug")
+        return track(colour, depth)
+
+    session.tracker.track = fails_once
+    try:
+        for seq in range(3):
+            f = room[seq]
+            session.submit(FrameData(seq, f.timestamp, f.colour, f.depth.astype(np.float32)))
+            session.drain(30)
+        (refused,) = updates.wait_for(FrameRefused)
+        assert refused.seq == 1 and refused.code == "internal_error" and "a bug" in refused.message
+        assert [p.seq for p in updates.wait_for(PoseUpdate, 2)] == [0, 2]
+        assert session.status()["frames_failed"] == 1
+    finally:
+        session.stop(save=False)

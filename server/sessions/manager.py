@@ -167,9 +167,12 @@ class SessionManager:
         if token is None:
             raise SessionError("unauthorized", "this request needs the session's token")
         with self._lock:
-            found = self._live.get(session_id) or self._saved.get(session_id)
-        if found is None:
+            found = self._live.get(session_id)
+            saved = self._saved.get(session_id)
+        if found is None and not (saved or {}).get("closed"):
+            # Unknown here, or on disk but never closed: maybe live on the cluster.
             found = self._adopt(session_id)
+        found = found or saved
         if isinstance(found, LiveSession):
             expected = found.token_hash
         else:

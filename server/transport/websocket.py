@@ -23,6 +23,7 @@ from server.sessions import (
     MapUpdate,
     SessionError,
     SessionFailed,
+    SessionTakenOver,
 )
 from server.transport import protocol as proto
 
@@ -233,6 +234,9 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
                                    reason="too_many_errors")
                     return
                 continue
+            if isinstance(item, SessionTakenOver):  # by a socket on another front-end
+                connection.end("session_taken_over", item.message)
+                return
             if isinstance(item, SessionFailed):
                 connection.end("session_failed", f"{item.message}; the session is closed and "
                                "kept as of its last snapshot, downloadable with its token")

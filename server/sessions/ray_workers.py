@@ -1,0 +1,552 @@
+"""Sessions as Ray actors: ``serve --ray ADDRESS`` runs each live session on a Ray cluster instead
+of in a local worker process, so that one server scales past one machine.
+
+Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
+
+- Each session is a **detached, named actor** (``session-<id>`` in the ``dronesim`` namespace):
+  it outlives the front-end that created it, and any front-end finds it by name
+  (``RayWorkers.find``), so several front-ends behind a load balancer serve the same sessions
+  and a restarted front-end finds its live sessions again. Actors are spread over the nodes
+  (``SPREAD``); each reserves ``SESSION_CPUS`` logical CPU (its tracking, mapping and flight
+  threads keep about one core busy at 15 fps), so a node with N CPUs hosts N sessions; a session
+  that finds no free CPU within ``START_TIMEOUT_S`` is refused with ``server_full``.
+- **Order**: the hello, frames, commands and the stop go through one ``ordered`` entry point,
+  submitted by one sender thread per session with a running number per front-end; the actor runs
+  them strictly by that number (and counts any it had to run out of turn in ``out_of_order``),
+  whatever order Ray delivers them in. Queries (status, downloads, drain, snapshots) run in a
+  concurrency group of their own, beside them.
+- **Newest wins across the network**: at most ``MAX_FRAMES_IN_FLIGHT`` frame calls are in flight
+  per session; beyond that only the newest frame waits (in the queue's one frame slot), and the
+  one it replaces is counted in ``dropped``.
+- **Updates** (poses, map chunks, drone states and events, refused frames) wait in the actor;
+  each front-end's poll thread long-polls ``updates`` (``POLL_S``). Only the front-end that sent
+  the latest hello (the *owner*) gets them; an earlier owner's poll learns that it was taken over
+  and its LiveSession ends its socket with ``session_taken_over``. Frames from a front-end that is
+  no longer the owner are ignored (their numbering would clash with the new owner's).
+- **Ends**: an actor that dies on its own (``RayActorError``) -> ``on_lost``; one stopped or
+  deleted by another front-end is let go quietly (its LiveSession is closed; the meta on the
+  shared data dir says how it ended).
+- **Snapshots** are written by the actor under the data_dir it was given, on the actor's node: on
+  a real cluster data_dir must be shared storage (NFS, a ReadWriteMany volume), or each session's
+  files stay on the node that ran it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import re
+import threading
+import time
+import uuid
+from collections import deque
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import replace
+
+import ray
+from ray.exceptions import GetTimeoutError, RayActorError
+
+from server.sessions.errors import SessionError
+from server.sessions.live import SessionTakenOver
+from server.sessions.worker import WorkerLost
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "dronesim"
+SESSION_CPUS = 1  # Ray's logical CPUs reserved per session actor: the cluster's admission control
+SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's actor
+MAX_FRAMES_IN_FLIGHT = 2  # frame calls per session not yet run by the actor
+POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
+START_TIMEOUT_S = 60.0
+_UPDATES_KEPT = 256  # updates waiting for the owner's poll; beyond, the oldest are skipped
+_ORDERED = {"configure", "frame", "command", "stop"}
+_ID = re.compile(r"[0-9A-Za-z_-]{1,64}")
+
+
+def actor_name(session_id: str) -> str:
+    return f"session-{session_id}"
+
+
+# ---- the actor (on a cluster node) -----------------------------------------------------------
+
+
+@ray.remote(concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8})
+class SessionActor:
+    """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
+    owner, until another front-end sends a hello)."""
+
+    def __init__(self, args, owner: str) -> None:
+        logging.basicConfig(level=logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s")
+        from server.sessions.host import SessionHost
+
+        self._cond = threading.Condition()
+        self._turn = threading.Lock()  # one ordered call at a time
+        self._items: deque = deque()
+        self._owner = owner
+        self._next: dict[str, int] = {}  # front-end -> the number of its next ordered call
+        self._ended: str | None = None
+        self._last_active = time.monotonic()
+        self.out_of_order = 0
+        self.foreign_frames = 0  # frames from a front-end that was no longer the owner
+        self.skipped_updates = 0
+        self.args = args
+        self.host = SessionHost(args, self._publish)
+        context = ray.get_runtime_context()
+        self.info = self.host.describe() | {
+            "node_id": context.get_node_id(),
+            "node_ip": ray.util.get_node_ip_address(),
+            "actor": actor_name(args.session_id),
+            "cpus": SESSION_CPUS,
+        }
+
+    def _publish(self, item) -> None:  # any of the session's threads
+        with self._cond:
+            self._items.append(item)
+            if len(self._items) > _UPDATES_KEPT:
+                self._items.popleft()
+                self.skipped_updates += 1
+            self._cond.notify_all()
+
+    @ray.method(concurrency_group="query")
+    def identity(self) -> dict:
+        return {"token_hash": self.args.token_hash, "created_at": self.args.created_at,
+                "data_dir": self.args.data_dir, "info": self.info, "ended": self._ended}
+
+    @ray.method(concurrency_group="ordered")
+    def ordered(self, owner: str, number: int, method: str, args: tuple):
+        """The hello, frames, commands and the stop: run strictly in each front-end's order."""
+        from server.sessions.host import as_remote
+
+        with self._cond:
+            deadline = time.monotonic() + 10.0
+            while self._next.get(owner, 0) < number and (wait := deadline - time.monotonic()) > 0:
+                self._cond.wait(wait)
+            if self._next.get(owner, 0) != number:
+                self.out_of_order += 1
+        try:
+            with self._turn:
+                return True, self._run(owner, method, args)
+        except Exception as exc:
+            return False, as_remote(exc)
+        finally:
+            with self._cond:
+                self._next[owner] = max(self._next.get(owner, 0), number + 1)
+                self._cond.notify_all()
+
+    def _run(self, owner: str, method: str, args: tuple):
+        if self._ended is not None:
+            raise SessionError("session_closed", "this session is closed; create a new one")
+        if method == "configure":
+            self.host.configure(*args)
+            with self._cond:
+                if owner != self._owner:  # taken over: the old owner's updates are not ours
+                    self._owner = owner
+                    self._items.clear()
+                self._last_active = time.monotonic()
+                self._cond.notify_all()  # the old owner's poll learns it at once
+            return None
+        if method == "frame":
+            if owner != self._owner:
+                self.foreign_frames += 1
+                return None
+            self._last_active = time.monotonic()
+            data, _received_at = args  # the front-end's clock: another machine's, maybe
+            return self.host.frame(data, self._last_active)
+        if method == "command":
+            if owner != self._owner:
+                raise SessionError("session_taken_over",
+                                   "another connection took this session over")
+            return self.host.command(*args)
+        if method == "stop":
+            meta = self.host.stop(*args)
+            with self._cond:
+                self._ended = "closed"
+                self._cond.notify_all()
+            return meta
+        raise ValueError(f"not an ordered method: {method}")
+
+    @ray.method(concurrency_group="query")
+    def query(self, method: str, args: tuple):
+        """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
+        from server.sessions.host import as_remote
+
+        try:
+            value = getattr(self.host, method)(*args)
+        except Exception as exc:
+            return False, as_remote(exc)
+        if method == "status":
+            value = value | {"out_of_order_calls": self.out_of_order,
+                             "foreign_frames": self.foreign_frames,
+                             "skipped_updates": self.skipped_updates}
+        return True, value
+
+    @ray.method(concurrency_group="poll")
+    def updates(self, owner: str, timeout_s: float) -> dict:
+        """Long-poll: the updates waiting for ``owner`` (none unless it is the owner), once there
+        are any or after ``timeout_s``; with who owns the session and how long it has been idle."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._ended is None and not (owner == self._owner and self._items):
+                wait = deadline - time.monotonic()
+                if wait <= 0:
+                    break
+                self._cond.wait(wait)
+            items = []
+            if owner == self._owner:
+                items = list(self._items)
+                self._items.clear()
+            return {"items": items, "owner": owner == self._owner,
+                    "idle_s": time.monotonic() - self._last_active, "ended": self._ended}
+
+
+# ---- the front-end's side --------------------------------------------------------------------
+
+
+class RayWorker:
+    """A front-end's handle on one session actor: the surface of ``ProcessWorker`` (``call``,
+    ``post``, ``stop``, ``kill``, ``describe``, ``alive``, ``dropped``), plus ``last_active``
+    (this process's monotonic time of the session's latest hello or frame from any front-end)."""
+
+    kind = "ray"
+
+    def __init__(self, backend: RayWorkers, actor, session_id: str, identity: dict,
+                 on_update, on_lost, owner: bool) -> None:
+        self.backend, self.actor, self.session_id = backend, actor, session_id
+        self.info = identity["info"]
+        self.data_dir = identity["data_dir"]
+        self.on_update, self.on_lost = on_update, on_lost
+        self.dropped = 0  # frames dropped here, before the actor saw them
+        self.last_active = time.monotonic()
+        self._owner = owner  # this front-end owns the session (its updates come here)
+        self._cond = threading.Condition()
+        self._queue: deque = deque()  # (method, args, Future | None), in order
+        self._in_flight = 0  # frame calls submitted, not yet run
+        self._numbers = itertools.count()
+        self._lost: str | None = None  # why no more calls can go
+        self._stopped = False  # this front-end stopped or killed it: its end is expected
+        self._ended_elsewhere = False
+        self._closing = False
+        for target, name in ((self._send_loop, "ray-out"), (self._poll_loop, "ray-poll")):
+            threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True).start()
+        backend._workers.add(self)
+
+    @property
+    def alive(self) -> bool:
+        return self._lost is None
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, **self.info}
+
+    # ------------------------------------------------------------------ calls
+    def post(self, method: str, *args) -> None:
+        """Queue without waiting for an answer (frames); raises WorkerLost when it is gone."""
+        self._enqueue(method, args, None)
+
+    def call(self, method: str, *args, timeout_s: float = 60.0):
+        if method == "set_threads":
+            return None  # an actor's threads follow its CPU reservation, not this front-end
+        if method in _ORDERED:
+            future: Future = Future()
+            self._enqueue(method, args, future)
+            try:
+                ref = future.result(timeout_s)
+            except FutureTimeout:
+                raise WorkerLost(f"the session's actor did not take {method} within "
+                                 f"{timeout_s:.0f} s") from None
+        else:
+            if self._lost is not None:
+                raise WorkerLost(self._lost)
+            ref = self.actor.query.remote(method, args)
+        return self._get(ref, timeout_s, method)
+
+    def _get(self, ref, timeout_s: float, method: str):
+        from server.sessions.host import raise_remote
+
+        try:
+            ok, value = ray.get(ref, timeout=timeout_s)
+        except GetTimeoutError:
+            raise WorkerLost(f"the session's actor did not answer {method} within "
+                             f"{timeout_s:.0f} s") from None
+        except RayActorError as exc:
+            raise WorkerLost(self._lost or _death(exc)) from None
+        if not ok:
+            raise_remote(value)
+        return value
+
+    def _enqueue(self, method: str, args: tuple, future: Future | None) -> None:
+        with self._cond:
+            if self._lost is not None:
+                raise WorkerLost(self._lost)
+            if method == "frame":
+                for i, (queued, _, _) in enumerate(self._queue):
+                    if queued == "frame":  # newest wins: the one waiting gives way
+                        del self._queue[i]
+                        self.dropped += 1
+                        break
+            self._queue.append((method, args, future))
+            self._cond.notify_all()
+
+    def _sendable(self) -> bool:
+        return bool(self._queue) and (self._queue[0][0] != "frame"
+                                      or self._in_flight < MAX_FRAMES_IN_FLIGHT)
+
+    def _send_loop(self) -> None:
+        """The one thread that submits ordered calls, numbered in queue order."""
+        owner = self.backend.owner
+        while True:
+            with self._cond:
+                while self._lost is None and not self._closing and not self._sendable():
+                    self._cond.wait()
+                if self._lost is not None or self._closing:
+                    waiting, self._queue = list(self._queue), deque()
+                    break
+                method, args, future = self._queue.popleft()
+                if method == "frame":
+                    self._in_flight += 1
+            try:
+                ref = self.actor.ordered.remote(owner, next(self._numbers), method, args)
+            except Exception as exc:  # Ray shut down under us
+                if future is not None:
+                    future.set_exception(WorkerLost(f"the Ray connection failed: {exc}"))
+                continue
+            if future is not None:
+                future.set_result(ref)
+            if method == "frame":
+                ref.future().add_done_callback(self._frame_done)
+        reason = self._lost or "the front-end let go of the session"
+        for _, _, future in waiting:
+            if future is not None:
+                future.set_exception(WorkerLost(reason))
+
+    def _frame_done(self, _) -> None:
+        with self._cond:
+            self._in_flight -= 1
+            self._cond.notify_all()
+
+    def _poll_loop(self) -> None:
+        owner = self.backend.owner
+        while not self._closing:
+            try:
+                reply = ray.get(self.actor.updates.remote(owner, POLL_S), timeout=POLL_S + 30)
+            except GetTimeoutError:
+                log.warning("session %s: its actor did not answer a poll in %.0f s",
+                            self.session_id, POLL_S + 30)
+                continue
+            except RayActorError as exc:
+                reason = _death(exc)
+                if _killed(exc):
+                    return self._end_elsewhere("the session was ended by another front-end")
+                return self._end(reason)
+            except SystemExit:  # this process's Ray driver shut down
+                return
+            except Exception as exc:  # Ray itself went away (shut down)
+                if not self._closing:
+                    log.warning("session %s: polling its actor failed: %s", self.session_id, exc)
+                    time.sleep(POLL_S)
+                continue
+            self.last_active = time.monotonic() - reply["idle_s"]
+            for item in reply["items"]:
+                self._deliver(item)
+            if reply["owner"]:
+                self._owner = True
+            elif self._owner:
+                self._owner = False
+                self._deliver(SessionTakenOver(
+                    "a newer connection, on another front-end, took the session over"))
+            if reply["ended"] is not None and not self._stopped:
+                return self._end_elsewhere("the session was closed by another front-end")
+
+    def _deliver(self, item) -> None:
+        try:
+            self.on_update(item)
+        except Exception:  # the listener's bug must not stop the updates
+            log.exception("delivering a session update failed")
+
+    def _let_go(self, reason: str) -> None:
+        with self._cond:
+            self._lost = self._lost or reason
+            self._cond.notify_all()
+        self.backend._workers.discard(self)
+
+    def _end(self, reason: str) -> None:
+        """The actor died: on_lost once, unless this front-end ended it."""
+        self._let_go(reason)
+        on_lost = self.on_lost
+        self.on_update = self.on_lost = _ignore
+        if not self._stopped:
+            on_lost(reason)
+
+    def _end_elsewhere(self, reason: str) -> None:
+        """Another front-end stopped or deleted the session: close it here without a word to
+        the disk (the meta there is the other front-end's)."""
+        self._ended_elsewhere = True
+        self._let_go(reason)
+        if not self._stopped:
+            self._deliver(SessionTakenOver(reason, closed=True))
+        self.on_update = self.on_lost = _ignore
+
+    # ------------------------------------------------------------------ the end
+    def stop(self, save: bool, timeout_s: float = 120.0) -> dict:
+        """Stop the session (its final snapshot when ``save``) and end the actor. A front-end
+        that is going away (``RayWorkers.detach``) only lets go: the session lives on."""
+        if self.backend.detached or self._ended_elsewhere:
+            self._closing = True
+            self._let_go("the front-end let go of the session")
+            return self._meta_on_disk()
+        self._stopped = True
+        try:
+            meta = self.call("stop", save, timeout_s=timeout_s)
+        except WorkerLost:
+            raise
+        except Exception:
+            self._stopped = False
+            raise
+        self.kill()
+        return meta
+
+    def kill(self) -> None:
+        """End the actor at once (a session deleted, or one that stopped answering)."""
+        self._stopped = True
+        self._closing = True
+        self._let_go("the session's actor was ended")
+        try:
+            ray.kill(self.actor, no_restart=True)
+        except Exception as exc:  # already gone
+            log.debug("session %s: kill: %s", self.session_id, exc)
+
+    def _meta_on_disk(self) -> dict:
+        from pathlib import Path
+
+        from server.sessions.store import SessionStore, StoreError
+
+        try:
+            return SessionStore(Path(self.data_dir)).read_meta(self.session_id)
+        except (StoreError, OSError):
+            return {"id": self.session_id, "closed": False, "status": {}}
+
+    def detach_threads(self) -> None:
+        self._closing = True
+        with self._cond:
+            self._cond.notify_all()
+
+
+def _ignore(*_) -> None:
+    pass
+
+
+def _killed(exc: RayActorError) -> bool:
+    """Whether the actor was ended with ray.kill (a stop or a delete), not by a crash."""
+    return "ray.kill" in str(exc)
+
+
+def _death(exc: RayActorError) -> str:
+    text = str(exc).strip().splitlines()
+    detail = " ".join(line.strip() for line in text[:4])[:400]
+    return f"the session's Ray actor died ({detail})"
+
+
+# ---- the back-end ----------------------------------------------------------------------------
+
+_RAY_LOCK = threading.Lock()
+_RAY_USERS = 0
+_RAY_OURS = False  # this process started Ray (and shuts it down with its last user)
+
+
+def _connect(address: str) -> bool:
+    """Join the cluster at ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) or start
+    a local instance (``local``, its traffic on 127.0.0.1). Returns whether it is local."""
+    global _RAY_USERS, _RAY_OURS
+    local = address == "local"
+    with _RAY_LOCK:
+        _RAY_USERS += 1
+        if ray.is_initialized():
+            return local
+        options = {"namespace": NAMESPACE, "logging_level": logging.WARNING,
+                   "log_to_driver": False}
+        if local:
+            # One machine: Ray on the loopback only (its node address, and what it listens on).
+            os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+            from ray._private import ray_constants
+
+            ray_constants.ENABLE_RAY_CLUSTER = False
+            options |= {"address": "local", "include_dashboard": False}
+        else:
+            options["address"] = address
+        ray.init(**options)
+        _RAY_OURS = True
+        return local
+
+
+class RayWorkers:
+    """The Ray back-end of SessionManager: ``start``, ``find``, ``detach``, ``close``."""
+
+    kind = "ray"
+
+    def __init__(self, address: str) -> None:
+        self.address = address
+        self.owner = uuid.uuid4().hex  # this front-end, as the actors know it
+        self.local = _connect(address)
+        self.detached = False
+        self._workers: set[RayWorker] = set()
+        self._closed = False
+
+    def start(self, args, session) -> RayWorker:
+        args = replace(args, threads=SESSION_THREADS)
+        actor = SessionActor.options(
+            name=actor_name(args.session_id), namespace=NAMESPACE, lifetime="detached",
+            num_cpus=SESSION_CPUS, scheduling_strategy="SPREAD", max_restarts=0,
+        ).remote(args, self.owner)
+        try:
+            identity = ray.get(actor.identity.remote(), timeout=START_TIMEOUT_S)
+        except GetTimeoutError:
+            ray.kill(actor, no_restart=True)
+            raise SessionError("server_full", f"the Ray cluster did not start the session within "
+                               f"{START_TIMEOUT_S:.0f} s (no free CPU for another one?); "
+                               "try again later") from None
+        except RayActorError as exc:
+            raise WorkerLost(_death(exc)) from None
+        return RayWorker(self, actor, args.session_id, identity, session.deliver, session.lost,
+                         owner=True)
+
+    def find(self, session_id: str):
+        """The live session ``session_id`` on the cluster (any front-end's), or None."""
+        from server.sessions.manager import FoundSession
+
+        if not _ID.fullmatch(session_id):
+            return None
+        try:
+            actor = ray.get_actor(actor_name(session_id), namespace=NAMESPACE)
+            identity = ray.get(actor.identity.remote(), timeout=10)
+        except (ValueError, RayActorError, GetTimeoutError):
+            return None
+        if identity["ended"] is not None:
+            return None
+
+        def attach(session) -> RayWorker:
+            return RayWorker(self, actor, session_id, identity, session.deliver, session.lost,
+                             owner=False)
+
+        return FoundSession(identity["token_hash"], identity["created_at"], attach)
+
+    def detach(self) -> None:
+        """The front-end is going away: its sessions live on in the cluster, to be found by the
+        other front-ends or by this one restarted; a stop now only lets go. A local instance
+        ends with this process, so its sessions are stopped and saved as usual."""
+        if not self.local:
+            self.detached = True
+
+    def close(self) -> None:
+        global _RAY_USERS, _RAY_OURS
+        if self._closed:
+            return
+        self._closed = True
+        for worker in list(self._workers):
+            worker.detach_threads()
+        with _RAY_LOCK:
+            _RAY_USERS -= 1
+            if _RAY_USERS <= 0 and _RAY_OURS:
+                ray.shutdown()
+                _RAY_OURS = False

@@ -11,7 +11,6 @@ the part of that grid the frames fused since its last call can have changed.
 
 from __future__ import annotations
 
-import io
 import logging
 import os
 import tempfile
@@ -46,7 +45,9 @@ class TSDFConfig:
     bytes, 80 KiB at 16). trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond
     this is ignored. min_weight: observations a voxel needs before it shows in extracted surfaces.
     carve_free_space: also allocate the blocks a ray crosses before the surface (see module
-    doc)."""
+    doc). carve_every: carve on every n-th integration only (the first included): the space a
+    moving camera sees empty changes slowly, while carving costs ~40 % of an integration
+    (7scenes_a, 2 cm voxels: 46 ms with, 28 without, one thread)."""
 
     voxel_m: float = 0.02
     block_resolution: int = 16
@@ -55,11 +56,14 @@ class TSDFConfig:
     depth_max_m: float = 4.0
     min_weight: float = 3.0
     carve_free_space: bool = True
+    carve_every: int = 3
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
         if not (self.voxel_m > 0 and self.trunc_voxels > 0 and self.depth_max_m > 0):
             raise ConfigError(f"TSDF voxel, truncation and depth range must be positive: {self}")
+        if self.carve_every < 1:
+            raise ConfigError(f"TSDF carve_every must be at least 1: {self}")
         if self.block_resolution < 2 or self.block_count < 1:
             raise ConfigError(f"TSDF block resolution < 2 or block count < 1: {self}")
 
@@ -113,6 +117,9 @@ def _atomic_write(path: str | Path, suffix: str, write) -> None:
         raise
 
 
+_ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB 0..1
+
+
 class TSDFMap:
     """The fused map of one session. All methods may be called from different threads."""
 
@@ -124,7 +131,7 @@ class TSDFMap:
         if grid is None:
             f32 = o3c.float32
             grid = o3d.t.geometry.VoxelBlockGrid(
-                ["tsdf", "weight", "color"], [f32, f32, f32], [[1], [1], [3]],
+                list(_ATTRIBUTES), [f32, f32, f32], [[1], [1], [3]],
                 config.voxel_m, config.block_resolution, config.block_count, self._device,
             )
         self._grid = grid
@@ -138,6 +145,7 @@ class TSDFMap:
         self._occupancy_dirty = self._dirty.copy()
         self._occupancy_cameras = 0  # cameras [0, this) were in an occupancy_update already
         self._sent = np.empty(0, np.int64)  # voxel keys of the points already previewed
+        self._integrations = 0  # frames with depth integrated by this object (for carve_every)
         self._rng = np.random.default_rng(0)
 
     # --- fusion ------------------------------------------------------------------------------
@@ -178,7 +186,9 @@ class TSDFMap:
             blocks = self._grid.compute_unique_block_coordinates(
                 depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels)
             keys = np.unique(_pack(blocks.cpu().numpy()))
-            if cfg.carve_free_space:
+            carve = cfg.carve_free_space and self._integrations % cfg.carve_every == 0
+            self._integrations += 1
+            if carve:
                 keys = np.union1d(keys, self._free_space_keys(depth, K, T))
             if keys.size == 0:
                 return 0
@@ -428,18 +438,29 @@ class TSDFMap:
         _atomic_write(path, ".ply", lambda tmp: o3d.io.write_triangle_mesh(tmp, mesh))  # binary
 
     def save(self, path: str | Path) -> None:
-        """Persist the whole grid (Open3D's .npz plus the camera positions), written atomically."""
-        def write(tmp: str) -> None:  # Open3D's file, then the camera positions added to it
-            with self._lock:
-                self._grid.save(tmp)
-                cameras = np.array(self._cameras).reshape(-1, 3)
-            buf = io.BytesIO()
-            np.save(buf, cameras)
-            with zipfile.ZipFile(tmp, "a") as archive:
-                archive.writestr("camera_positions.npy", buf.getvalue())
+        """Persist the whole grid and the camera positions, written atomically, in the layout of
+        Open3D's ``VoxelBlockGrid.save`` (``load`` reads it with Open3D's own reader). Written
+        here rather than by Open3D: its save gathers the active blocks ~20x slower than numpy
+        does (1.1 s against 0.06 s for a room), under the lock that fusion waits for."""
+        with self._lock:
+            hashmap = self._grid.hashmap()
+            active = hashmap.active_buf_indices().to(o3c.int64).numpy()
+            arrays = {"key": hashmap.key_tensor().numpy()[active]}
+            for i, name in enumerate(_ATTRIBUTES):
+                arrays[f"value_{i:03d}"] = self._grid.attribute(name).numpy()[active]
+                arrays[f"attr_name_{name}"] = np.array([i], np.int32)
+            cameras = np.array(self._cameras).reshape(-1, 3)
+        arrays[self.config.device] = np.array(0, np.uint8)  # Open3D's reader wants the device
+        arrays["block_resolution"] = np.array([self.config.block_resolution], np.int64)
+        arrays["voxel_size"] = np.array([self.config.voxel_m], np.float32)
+        arrays["camera_positions"] = cameras
+
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
 
         _atomic_write(path, ".npz", write)
-        log.info("saved TSDF map (%d blocks) to %s", self._grid.hashmap().size(), path)
+        log.info("saved TSDF map (%d blocks) to %s", len(active), path)
 
     @classmethod
     def load(cls, path: str | Path, config: TSDFConfig | None = None) -> TSDFMap:

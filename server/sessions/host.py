@@ -25,6 +25,7 @@ from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.flight import CommandRefused
+from server.sessions.mapping import MapperClient
 from server.sessions.session import FrameData, FrameRefused, Session, SessionConfig
 from server.sessions.store import SessionStore
 from server.transport import protocol as proto
@@ -56,6 +57,8 @@ def as_remote(exc: BaseException) -> RemoteError:
         return RemoteError("snapshot", "snapshot_failed", str(exc))
     if isinstance(exc, MapError):
         return RemoteError("map", "map_unavailable", str(exc))
+    if isinstance(exc, OSError):  # a disk that refuses a snapshot: the caller keeps its data
+        return RemoteError("os", type(exc).__name__, str(exc))
     return RemoteError("internal", "internal_error", f"{type(exc).__name__}: {exc}")
 
 
@@ -74,19 +77,23 @@ def raise_remote(error: RemoteError) -> None:
         raise SnapshotError(error.message)
     if error.kind == "map":
         raise MapError(error.message)
+    if error.kind == "os":
+        raise OSError(f"{error.code}: {error.message}")
     raise RuntimeError(f"the session's worker failed: {error.message}")
 
 
 def limit_threads(threads: int) -> None:
-    """Size this process's native thread pools (OpenCV, Open3D's TBB, BLAS/OpenMP): sessions
-    in worker processes beside each other must not each assume every core is theirs."""
+    """Size this process's native thread pools: sessions in worker processes beside each other
+    must not each assume every core is theirs. OpenCV and BLAS (the tracker's) get ``threads``;
+    Open3D (the TSDF fusion's) gets one: fusion then runs on the session's mapping thread
+    alone, at that thread's lower priority, and never crowds out tracking."""
     import cv2
     import open3d as o3d
     from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(threads)
-    o3d.utility.set_max_threads(threads)
     threadpool_limits(threads)
+    o3d.utility.set_max_threads(1)
 
 
 @dataclass
@@ -104,12 +111,14 @@ class HostArgs:
 class SessionHost:
     """A live session in its worker: frames in as bytes, updates out through ``publish``."""
 
-    def __init__(self, args: HostArgs, publish: Callable[[object], None]) -> None:
+    def __init__(self, args: HostArgs, publish: Callable[[object], None],
+                 mapper: MapperClient | None = None) -> None:
+        """mapper: the session's mapping process; None maps in a thread of this process."""
         limit_threads(args.threads)
         self.args = args
         self.publish = publish
         self.session = Session(args.session_id, args.token_hash, SessionStore(Path(args.data_dir)),
-                               args.config, created_at=args.created_at)
+                               args.config, created_at=args.created_at, mapper=mapper)
         self._hello: dict | None = None
 
     def describe(self) -> dict:
@@ -173,14 +182,11 @@ class SessionHost:
         """One of DOWNLOADS, as the bytes of its file. Raises MapError when there is no map."""
         if name not in DOWNLOADS:
             raise ValueError(f"unknown download {name!r}")
-        write = {
-            "map.ply": self.session.map.write_point_cloud_ply,
-            "mesh.ply": self.session.map.write_mesh_ply,
-            "trajectory.tum": lambda path: write_tum(path, self.session.trajectory()),
-        }[name]
+        if name != "trajectory.tum":
+            return self.session.mapper.download(name)
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / name
-            write(path)
+            write_tum(path, self.session.trajectory())
             return path.read_bytes()
 
     def snapshot(self) -> None:

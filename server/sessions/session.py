@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import queue
 import threading
 import time
@@ -20,16 +21,27 @@ from server.config import RegistrationConfig
 from server.datasets.base import Trajectory
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
-from server.mapping.preview import MapPreview
-from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
+from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
+from server.sessions.mapping import Mapper, MapperClient, MapperLost
 from server.sessions.store import SessionStore
 from server.simulation.config import SimulationConfig
 
 log = logging.getLogger(__name__)
+
+
+MAPPING_NICE = 10  # added to the mapping thread's nice value
+
+
+def _lower_this_threads_priority(nice: int) -> None:
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(
+            os.PRIO_PROCESS, threading.get_native_id()) + nice)
+    except (OSError, AttributeError):  # not Linux, or not allowed: the same priority, still right
+        pass
 
 
 def hash_token(token: str) -> str:
@@ -130,32 +142,33 @@ class Session:
         store: SessionStore,
         config: SessionConfig | None = None,
         created_at: float | None = None,
-        tsdf: TSDFMap | None = None,
-        trajectory: list | None = None,
-        closed: bool = False,
+        mapper: Mapper | MapperClient | None = None,
     ) -> None:
         self.id = session_id
         self.token_hash = token_hash
         self.store = store
         self.config = config or SessionConfig()
         self.created_at = created_at or time.time()
-        self.closed = closed
+        self.closed = False
         self.client_name = ""
         self.intrinsics: Intrinsics | None = None
         self.tracker: Tracker | None = None
-        self.map = tsdf or TSDFMap(TSDFConfig(voxel_m=self.config.voxel_m))
-        self.preview = MapPreview()
+        # The map, in a process of its own when given one (server/sessions/mapping.py says why).
+        self.mapper = mapper or Mapper(self.config.voxel_m, self.config.preview_points)
+        self._map_stats: dict = {}
+        self._map_closed = False
         self.on_update: Callable[[Update], None] | None = None
         self.flight: Flight | None = None  # the drone, from the first hello on
         self._flight_map_at = -np.inf
         self._fuse_jobs: queue.Queue[_FuseJob | None] = queue.Queue(maxsize=4)
-        self._mapper: threading.Thread | None = None
+        self._mapping_thread: threading.Thread | None = None
         self.fusion_skipped = 0
         self.last_seen = time.monotonic()
-        self._trajectory: list[tuple[float, np.ndarray]] = list(trajectory or [])
+        self._trajectory: list[tuple[float, np.ndarray]] = []
         self._states = {s.value: 0 for s in TrackingState}
         self.received = self.processed = self.dropped = 0
         self.failed_frames = 0  # frames the server failed on (each answered internal_error)
+        self.fusion_failed = 0  # frames the map failed to fuse (each logged)
         self._last_seq = -1
         self._fusions = 0
         self._lock = threading.Lock()  # guards the trajectory and counters
@@ -183,8 +196,7 @@ class Session:
                 "this session was started with another camera; create a new session",
             )
         if self.tracker is None:
-            T_first = self._trajectory[-1][1] if self._trajectory else None
-            self.tracker = Tracker(intrinsics, self.config.registration, T_world_first=T_first)
+            self.tracker = Tracker(intrinsics, self.config.registration)
         if self.flight is None and self.config.simulation is not None:
             self.flight = Flight(
                 self.config.simulation,
@@ -222,9 +234,10 @@ class Session:
             self.flight.start()
         if self._worker is None:
             self._worker = threading.Thread(target=self._run, name=f"track-{self.id}", daemon=True)
-            self._mapper = threading.Thread(target=self._map, name=f"map-{self.id}", daemon=True)
+            self._mapping_thread = threading.Thread(target=self._map, name=f"map-{self.id}",
+                                                    daemon=True)
             self._worker.start()
-            self._mapper.start()
+            self._mapping_thread.start()
 
     def submit(self, frame: FrameData) -> None:
         """Queue a frame; a frame still waiting is dropped in its favour."""
@@ -355,7 +368,9 @@ class Session:
 
     def _map(self) -> None:
         """Fuses frames, and writes the periodic snapshots: here a slow disk delays the map,
-        never a pose."""
+        never a pose. The thread runs at a lower priority than tracking (Linux nice values are
+        per thread): when the cores are short, the map falls behind, not the poses."""
+        _lower_this_threads_priority(MAPPING_NICE)
         K = self.intrinsics
         while True:
             try:
@@ -367,30 +382,34 @@ class Session:
                 return
             self._snapshot_if_due()
             try:
-                self.map.integrate(job.colour, job.depth, K, job.T_world_camera)
-                points, colours = self.preview.new_points(
-                    job.colour, job.depth, K, job.T_world_camera, self.config.preview_points
-                )
+                fused = self.mapper.fuse(job.colour, job.depth, K, job.T_world_camera,
+                                         self._occupancy_request())
+            except MapperLost:
+                return  # the session cannot go on: MapperClient has ended its worker
             except Exception:
                 log.exception("session %s: fusing frame %d failed", self.id, job.seq)
+                with self._lock:
+                    self.fusion_failed += 1
                 continue
             with self._lock:
                 self._dirty = True
-            if len(points):
-                self._publish(MapUpdate(job.seq, points, colours, self.preview.total))
-            self._feed_flight_map()
+                self._fusions += 1
+            if len(fused.points):
+                self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
+            if fused.occupancy is not None and self.flight is not None:
+                self.flight.map_region_changed(*fused.occupancy)
 
-    def _feed_flight_map(self) -> None:
-        """Hand the drone the map's changes, at most every flight_map_interval_s: a fused
+    def _occupancy_request(self) -> tuple[float, np.ndarray] | None:
+        """Ask the mapper for the drone's occupancy at most every flight_map_interval_s: a fused
         frame's changes span most of the room (its carved free space reaches the far walls),
         so feeding every frame would cost more than this, measured in
         benchmarks/flight_map_update.py."""
         if self.flight is None or (
             time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s
         ):
-            return
+            return None
         self._flight_map_at = time.monotonic()
-        self.flight.feed_from_map(self.map)
+        return self.flight.config.voxel_m, self.flight.R_flight_world
 
     # ------------------------------------------------------------------ results
     def trajectory(self) -> Trajectory:
@@ -400,6 +419,9 @@ class Session:
         return Trajectory(stamps, poses)
 
     def status(self) -> dict:
+        if not self._map_closed:  # after stop, the map's last figures (its process has ended)
+            self._map_stats = self.mapper.stats()
+        map_stats = self._map_stats
         with self._lock:
             return {
                 "id": self.id,
@@ -413,7 +435,8 @@ class Session:
                 "fusion_skipped": self.fusion_skipped,
                 "tracking_states": dict(self._states),
                 "trajectory_poses": len(self._trajectory),
-                "map": self.map.stats(),
+                "map": map_stats,
+                "fusion_failed": self.fusion_failed,
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
                 "drone": None if self.flight is None else self.flight.summary(),
                 "snapshot_error": self.snapshot_error,
@@ -431,15 +454,7 @@ class Session:
         try:
             staging = self.store.staging(self.id)
             write_tum(staging / "trajectory.tum", self.trajectory())
-            names = ["trajectory.tum"]
-            if self.map.stats()["frames_integrated"] > 0:
-                self.map.save(staging / "map.npz")
-                names.append("map.npz")
-                try:
-                    self.map.write_point_cloud_ply(staging / "map.ply")
-                    names.append("map.ply")
-                except MapError:  # too few observations for a surface yet
-                    log.info("session %s: no map surface to write yet", self.id)
+            names = ["trajectory.tum", *self.mapper.save(str(staging))]
             self.snapshot_error = None
             self.store.commit(self.id, names, self.meta())
         except (OSError, MapError) as exc:  # MapError: Open3D refused to write
@@ -470,7 +485,10 @@ class Session:
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._fuse_jobs.put(None)  # after every queued fusion
-            self._mapper.join(timeout=60)
+            self._mapping_thread.join(timeout=60)
         self.closed = True
         if save:
-            self.snapshot()
+            self.snapshot()  # raises SnapshotError: the map stays, for the next try
+        self._map_stats = self.mapper.stats()
+        self._map_closed = True
+        self.mapper.close()

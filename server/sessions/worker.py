@@ -17,6 +17,7 @@ snapshot) run beside it so that they never hold up a frame.
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import logging
 import multiprocessing
@@ -24,6 +25,7 @@ import os
 import queue
 import signal
 import threading
+import weakref
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -34,7 +36,7 @@ from server.sessions.errors import SessionError
 log = logging.getLogger(__name__)
 
 _INLINE = {"configure", "frame", "command", "drain", "stop"}  # in order, on the main thread
-_PRELOAD = ["server.sessions.host"]  # imported once in the forkserver, shared by every worker
+_PRELOAD = ["server.sessions.host", "server.sessions.mapping"]  # imported once in the forkserver, shared by every worker
 
 
 class WorkerLost(SessionError):
@@ -47,14 +49,19 @@ class WorkerLost(SessionError):
 # ---- the worker's side ------------------------------------------------------------------------
 
 
-def _worker_main(conn, args) -> None:
-    """Entry point of a worker process: host the session and serve the pipe until told to stop
-    or until the web process goes away."""
+EXIT_MAPPER_LOST = 70  # a worker whose mapping process died ends with this
+
+
+def _worker_main(conn, args, mapper_conn) -> None:
+    """Entry point of a worker process: host the session (its map in the mapping process at
+    the other end of ``mapper_conn``) and serve the pipe until told to stop or until the web
+    process goes away."""
     # A Ctrl-C or SIGTERM meant for the server reaches the whole process group; the web process
     # then stops each session with a final save, which must find its worker alive.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from server.sessions.host import SessionHost, as_remote
+    from server.sessions.mapping import MapperClient
 
     # Everything the worker says goes through one queue and one thread, in order: a reply (to
     # a drain, say) never overtakes the poses published before it.
@@ -70,7 +77,8 @@ def _worker_main(conn, args) -> None:
     sender = threading.Thread(target=forward, name="outgoing", daemon=True)
     sender.start()
     try:
-        host = SessionHost(args, lambda item: outgoing.put(("update", item)))
+        mapper = MapperClient(mapper_conn, on_lost=lambda: os._exit(EXIT_MAPPER_LOST))
+        host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper)
     except Exception as exc:
         outgoing.put(("reply", 0, False, as_remote(exc)))
         outgoing.put(None)
@@ -125,10 +133,18 @@ class ProcessWorker:
     def __init__(self, args, on_update: Callable[[object], None],
                  on_lost: Callable[[str], None], start_timeout_s: float = 60.0,
                  max_waiting_frames: int = 4) -> None:
+        from server.sessions.mapping import mapper_main
+
         ctx = _context()
         self._conn, child = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=_worker_main, args=(child, args), daemon=True,
-                                   name=f"session-{args.session_id}")
+        to_mapper, mapper_end = ctx.Pipe(duplex=True)
+        # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
+        # call, which in one process would stall tracking (server/sessions/mapping.py).
+        self.mapper_process = ctx.Process(
+            target=mapper_main, daemon=True, name=f"session-{args.session_id}-map",
+            args=(mapper_end, args.config.voxel_m, args.config.preview_points, 1))
+        self.process = ctx.Process(target=_worker_main, args=(child, args, to_mapper),
+                                   daemon=True, name=f"session-{args.session_id}")
         self.on_update, self.on_lost = on_update, on_lost
         started: Future = Future()
         self._calls: dict[int, Future] = {0: started}  # 0: the host's start-up
@@ -141,8 +157,11 @@ class ProcessWorker:
         self.max_waiting_frames = max_waiting_frames
         self.dropped = 0  # frames dropped here, before the worker saw them
         self._wake = threading.Condition(self._lock)
+        self.mapper_process.start()
         self.process.start()
-        child.close()
+        _RUNNING.add(self)
+        for end in (child, to_mapper, mapper_end):  # theirs now
+            end.close()
         self._reader = threading.Thread(target=self._read, name=f"worker-{args.session_id}",
                                         daemon=True)
         self._reader.start()
@@ -249,6 +268,8 @@ class ProcessWorker:
                 future.set_result((ok, value))
         self.process.join(timeout=5)
         code = self.process.exitcode
+        if not self._stopped:
+            self._end_mapper()
         reason = ("the session's worker process ended" if code in (0, None) and self._stopped
                   else f"the session's worker process died ({_describe_exit(code)})")
         with self._wake:
@@ -278,6 +299,7 @@ class ProcessWorker:
                 self._stopped = False
             raise
         self.process.join(timeout=10)
+        self._end_mapper()
         return meta
 
     def kill(self) -> None:
@@ -286,6 +308,14 @@ class ProcessWorker:
         if self.process.is_alive():
             self.process.kill()
         self.process.join(timeout=10)
+        self._end_mapper()
+
+    def _end_mapper(self) -> None:
+        """The mapping process ends when its worker closes the pipe; make sure of it."""
+        self.mapper_process.join(timeout=10)
+        if self.mapper_process.is_alive():
+            self.mapper_process.kill()
+            self.mapper_process.join(timeout=10)
 
 
 def _ignore(*_) -> None:
@@ -295,6 +325,8 @@ def _ignore(*_) -> None:
 def _describe_exit(code: int | None) -> str:
     if code is None:
         return "still running, not answering"
+    if code == EXIT_MAPPER_LOST:
+        return "its mapping process died"
     if code < 0:
         try:
             return f"killed by {signal.Signals(-code).name}"
@@ -305,6 +337,19 @@ def _describe_exit(code: int | None) -> str:
 
 _CONTEXT = None
 _CONTEXT_LOCK = threading.Lock()
+_RUNNING: weakref.WeakSet[ProcessWorker] = weakref.WeakSet()
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    """Workers ignore SIGTERM (see _worker_main), so multiprocessing's own exit handler, which
+    terminates daemon children with it and then joins them, would wait forever for any still
+    running: a server stops its sessions before it exits, so these are leftovers; kill them.
+    (Registered after multiprocessing's handler, so it runs before it.)"""
+    for worker in list(_RUNNING):
+        for process in (worker.process, worker.mapper_process):
+            if process.is_alive():
+                process.kill()
 
 
 def _context():

@@ -1,0 +1,183 @@
+"""A session's map: TSDF fusion, the map preview and the drone's occupancy grid, in a process of
+its own beside the session's tracking (or, for a session hosted elsewhere, in the calling thread).
+
+Why a process: Open3D's ``VoxelBlockGrid.integrate`` holds the GIL for the whole call (30-50 ms
+for a 640x480 frame), so in a thread beside tracking every fusion stalls the tracker. Measured
+on 7scenes_a at 15 fps with a fusion every 200 ms (one thread each, /tmp-free script in the
+issue 12 notes of benchmarks/README.md): tracking p95 25 ms alone, 64 ms beside fusion in a
+thread, 26 ms beside fusion in another process.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from server.geometry import Intrinsics
+from server.mapping.preview import MapPreview
+from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
+from server.sessions.errors import SessionError
+
+log = logging.getLogger(__name__)
+
+MAP_FILES = ("map.npz", "map.ply")  # what a snapshot of the map writes
+
+
+@dataclass
+class Fused:
+    """What one fused frame gave: new preview points (world metres, RGB) and, when asked for,
+    the drone's occupancy for the region changed since the last time (``TSDFMap.
+    occupancy_update``: origin, occupied, observed in the flight frame), or None."""
+
+    points: np.ndarray
+    colours: np.ndarray
+    total_points: int
+    occupancy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+
+
+class Mapper:
+    """The map of one session, used by one caller at a time (the session's mapping thread; the
+    status and downloads come from other threads, hence the lock)."""
+
+    def __init__(self, voxel_m: float, preview_points: int) -> None:
+        self.map = TSDFMap(TSDFConfig(voxel_m=voxel_m))
+        self.preview = MapPreview()
+        self.preview_points = preview_points
+        self._lock = threading.Lock()
+
+    def fuse(self, colour: np.ndarray, depth: np.ndarray, K: Intrinsics, T_world_camera:
+             np.ndarray, occupancy: tuple[float, np.ndarray] | None = None) -> Fused:
+        """Integrate a frame (colour RGB uint8, depth metres at K's size, T_world_camera 4x4);
+        ``occupancy``: (cell edge in metres, R_flight_world) to also return the drone's grid
+        for what changed, or None."""
+        with self._lock:
+            self.map.integrate(colour, depth, K, T_world_camera)
+            points, colours = self.preview.new_points(colour, depth, K, T_world_camera,
+                                                      self.preview_points)
+            grid = None
+            if occupancy is not None:
+                grid = self.map.occupancy_update(*occupancy)
+            return Fused(points, colours, self.preview.total, grid)
+
+    def stats(self) -> dict:
+        return self.map.stats()
+
+    def save(self, folder: str) -> list[str]:
+        """Write the map's snapshot files into ``folder`` (map.npz, and map.ply once there is a
+        surface); returns the names written."""
+        if self.map.stats()["frames_integrated"] == 0:
+            return []
+        folder = Path(folder)
+        with self._lock:
+            self.map.save(folder / "map.npz")
+            try:
+                self.map.write_point_cloud_ply(folder / "map.ply")
+            except MapError:  # too few observations for a surface yet
+                return ["map.npz"]
+        return list(MAP_FILES)
+
+    def download(self, name: str) -> bytes:
+        """``map.ply`` (surface points) or ``mesh.ply``, as the bytes of the file."""
+        write = {"map.ply": self.map.write_point_cloud_ply,
+                 "mesh.ply": self.map.write_mesh_ply}[name]
+        with tempfile.TemporaryDirectory() as tmp, self._lock:
+            path = Path(tmp) / name
+            write(path)
+            return path.read_bytes()
+
+    def close(self) -> None:
+        pass
+
+
+# ---- the same, in a process of its own ---------------------------------------------------------
+
+
+class MapperLost(SessionError):
+    """The session's mapping process is gone: the session cannot go on."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("session_failed", message)
+
+
+def mapper_main(conn, voxel_m: float, preview_points: int, threads: int) -> None:
+    """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
+    closes (its session stopped, or died)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session's worker decides when it ends
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    import open3d as o3d
+
+    o3d.utility.set_max_threads(threads)
+    os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + MAPPING_NICE)
+    from server.sessions.host import as_remote
+
+    mapper = Mapper(voxel_m, preview_points)
+    while True:
+        try:
+            method, args = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            reply = (True, getattr(mapper, method)(*args))
+        except Exception as exc:
+            if not isinstance(exc, MapError):
+                log.exception("mapping: %s failed", method)
+            reply = (False, as_remote(exc))
+        try:
+            conn.send(reply)
+        except (OSError, ValueError):
+            return
+
+
+MAPPING_NICE = 10  # the map yields to tracking when the cores are short
+
+
+class MapperClient:
+    """A ``Mapper`` in another process, reached over ``conn`` (one call at a time).
+    ``on_lost`` is called (once per failed call) when that process is gone, before MapperLost
+    is raised: a session without its map cannot go on, and its worker decides what ends."""
+
+    def __init__(self, conn, on_lost=None) -> None:
+        self._conn = conn
+        self._lock = threading.Lock()
+        self._on_lost = on_lost
+        self._closed = False
+
+    def _call(self, method: str, *args):
+        from server.sessions.host import raise_remote
+
+        with self._lock:
+            try:
+                self._conn.send((method, args))
+                ok, value = self._conn.recv()
+            except (EOFError, OSError, ValueError) as exc:
+                if self._on_lost is not None and not self._closed:
+                    self._on_lost()
+                raise MapperLost(f"the session's mapping process is gone ({exc})") from None
+        if not ok:
+            raise_remote(value)
+        return value
+
+    def fuse(self, colour, depth, K, T_world_camera, occupancy=None) -> Fused:
+        return self._call("fuse", colour, depth, K, T_world_camera, occupancy)
+
+    def stats(self) -> dict:
+        return self._call("stats")
+
+    def save(self, folder: str) -> list[str]:
+        return self._call("save", str(folder))
+
+    def download(self, name: str) -> bytes:
+        return self._call("download", name)
+
+    def close(self) -> None:
+        """Let the mapping process end (it exits when its pipe closes)."""
+        with self._lock:
+            self._closed = True
+            self._conn.close()

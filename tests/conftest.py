@@ -31,6 +31,15 @@ def session_status(url: str, sid: str, token: str) -> dict:
     return httpx.get(f"{url}/api/sessions/{sid}", headers=auth(token)).json()
 
 
+def process_running(pid: int) -> bool:
+    """A process that exists and is not a zombie waiting to be reaped."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 def offline_track(ds, n: int) -> np.ndarray:
     """Poses from the tracker run in-process on the first n frames as the wire carries them."""
     from server.registration import Tracker

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import missing, session_status
+from conftest import missing, process_running, session_status
 
 from server.client.replay import replay
 from server.client.server_process import ServerProcess
@@ -49,19 +49,10 @@ def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_dat
         assert time.monotonic() < deadline, "the session was not closed after its TTL"
         time.sleep(0.1)
     deadline = time.monotonic() + 5  # the reaper thread returns after the close
-    while (session() is not None or _running(pid)) and time.monotonic() < deadline:
+    while (session() is not None or process_running(pid)) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert not _running(pid), "the closed session's worker process is still there"
+    assert not process_running(pid), "the closed session's worker process is still there"
     assert session() is None, "a closed session stays in memory until Python's next full GC"
-
-
-def _running(pid: int) -> bool:
-    """A process that exists and is not a zombie waiting to be reaped."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def test_serve_runs_on_jemalloc_when_installed_and_on_glibc_when_told(tmp_path):

@@ -10,6 +10,7 @@ this process, sharing its Ray driver connection (as separate processes they woul
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import shutil
 import tempfile
@@ -58,6 +59,7 @@ def cluster(tmp_path_factory):
                  log_to_driver=False)
         yield cluster
     finally:
+        gc.collect()  # actor handles of stopped front-ends let go while Ray is still up
         ray.shutdown()
         cluster.shutdown()
         if saved is None:

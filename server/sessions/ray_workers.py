@@ -229,8 +229,11 @@ class RayWorker:
         self._stopped = False  # this front-end stopped or killed it: its end is expected
         self._ended_elsewhere = False
         self._closing = False
-        for target, name in ((self._send_loop, "ray-out"), (self._poll_loop, "ray-poll")):
-            threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True).start()
+        self._threads = [threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True)
+                         for target, name in ((self._send_loop, "ray-out"),
+                                              (self._poll_loop, "ray-poll"))]
+        for thread in self._threads:
+            thread.start()
         backend._workers.add(self)
 
     @property
@@ -432,6 +435,13 @@ class RayWorker:
         with self._cond:
             self._cond.notify_all()
 
+    def join_threads(self, timeout_s: float) -> None:
+        """Wait for the send and poll threads to end: a thread that touches Ray after
+        ``ray.shutdown`` makes Ray's core worker end the whole process."""
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+
 
 def _ignore(*_) -> None:
     pass
@@ -543,8 +553,11 @@ class RayWorkers:
         if self._closed:
             return
         self._closed = True
-        for worker in list(self._workers):
+        workers = list(self._workers)
+        for worker in workers:
             worker.detach_threads()
+        for worker in workers:
+            worker.join_threads(POLL_S + 5)
         with _RAY_LOCK:
             _RAY_USERS -= 1
             if _RAY_USERS <= 0 and _RAY_OURS:

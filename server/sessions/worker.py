@@ -36,7 +36,8 @@ from server.sessions.errors import SessionError
 log = logging.getLogger(__name__)
 
 _INLINE = {"configure", "frame", "command", "drain", "stop"}  # in order, on the main thread
-_PRELOAD = ["server.sessions.host", "server.sessions.mapping"]  # imported once in the forkserver, shared by every worker
+# Imported once in the forkserver, shared by every worker and mapper it forks.
+_PRELOAD = ["server.sessions.host", "server.sessions.mapping"]
 
 
 class WorkerLost(SessionError):
@@ -119,14 +120,14 @@ def _worker_main(conn, args, mapper_conn) -> None:
 
 
 class ProcessWorker:
-    """The web process's handle on one worker process.
+    """The web process's handle on one session's worker process (and its mapper process).
 
     ``call`` blocks until the worker answers (run it off the event loop); ``post`` only queues:
     a writer thread sends, so a worker busy with a command never blocks the caller. Frames
     waiting beyond ``max_waiting_frames`` (a stalled worker) are dropped, oldest first, and
-    counted in ``dropped``. Updates arrive on a reader thread and go to ``on_update``; when the process ends without
-    having been stopped, every waiting call fails with WorkerLost and ``on_lost`` is called once
-    with the reason."""
+    counted in ``dropped``. Updates arrive on a reader thread and go to ``on_update``; when the
+    process ends without having been stopped, every waiting call fails with WorkerLost and
+    ``on_lost`` is called once with the reason."""
 
     kind = "process"
 
@@ -178,7 +179,7 @@ class ProcessWorker:
         return self._lost is None and self.process.is_alive()
 
     def describe(self) -> dict:
-        return {"kind": self.kind, **self.info}
+        return {"kind": self.kind, **self.info, "mapper_pid": self.mapper_process.pid}
 
     # ------------------------------------------------------------------ calls
     def post(self, method: str, *args) -> None:

@@ -6,7 +6,8 @@ that finished sessions are closed and saved during the run), then runs ``--sessi
 for ``--minutes``. Each client streams a session of ``--session-minutes`` at ``--fps`` (the
 sequence played forward and backward, pre-encoded, frames dropped on the phone while two await
 answers; ``server/client/replay.py``), downloads its map and trajectory, checks them against
-its status, and starts the next session. The server's RSS is read from /proc every few seconds.
+its status, and starts the next session. The server's memory is read from /proc every few
+seconds: the PSS summed over its whole process tree (each live session is two processes).
 At the end the server is stopped with SIGTERM, started again on the same folder, and every
 session's map and trajectory are downloaded once more and compared with what the client got.
 
@@ -40,6 +41,7 @@ sys.path.insert(0, str(REPO))  # run from anywhere, installed or not
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
+from capacity import memory_mb, scan_tree  # noqa: E402  (this folder: the process-tree readers)
 
 from server.client.loadtest import ping_pong_index  # noqa: E402
 from server.client.replay import replay  # noqa: E402
@@ -73,6 +75,11 @@ class PingPong(RGBDDataset):
 # ---- the server ---------------------------------------------------------------------------------
 
 
+def tree_memory_mb(pid: int) -> float:
+    """PSS of the server and every process under it (workers, mappers, the forkserver), MB."""
+    return sum(memory_mb(p) for p in scan_tree(pid))
+
+
 class RSSSampler(threading.Thread):
     def __init__(self, server: ServerProcess, every_s: float) -> None:
         super().__init__(daemon=True)
@@ -85,7 +92,8 @@ class RSSSampler(threading.Thread):
         while True:
             try:
                 live = self.server.health()["live_sessions"]
-                self.samples.append((time.monotonic() - self.t0, self.server.rss_mb(), live))
+                self.samples.append((time.monotonic() - self.t0, tree_memory_mb(self.server.pid),
+                                     live))
             except (OSError, ValueError):  # a slow or restarting server: skip the sample
                 pass
             if self._done.wait(self.every_s):
@@ -223,9 +231,9 @@ def write_plot(samples, records: list[SessionRecord], args, path: Path) -> None:
 
     t = np.array([s[0] for s in samples]) / 60.0
     fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, [s[1] for s in samples], color="tab:blue", label="server RSS")
+    ax.plot(t, [s[1] for s in samples], color="tab:blue", label="server memory (tree PSS)")
     ax.set_xlabel("minutes")
-    ax.set_ylabel("RSS (MB)", color="tab:blue")
+    ax.set_ylabel("memory (MB)", color="tab:blue")
     ax.set_ylim(bottom=0)
     twin = ax.twinx()
     twin.step(t, [s[2] for s in samples], where="post", color="tab:grey", alpha=0.6,

@@ -20,15 +20,13 @@ import numpy as np
 import open3d as o3d
 import pytest
 import websockets
-from conftest import auth, offline_track, session_status
+from conftest import Stream, auth, offline_track, session_status
 
 from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
 from server.transport import protocol as P
-
-UNASKED = {"map_chunk", "drone_state", "drone_event"}
 
 
 @pytest.fixture
@@ -49,57 +47,6 @@ def server_process(tmp_path):
 @pytest.fixture(scope="module")
 def room(shared_data):
     return open_dataset(shared_data / "synthetic_room0")
-
-
-class Stream:
-    """One WebSocket of a session: hello, then frames one at a time (each waits for its pose)."""
-
-    def __init__(self, ws_url: str, sid: str, token: str, dataset) -> None:
-        self.url = f"{ws_url}/ws/sessions/{sid}?token={token}"
-        self.dataset = dataset
-        self.poses: list[dict] = []
-        self.map_points = 0  # total_points of the last map chunk
-        self.ws = None
-
-    async def open(self) -> None:
-        """Connect and say hello (a socket of ours that the server still holds is taken over)."""
-        K = self.dataset.intrinsics
-        self.ws = await websockets.connect(self.url, max_size=None)
-        await self.ws.send(P.encode(P.make_hello("faults", (K.fx, K.fy, K.cx, K.cy),
-                                                 (K.width, K.height))))
-        welcome = await self._answer()
-        assert welcome["type"] == "welcome", welcome
-
-    async def _answer(self) -> dict:
-        while True:
-            msg = P.decode(await asyncio.wait_for(self.ws.recv(), 60))
-            if msg["type"] == "map_chunk":
-                self.map_points = msg["total_points"]
-            if msg["type"] not in UNASKED:
-                return msg
-
-    async def send(self, seq: int, colour=None, depth=None, index: int | None = None) -> dict:
-        """Frame ``index`` (default: seq) of the dataset, or the given images, as ``seq`` -> its
-        pose."""
-        f = self.dataset[(seq if index is None else index) % len(self.dataset)]
-        colour = f.colour if colour is None else colour
-        depth = f.depth if depth is None else depth
-        await self.ws.send(P.encode(P.make_frame(seq, f.timestamp, colour, depth)))
-        pose = await self._answer()
-        assert pose["type"] == "pose" and pose["seq"] == seq, pose
-        self.poses.append(pose)
-        return pose
-
-    async def send_range(self, seqs) -> None:
-        for seq in seqs:
-            await self.send(seq)
-
-    def abort(self) -> None:
-        """Drop the connection like a phone leaving the Wi-Fi: no close frame, no bye."""
-        self.ws.transport.abort()
-
-    def matrices(self) -> np.ndarray:
-        return np.array([P.pose_matrix(p) for p in self.poses])
 
 
 def assert_session_files_whole(folder: Path) -> dict:
@@ -171,9 +118,9 @@ def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room
         await stream.open()
         await stream.send_range(range(25))
         terminated = asyncio.create_task(asyncio.to_thread(server.signal, signal.SIGTERM))
-        error = await stream._answer()  # the server says why before it closes
+        error = await stream.answer()  # the server says why before it closes
         with pytest.raises(websockets.ConnectionClosed) as closed:
-            await stream._answer()
+            await stream.answer()
         return await terminated, error, closed.value.rcvd.code
 
     code, error, close_code = asyncio.run(stream_then_terminate())
@@ -218,9 +165,9 @@ def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(
         pid = session_status(server.url, sid, token)["worker"]["pid"]
         assert pid != session_status(server.url, other_sid, other_token)["worker"]["pid"]
         os.kill(pid, signal.SIGKILL)
-        error = await stream._answer()
+        error = await stream.answer()
         with pytest.raises(websockets.ConnectionClosed) as closed:
-            await stream._answer()
+            await stream.answer()
         await neighbour.send_range(range(5, 10))  # the other session never noticed
         return error, closed.value.rcvd.code
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import LiveServer, auth, missing, session_status
+from conftest import LiveServer, Stream, auth, missing, session_status
 
 # Ray's processes then use 127.0.0.1 for their node address and sockets (see NOTES-ray.md);
 # read when Ray's constants are imported, so before the first ``import ray``.
@@ -31,12 +31,10 @@ try:
 except ImportError:
     missing("ray is not installed (pip install -e '.[ray]'; it is in [dev])")
 
-import websockets  # noqa: E402
 
 from server.datasets import open_dataset  # noqa: E402
 from server.transport import protocol as P  # noqa: E402
 
-UNASKED = {"map_chunk", "drone_state", "drone_event"}
 NAMESPACE = "dronesim"
 
 
@@ -72,45 +70,6 @@ def cluster(tmp_path_factory):
 @pytest.fixture(scope="module")
 def room(shared_data):
     return open_dataset(shared_data / "synthetic_room0")
-
-
-class Stream:
-    """One WebSocket of a session: hello, then frames one at a time (each waits for its pose)."""
-
-    def __init__(self, server: LiveServer, sid: str, token: str, dataset) -> None:
-        self.url = f"{server.ws_url}/ws/sessions/{sid}?token={token}"
-        self.dataset = dataset
-        self.poses: list[dict] = []
-        self.ws = None
-        self.seq = 0
-
-    async def open(self) -> Stream:
-        K = self.dataset.intrinsics
-        self.ws = await websockets.connect(self.url, max_size=None)
-        await self.ws.send(P.encode(P.make_hello("ray", (K.fx, K.fy, K.cx, K.cy),
-                                                 (K.width, K.height))))
-        welcome = await self.answer()
-        assert welcome["type"] == "welcome", welcome
-        return self
-
-    async def answer(self) -> dict:
-        while True:
-            msg = P.decode(await asyncio.wait_for(self.ws.recv(), 60))
-            if msg["type"] not in UNASKED:
-                return msg
-
-    async def send(self, n: int, first_index: int = 0) -> None:
-        """n frames (dataset frames from ``first_index``), each answered by its pose."""
-        for i in range(n):
-            f = self.dataset[(first_index + i) % len(self.dataset)]
-            await self.ws.send(P.encode(P.make_frame(self.seq, f.timestamp, f.colour, f.depth)))
-            pose = await self.answer()
-            assert pose["type"] == "pose" and pose["seq"] == self.seq, pose
-            self.poses.append(pose)
-            self.seq += 1
-
-    async def close(self) -> None:
-        await self.ws.close()
 
 
 def _actor_alive(sid: str) -> bool:
@@ -194,9 +153,9 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         assert all(w["node_ip"].startswith("127.") for w in workers), workers
 
         async def first_poses():
-            a = await Stream(front1, s1, t1, room).open()
-            b = await Stream(front1, s2, t2, room).open()
-            await asyncio.gather(a.send(6), b.send(6))
+            a = await Stream(front1.ws_url, s1, t1, room).open()
+            b = await Stream(front1.ws_url, s2, t2, room).open()
+            await asyncio.gather(a.send_range(range(6)), b.send_range(range(6)))
             return a, b
 
         a1, b1 = asyncio.run(first_poses())
@@ -216,19 +175,12 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
             == 404
 
         async def take_over():
-            a1.ws = await websockets.connect(a1.url, max_size=None)  # the phone, still on front1
-            await a1.ws.send(P.encode(P.make_hello("ray", (room.intrinsics.fx, room.intrinsics.fy,
-                                                           room.intrinsics.cx,
-                                                           room.intrinsics.cy),
-                                                   (room.intrinsics.width,
-                                                    room.intrinsics.height))))
-            assert (await a1.answer())["type"] == "welcome"
-            a1.seq = 0
-            await a1.send(2, first_index=6)
-            a2 = await Stream(front2, s1, t1, room).open()
+            await a1.open()  # the phone, still on front1: a new socket, a hello
+            await a1.send_range(range(2), first_index=6)  # a new socket numbers from 0
+            a2 = await Stream(front2.ws_url, s1, t1, room).open()
             ended = await a1.answer()  # front1's socket: taken over
             assert ended["type"] == "error" and ended["name"] == "session_taken_over", ended
-            await a2.send(4, first_index=8)
+            await a2.send_range(range(4), first_index=8)
             await a1.ws.close()
             return a2
 
@@ -247,10 +199,10 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         assert status["frames_processed"] >= 6
 
         async def stream_on():
-            b3 = await Stream(front3, s2, t2, room).open()
-            await b3.send(4, first_index=6)
-            a3 = await Stream(front3, s1, t1, room).open()
-            await a3.send(3, first_index=12)
+            b3 = await Stream(front3.ws_url, s2, t2, room).open()
+            await b3.send_range(range(4), first_index=6)
+            a3 = await Stream(front3.ws_url, s1, t1, room).open()
+            await a3.send_range(range(3), first_index=12)
             await asyncio.gather(b3.close(), a3.close())
             return a3, b3
 

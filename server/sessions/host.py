@@ -85,8 +85,8 @@ def raise_remote(error: RemoteError) -> None:
 def limit_threads(threads: int) -> None:
     """Size this process's native thread pools: sessions in worker processes beside each other
     must not each assume every core is theirs. OpenCV and BLAS (the tracker's) get ``threads``;
-    Open3D (the TSDF fusion's) gets one: fusion then runs on the session's mapping thread
-    alone, at that thread's lower priority, and never crowds out tracking."""
+    Open3D (the TSDF fusion's) gets one: fusion then runs alone on the mapper's thread, at its
+    lower priority, and never crowds out tracking."""
     import cv2
     import open3d as o3d
     from threadpoolctl import threadpool_limits
@@ -154,9 +154,7 @@ class SessionHost:
             frame = FrameData(seq, message["timestamp"], colour, depth, received_at=received_at,
                               decode_ms=(time.perf_counter() - t0) * 1e3)
             self.session.submit(frame)
-        except proto.ProtocolError as exc:
-            self.publish(FrameRefused(seq, exc.code, str(exc)))
-        except SessionError as exc:
+        except (proto.ProtocolError, SessionError) as exc:
             self.publish(FrameRefused(seq, exc.code, str(exc)))
         except Exception as exc:  # a bug on one frame: the client hears internal_error
             log.exception("session %s: frame %s failed to decode", self.session.id, seq)

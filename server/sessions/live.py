@@ -39,7 +39,7 @@ class SessionTakenOver:
 
 class LiveSession:
     """One live session in the web process. ``worker`` offers ``call``, ``post``, ``stop``,
-    ``kill``, ``describe`` and ``alive`` (``server.sessions.worker.ProcessWorker``, or the Ray
+    ``kill``, ``describe`` and ``dropped`` (``server.sessions.worker.ProcessWorker``, or the Ray
     actor's handle); ``on_lost`` is told when the worker dies on its own."""
 
     def __init__(self, session_id: str, token_hash: str, created_at: float,
@@ -49,7 +49,6 @@ class LiveSession:
         self.token_hash = token_hash
         self.created_at = created_at
         self.closed = False
-        self.failed: str | None = None  # why the worker died, if it did
         self.final_meta: dict | None = None  # as saved by the worker's final snapshot
         self._stopping = False
         self._stopped = threading.Event()
@@ -92,7 +91,6 @@ class LiveSession:
 
     def lost(self, reason: str) -> None:
         """The worker died on its own: the client is told; the manager saves what is on disk."""
-        self.failed = reason
         self.closed = True
         self.deliver(SessionFailed(reason))
         if self._on_lost is not None:
@@ -160,9 +158,6 @@ class LiveSession:
         """Raises WorkerLost when the worker ended meanwhile (``final_meta`` then says whether
         the session was saved: its files are on disk)."""
         return self.worker.call("download", name, timeout_s=300)
-
-    def meta(self) -> dict:
-        return self.worker.call("meta")
 
     # ------------------------------------------------------------------ the end
     def stop(self, save: bool = True) -> dict | None:

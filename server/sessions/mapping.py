@@ -3,9 +3,9 @@ its own beside the session's tracking (or, for a session hosted elsewhere, in th
 
 Why a process: Open3D's ``VoxelBlockGrid.integrate`` holds the GIL for the whole call (30-50 ms
 for a 640x480 frame), so in a thread beside tracking every fusion stalls the tracker. Measured
-on 7scenes_a at 15 fps with a fusion every 200 ms (one thread each, /tmp-free script in the
-issue 12 notes of benchmarks/README.md): tracking p95 25 ms alone, 64 ms beside fusion in a
-thread, 26 ms beside fusion in another process.
+on 7scenes_a at 15 fps with a fusion every 200 ms (one thread each; benchmarks/README.md,
+"Server latency"): tracking p95 25 ms alone, 64 ms beside fusion in a thread, 26 ms beside
+fusion in another process.
 """
 
 from __future__ import annotations
@@ -28,6 +28,17 @@ from server.sessions.errors import SessionError
 log = logging.getLogger(__name__)
 
 MAP_FILES = ("map.npz", "map.ply")  # what a snapshot of the map writes
+MAPPING_NICE = 10  # added to the map's nice value: it yields to tracking when cores are short
+
+
+def lower_this_threads_priority(nice: int) -> None:
+    """Raise the calling thread's nice value by ``nice`` (Linux nice values are per thread; a
+    new process's first thread speaks for the process)."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+    except (OSError, AttributeError):  # not Linux, or not allowed: the same priority, still right
+        pass
 
 
 @dataclass
@@ -114,7 +125,7 @@ def mapper_main(conn, voxel_m: float, preview_points: int, threads: int) -> None
     import open3d as o3d
 
     o3d.utility.set_max_threads(threads)
-    os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + MAPPING_NICE)
+    lower_this_threads_priority(MAPPING_NICE)
     from server.sessions.host import as_remote
 
     mapper = Mapper(voxel_m, preview_points)
@@ -133,9 +144,6 @@ def mapper_main(conn, voxel_m: float, preview_points: int, threads: int) -> None
             conn.send(reply)
         except (OSError, ValueError):
             return
-
-
-MAPPING_NICE = 10  # the map yields to tracking when the cores are short
 
 
 class MapperClient:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import queue
 import threading
 import time
@@ -26,22 +25,17 @@ from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
-from server.sessions.mapping import Mapper, MapperClient, MapperLost
+from server.sessions.mapping import (
+    MAPPING_NICE,
+    Mapper,
+    MapperClient,
+    MapperLost,
+    lower_this_threads_priority,
+)
 from server.sessions.store import SessionStore
 from server.simulation.config import SimulationConfig
 
 log = logging.getLogger(__name__)
-
-
-MAPPING_NICE = 10  # added to the mapping thread's nice value
-
-
-def _lower_this_threads_priority(nice: int) -> None:
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(
-            os.PRIO_PROCESS, threading.get_native_id()) + nice)
-    except (OSError, AttributeError):  # not Linux, or not allowed: the same priority, still right
-        pass
 
 
 def hash_token(token: str) -> str:
@@ -170,7 +164,6 @@ class Session:
         self.failed_frames = 0  # frames the server failed on (each answered internal_error)
         self.fusion_failed = 0  # frames the map failed to fuse (each logged)
         self._last_seq = -1
-        self._fusions = 0
         self._lock = threading.Lock()  # guards the trajectory and counters
         self._inbox: FrameData | None = None
         self._busy = False  # the worker holds a frame
@@ -370,7 +363,7 @@ class Session:
         """Fuses frames, and writes the periodic snapshots: here a slow disk delays the map,
         never a pose. The thread runs at a lower priority than tracking (Linux nice values are
         per thread): when the cores are short, the map falls behind, not the poses."""
-        _lower_this_threads_priority(MAPPING_NICE)
+        lower_this_threads_priority(MAPPING_NICE)
         K = self.intrinsics
         while True:
             try:
@@ -393,7 +386,6 @@ class Session:
                 continue
             with self._lock:
                 self._dirty = True
-                self._fusions += 1
             if len(fused.points):
                 self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
             if fused.occupancy is not None and self.flight is not None:

@@ -170,14 +170,6 @@ class ProcessWorker:
                          daemon=True).start()
         self.info = self._wait(started, start_timeout_s, "start")
 
-    @property
-    def pid(self) -> int | None:
-        return self.process.pid
-
-    @property
-    def alive(self) -> bool:
-        return self._lost is None and self.process.is_alive()
-
     def describe(self) -> dict:
         return {"kind": self.kind, **self.info, "mapper_pid": self.mapper_process.pid}
 

@@ -226,12 +226,10 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
                     ),
                 )
                 continue
-            if isinstance(item, FrameRefused):
-                code = _SESSION_CODES.get(item.code, item.code)
-                await _send(ws, proto.make_error(code, item.message, seq=item.seq))
-                if errors.add():
-                    await ws.close(code=proto.CLOSE_CODES["too_many_errors"],
-                                   reason="too_many_errors")
+            if isinstance(item, FrameRefused):  # answered like a bad message, and counted
+                error = proto.ProtocolError(_SESSION_CODES.get(item.code, item.code),
+                                            item.message, seq=item.seq)
+                if await _report(ws, error, errors):
                     return
                 continue
             if isinstance(item, SessionTakenOver):  # by a socket on another front-end

@@ -35,23 +35,22 @@ from server.sessions.mapping import MAPPING_NICE, lower_this_threads_priority  #
 FPS, FUSE_PERIOD_S, TARGET_P95_RATIO = 15.0, 0.2, 1.2
 
 
-def fuse_until(stop, dataset, frames: int) -> None:
+def fuse_until(stop, frames: list, K, poses: np.ndarray) -> None:
     """Fuse frames with their ground-truth poses, one every FUSE_PERIOD_S, until ``stop``."""
     lower_this_threads_priority(MAPPING_NICE)
     o3d.utility.set_max_threads(1)
-    tsdf, poses, i = TSDFMap(), dataset.ground_truth.poses, 0
+    tsdf, i = TSDFMap(), 0
     while not stop.is_set():
-        f = dataset[i % frames]
-        tsdf.integrate(f.colour, f.depth, dataset.intrinsics, poses[i % frames])
+        f = frames[i % len(frames)]
+        tsdf.integrate(f.colour, f.depth, K, poses[i % len(frames)])
         i += 1
         time.sleep(FUSE_PERIOD_S)
 
 
-def track_at_camera_rate(dataset, frames: int) -> np.ndarray:
+def track_at_camera_rate(frames: list, K) -> np.ndarray:
     """Wall ms of each ``Tracker.track`` call (the pose), frames paced at FPS."""
-    tracker, wall = Tracker(dataset.intrinsics), []
-    for i in range(frames):
-        f = dataset[i]
+    tracker, wall = Tracker(K), []
+    for f in frames:
         t0 = time.perf_counter()
         result = tracker.track(f.colour, f.depth)
         wall.append((time.perf_counter() - t0) * 1e3)
@@ -68,24 +67,26 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=150)
     args = parser.parse_args()
     dataset = open_dataset(args.sequence)
-    frames = min(args.frames, len(dataset))
+    # In memory first: loading from disk in the loops would change the pace being measured.
+    frames = [dataset[i] for i in range(min(args.frames, len(dataset)))]
+    K, poses = dataset.intrinsics, dataset.ground_truth.poses
     cv2.setNumThreads(2)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
                             capture_output=True, text=True).stdout.strip()
-    print(f"{dataset.name}, {frames} frames at {FPS:g} fps, a fusion every "
+    print(f"{dataset.name}, {len(frames)} frames at {FPS:g} fps, a fusion every "
           f"{FUSE_PERIOD_S * 1e3:.0f} ms; commit {commit}")
-    results = {"alone": track_at_camera_rate(dataset, frames)}
+    results = {"alone": track_at_camera_rate(frames, K)}
     stop = threading.Event()
-    fusing = threading.Thread(target=fuse_until, args=(stop, dataset, frames))
+    fusing = threading.Thread(target=fuse_until, args=(stop, frames, K, poses))
     fusing.start()
-    results["fusion in a thread"] = track_at_camera_rate(dataset, frames)
+    results["fusion in a thread"] = track_at_camera_rate(frames, K)
     stop.set()
     fusing.join()
     ctx = mp.get_context("fork")  # our fusing thread has ended; the child only fuses
     stop = ctx.Event()
-    fusing = ctx.Process(target=fuse_until, args=(stop, dataset, frames))
+    fusing = ctx.Process(target=fuse_until, args=(stop, frames, K, poses))
     fusing.start()
-    results["fusion in a process"] = track_at_camera_rate(dataset, frames)
+    results["fusion in a process"] = track_at_camera_rate(frames, K)
     stop.set()
     fusing.join()
     alone_p95 = np.percentile(results["alone"], 95)

@@ -105,8 +105,13 @@ def read_stat(pid: int) -> ProcStat | None:
     except OSError:
         return None
     f = text.rsplit(")", 1)[1].split()  # the command name may hold spaces and ')'
-    return ProcStat(pid, int(f[1]), int(f[19]), (int(f[11]) + int(f[12])) * TICK_S,
-                    (int(f[13]) + int(f[14])) * TICK_S)
+    return ProcStat(
+        pid,
+        int(f[1]),
+        int(f[19]),
+        (int(f[11]) + int(f[12])) * TICK_S,
+        (int(f[13]) + int(f[14])) * TICK_S,
+    )
 
 
 def descendants(stats: dict[int, ProcStat], root: int) -> dict[int, ProcStat]:
@@ -136,7 +141,8 @@ def same_tree(a: dict[int, ProcStat], b: dict[int, ProcStat]) -> bool:
     children_s unchanged): then each process of the first read was read while it still
     existed and before any CPU moved from a child to its parent, so its sum is exact."""
     return a.keys() == b.keys() and all(
-        a[p].start == b[p].start and a[p].children_s == b[p].children_s for p in a)
+        a[p].start == b[p].start and a[p].children_s == b[p].children_s for p in a
+    )
 
 
 def tree_cpu_s(tree: dict[int, ProcStat]) -> float:
@@ -228,19 +234,24 @@ class TreeSampler:
         busy); machine_busy: share of all the machine's cores busy (every process), 0-1;
         mem_max_mb / mem_end_mb: the tree's summed PSS, MB; processes_max: the most processes
         seen in the tree; consistent: both CPU snapshots were consistent reads."""
-        return {"cpu_s": self.cpu_s, "wall_s": self.wall_s,
-                "cores": self.cpu_s / self.wall_s if self.cpu_s is not None else None,
-                "machine_busy": self.machine_busy,
-                "mem_max_mb": max(self._memory, default=0.0),
-                "mem_end_mb": self._memory[-1] if self._memory else 0.0,
-                "processes_max": self._processes, "consistent": self.consistent}
+        return {
+            "cpu_s": self.cpu_s,
+            "wall_s": self.wall_s,
+            "cores": self.cpu_s / self.wall_s if self.cpu_s is not None else None,
+            "machine_busy": self.machine_busy,
+            "mem_max_mb": max(self._memory, default=0.0),
+            "mem_end_mb": self._memory[-1] if self._memory else 0.0,
+            "processes_max": self._processes,
+            "consistent": self.consistent,
+        }
 
 
 # ---- pure analysis: measured numbers in, figures and verdicts out -------------------------------
 
 
-def server_cpu_figures(cpu_s: float | None, wall_s: float, processed: int,
-                       idle_cores: float) -> dict:
+def server_cpu_figures(
+    cpu_s: float | None, wall_s: float, processed: int, idle_cores: float
+) -> dict:
     """A row's server CPU: cores (CPU s / wall s; 1.0 = one core busy); cpu_ms_per_frame: the
     tree's CPU ms during the row / frames processed by all its sessions; ..._above_idle: the
     same after taking off what the idle server would have used over the row's wall time. None
@@ -251,16 +262,23 @@ def server_cpu_figures(cpu_s: float | None, wall_s: float, processed: int,
     if processed:
         per_frame = 1e3 * cpu_s / processed
         above = 1e3 * max(0.0, cpu_s - idle_cores * wall_s) / processed
-    return {"cores": cpu_s / wall_s, "cpu_ms_per_frame": per_frame,
-            "cpu_ms_per_frame_above_idle": above}
+    return {
+        "cores": cpu_s / wall_s,
+        "cpu_ms_per_frame": per_frame,
+        "cpu_ms_per_frame_above_idle": above,
+    }
 
 
 def meets(row: dict, target: dict = TARGET) -> bool:
     """p95 <= target ms, the share of captured frames without a pose below the target, some
     frame processed, no failure."""
-    return bool(row["p95_ms"] is not None and row["p95_ms"] <= target["p95_ms"]
-                and row["drop_rate"] < target["drop_rate"] and row["processed"] > 0
-                and not row["failures"])
+    return bool(
+        row["p95_ms"] is not None
+        and row["p95_ms"] <= target["p95_ms"]
+        and row["drop_rate"] < target["drop_rate"]
+        and row["processed"] > 0
+        and not row["failures"]
+    )
 
 
 def _load(row: dict) -> tuple[float, int]:
@@ -275,12 +293,19 @@ def verdict(rows: list[dict], target: dict = TARGET) -> dict:
     row that meets them; target: True/False for the target row (4 x 15 fps), None if not run."""
     ok = [r for r in rows if meets(r, target)]
     best = max(ok, key=_load, default=None)
-    target_row = next((r for r in rows if r["sessions"] == target["sessions"]
-                       and r["fps"] == target["fps"]), None)
+    target_row = next(
+        (r for r in rows if r["sessions"] == target["sessions"] and r["fps"] == target["fps"]), None
+    )
     return {
-        "largest": None if best is None else {
-            "sessions": best["sessions"], "fps": best["fps"], "offered_fps": _load(best)[0],
-            "p95_ms": best["p95_ms"], "drop_rate": best["drop_rate"]},
+        "largest": None
+        if best is None
+        else {
+            "sessions": best["sessions"],
+            "fps": best["fps"],
+            "offered_fps": _load(best)[0],
+            "p95_ms": best["p95_ms"],
+            "drop_rate": best["drop_rate"],
+        },
         "meeting": [[r["sessions"], r["fps"]] for r in ok],
         "target": None if target_row is None else meets(target_row, target),
     }
@@ -315,92 +340,131 @@ def what_limits_it(rows: list[dict], idle: dict, cores: int, target: dict = TARG
     machine_busy, mem_max_mb}); idle: {cores, wall_s}; cores: the machine's."""
     if not any(r["processed"] for r in rows):
         return "No frame was processed: nothing to analyse (see the failures)."
-    v, limit = verdict(rows, target), (f"p95 <= {target['p95_ms']:.0f} ms and < "
-                                       f"{100 * target['drop_rate']:.0f} % of captured frames "
-                                       f"without a pose")
+    v, limit = (
+        verdict(rows, target),
+        (
+            f"p95 <= {target['p95_ms']:.0f} ms and < "
+            f"{100 * target['drop_rate']:.0f} % of captured frames "
+            f"without a pose"
+        ),
+    )
     by_load = sorted(rows, key=_load)
     lightest, heaviest = by_load[0], by_load[-1]
     parts = []
 
     if v["largest"] is not None:
         b = v["largest"]
-        parts.append(f"**Verdict.** The largest load run that meets {limit} is "
-                     f"**{_sessions(b['sessions'])} x {b['fps']:g} fps** "
-                     f"({b['offered_fps']:g} captured frames/s): p95 {b['p95_ms']:.0f} ms, "
-                     f"{100 * b['drop_rate']:.1f} % without a pose.")
+        parts.append(
+            f"**Verdict.** The largest load run that meets {limit} is "
+            f"**{_sessions(b['sessions'])} x {b['fps']:g} fps** "
+            f"({b['offered_fps']:g} captured frames/s): p95 {b['p95_ms']:.0f} ms, "
+            f"{100 * b['drop_rate']:.1f} % without a pose."
+        )
     else:
-        parts.append(f"**Verdict.** No row run meets {limit}; the lightest, {_name(lightest)}, "
-                     f"had p95 {_fmt(lightest['p95_ms'])} ms and "
-                     f"{100 * lightest['drop_rate']:.1f} % without a pose.")
-    target_row = next((r for r in rows if r["sessions"] == target["sessions"]
-                       and r["fps"] == target["fps"]), None)
+        parts.append(
+            f"**Verdict.** No row run meets {limit}; the lightest, {_name(lightest)}, "
+            f"had p95 {_fmt(lightest['p95_ms'])} ms and "
+            f"{100 * lightest['drop_rate']:.1f} % without a pose."
+        )
+    target_row = next(
+        (r for r in rows if r["sessions"] == target["sessions"] and r["fps"] == target["fps"]), None
+    )
     if target_row is not None:
-        parts.append(f"The target, {_name(target_row)}, **{'PASS' if v['target'] else 'FAIL'}**: "
-                     f"p95 {_fmt(target_row['p95_ms'])} ms (limit {target['p95_ms']:.0f}), "
-                     f"{100 * target_row['drop_rate']:.1f} % without a pose (limit "
-                     f"{100 * target['drop_rate']:.0f} %).")
+        parts.append(
+            f"The target, {_name(target_row)}, **{'PASS' if v['target'] else 'FAIL'}**: "
+            f"p95 {_fmt(target_row['p95_ms'])} ms (limit {target['p95_ms']:.0f}), "
+            f"{100 * target_row['drop_rate']:.1f} % without a pose (limit "
+            f"{100 * target['drop_rate']:.0f} %)."
+        )
 
-    per_frame = [(r, r["server"]["cpu_ms_per_frame"]) for r in rows
-                 if r["server"]["cpu_ms_per_frame"] is not None]
+    per_frame = [
+        (r, r["server"]["cpu_ms_per_frame"])
+        for r in rows
+        if r["server"]["cpu_ms_per_frame"] is not None
+    ]
     lo, hi = min(per_frame, key=lambda x: x[1]), max(per_frame, key=lambda x: x[1])
-    text = (f"**CPU.** With no session the server used {100 * idle['cores']:.1f} % of one core "
-            f"(measured over {idle['wall_s']:.0f} s). Per processed frame its process tree "
-            f"spent {lo[1]:.0f} ms of CPU at {_name(lo[0])} to {hi[1]:.0f} ms at "
-            f"{_name(hi[0])}")
+    text = (
+        f"**CPU.** With no session the server used {100 * idle['cores']:.1f} % of one core "
+        f"(measured over {idle['wall_s']:.0f} s). Per processed frame its process tree "
+        f"spent {lo[1]:.0f} ms of CPU at {_name(lo[0])} to {hi[1]:.0f} ms at "
+        f"{_name(hi[0])}"
+    )
     if target_row is not None and target_row["server"]["cpu_ms_per_frame"] is not None:
         s = target_row["server"]
-        text += (f"; {s['cpu_ms_per_frame']:.0f} ms at the target row "
-                 f"({s['cpu_ms_per_frame_above_idle']:.0f} ms above idle), where it used "
-                 f"{s['cores']:.2f} cores")
-    parts.append(text + ". A row's CPU per frame includes every session's fixed costs (drone "
-                 "simulation, flight map): where frames are dropped, each processed frame "
-                 "carries more of them.")
+        text += (
+            f"; {s['cpu_ms_per_frame']:.0f} ms at the target row "
+            f"({s['cpu_ms_per_frame_above_idle']:.0f} ms above idle), where it used "
+            f"{s['cores']:.2f} cores"
+        )
+    parts.append(
+        text + ". A row's CPU per frame includes every session's fixed costs (drone "
+        "simulation, flight map): where frames are dropped, each processed frame "
+        "carries more of them."
+    )
 
     missing = [r for r in by_load if not meets(r, target)]
     if missing:
         r = missing[0]
         busy = r["server"]["machine_busy"] * cores
         server, client = r["server"]["cores"] or 0.0, r["client_cpu_percent"] / 100
-        split = (f"server {server:.2f}, load tester {client:.2f}, other processes "
-                 f"{max(0.0, busy - server - client):.2f}")
+        split = (
+            f"server {server:.2f}, load tester {client:.2f}, other processes "
+            f"{max(0.0, busy - server - client):.2f}"
+        )
         if r["server"]["machine_busy"] >= SATURATED:
-            parts.append(f"**Limit.** At {_name(r)}, the lightest row that misses, the "
-                         f"machine's {cores} cores were {100 * r['server']['machine_busy']:.0f} % "
-                         f"busy ({split} cores): **CPU-bound**. The server got no more CPU than "
-                         f"that, so its figures there show what the cores allowed, not what it "
-                         f"needed.")
+            parts.append(
+                f"**Limit.** At {_name(r)}, the lightest row that misses, the "
+                f"machine's {cores} cores were {100 * r['server']['machine_busy']:.0f} % "
+                f"busy ({split} cores): **CPU-bound**. The server got no more CPU than "
+                f"that, so its figures there show what the cores allowed, not what it "
+                f"needed."
+            )
         else:
             busy_pct = 100 * r["server"]["machine_busy"]
-            parts.append(f"**Limit.** At {_name(r)}, the lightest row that misses, the "
-                         f"machine's {cores} cores were only {busy_pct:.0f} % busy ({split} "
-                         f"cores): **not CPU-bound**. The misses come from waiting inside the "
-                         f"pipeline (one frame tracked at a time per session, at most two frames "
-                         f"in flight), not from a lack of cores: see the stage medians.")
+            parts.append(
+                f"**Limit.** At {_name(r)}, the lightest row that misses, the "
+                f"machine's {cores} cores were only {busy_pct:.0f} % busy ({split} "
+                f"cores): **not CPU-bound**. The misses come from waiting inside the "
+                f"pipeline (one frame tracked at a time per session, at most two frames "
+                f"in flight), not from a lack of cores: see the stage medians."
+            )
 
     names = [k for k in shown_stages(lightest["stages_ms"]) if k in heaviest["stages_ms"]]
     if names:
-        stages = ", ".join(f"{k} {_stage(lightest, k):.1f} -> {_stage(heaviest, k):.1f}"
-                           for k in names)
-        text = (f"**Stages** (median ms, {_name(lightest)} -> {_name(heaviest)}): {stages}.")
+        stages = ", ".join(
+            f"{k} {_stage(lightest, k):.1f} -> {_stage(heaviest, k):.1f}" for k in names
+        )
+        text = f"**Stages** (median ms, {_name(lightest)} -> {_name(heaviest)}): {stages}."
         if "track" in names and "track_cpu" in names:
             text += " track minus track_cpu is time the tracking thread waited for a core."
         parts.append(text)
 
-    crowded = [(r, r["server"]["machine_busy"] * cores - (r["server"]["cores"] or 0.0)
-                - r["client_cpu_percent"] / 100) for r in rows]
+    crowded = [
+        (
+            r,
+            r["server"]["machine_busy"] * cores
+            - (r["server"]["cores"] or 0.0)
+            - r["client_cpu_percent"] / 100,
+        )
+        for r in rows
+    ]
     crowded = [(r, c) for r, c in crowded if c >= OTHERS_NOTED_CORES]
     if crowded:
         worst = max(crowded, key=lambda x: x[1])
-        parts.append(f"**Contention.** Processes other than the server and the load tester held "
-                     f"{OTHERS_NOTED_CORES:g} cores or more in {len(crowded)} of {len(rows)} rows "
-                     f"(up to {worst[1]:.2f} at {_name(worst[0])}): those rows understate the "
-                     f"server; rerun on a quiet machine.")
+        parts.append(
+            f"**Contention.** Processes other than the server and the load tester held "
+            f"{OTHERS_NOTED_CORES:g} cores or more in {len(crowded)} of {len(rows)} rows "
+            f"(up to {worst[1]:.2f} at {_name(worst[0])}): those rows understate the "
+            f"server; rerun on a quiet machine."
+        )
 
     few, many = min(rows, key=lambda r: r["sessions"]), max(rows, key=lambda r: r["sessions"])
     if many["sessions"] > few["sessions"]:
-        parts.append(f"**Memory** (the server tree's peak PSS): {few['server']['mem_max_mb']:.0f} "
-                     f"MB at {_sessions(few['sessions'])}, {many['server']['mem_max_mb']:.0f} MB "
-                     f"at {many['sessions']}.")
+        parts.append(
+            f"**Memory** (the server tree's peak PSS): {few['server']['mem_max_mb']:.0f} "
+            f"MB at {_sessions(few['sessions'])}, {many['server']['mem_max_mb']:.0f} MB "
+            f"at {many['sessions']}."
+        )
     return "\n\n".join(parts)
 
 
@@ -413,8 +477,9 @@ def server_environment(max_sessions: int) -> dict[str, str]:
     return {"DRONESIM_MAX_SESSIONS": str(max_sessions), "DRONESIM_CREATE_RATE_PER_MIN": "0"}
 
 
-def wait_until_settled(pid: int, below_cores: float = 0.1, window_s: float = 0.5,
-                       timeout_s: float = 60.0) -> float:
+def wait_until_settled(
+    pid: int, below_cores: float = 0.1, window_s: float = 0.5, timeout_s: float = 60.0
+) -> float:
     """Seconds waited until the server tree used less than ``below_cores`` over ``window_s``
     (or ``timeout_s`` passed). /healthz answers before the start-up's work ends (a forkserver
     preloading the session modules, for one): without this wait that work would count in the
@@ -439,33 +504,63 @@ def measure_idle(pid: int, seconds: float) -> dict:
     return {k: s[k] for k in ("cpu_s", "wall_s", "cores", "processes_max", "consistent")}
 
 
-def run_row(url: str, seq: EncodedSequence, pid: int, sessions: int, fps: float,
-            duration_s: float, idle: dict, commit: str) -> dict:
-    cfg = LoadTestConfig(url=url, sessions=sessions, fps=fps, duration_s=duration_s,
-                         client_name="capacity")
+def run_row(
+    url: str,
+    seq: EncodedSequence,
+    pid: int,
+    sessions: int,
+    fps: float,
+    duration_s: float,
+    idle: dict,
+    commit: str,
+) -> dict:
+    cfg = LoadTestConfig(
+        url=url, sessions=sessions, fps=fps, duration_s=duration_s, client_name="capacity"
+    )
     with console.status(f"{sessions} x {fps:g} fps ...") as status:
+
         def show(results, elapsed: float) -> None:
-            status.update(f"{sessions} x {fps:g} fps, {elapsed:4.1f}/{duration_s:g} s | "
-                          f"{live_line(results, elapsed)}")
+            status.update(
+                f"{sessions} x {fps:g} fps, {elapsed:4.1f}/{duration_s:g} s | "
+                f"{live_line(results, elapsed)}"
+            )
 
         with TreeSampler(pid) as sampler:
             report = asyncio.run(run_loadtest(seq, cfg, on_progress=show))
     t = report["total"]
     server = sampler.summary()
-    server.update(server_cpu_figures(server["cpu_s"], server["wall_s"], t["processed"],
-                                     idle["cores"]))
-    row = {"sessions": sessions, "fps": fps, "duration_s": duration_s, "commit": commit,
-           **{k: t["latency"][k] for k in ("p50_ms", "p95_ms", "p99_ms")},
-           "processed_fps_per_session": t["processed_fps_per_session"],
-           "processed_fps": t["processed_fps"],
-           **{k: t[k] for k in ("captured", "sent", "processed", "client_dropped",
-                                "server_dropped", "client_drop_rate", "server_drop_rate",
-                                "drop_rate", "errors", "failures")},
-           "server": server,
-           "client_cpu_percent": report["client_cpu_percent"],
-           "stages_ms": report["stages_ms"],
-           "drone_states": sum(s["commands"]["drone_states"] for s in report["sessions"]),
-           "failure_messages": [f for s in report["sessions"] for f in s["failures"]][:10]}
+    server.update(
+        server_cpu_figures(server["cpu_s"], server["wall_s"], t["processed"], idle["cores"])
+    )
+    row = {
+        "sessions": sessions,
+        "fps": fps,
+        "duration_s": duration_s,
+        "commit": commit,
+        **{k: t["latency"][k] for k in ("p50_ms", "p95_ms", "p99_ms")},
+        "processed_fps_per_session": t["processed_fps_per_session"],
+        "processed_fps": t["processed_fps"],
+        **{
+            k: t[k]
+            for k in (
+                "captured",
+                "sent",
+                "processed",
+                "client_dropped",
+                "server_dropped",
+                "client_drop_rate",
+                "server_drop_rate",
+                "drop_rate",
+                "errors",
+                "failures",
+            )
+        },
+        "server": server,
+        "client_cpu_percent": report["client_cpu_percent"],
+        "stages_ms": report["stages_ms"],
+        "drone_states": sum(s["commands"]["drone_states"] for s in report["sessions"]),
+        "failure_messages": [f for s in report["sessions"] for f in s["failures"]][:10],
+    }
     row["meets"] = meets(row)
     if sessions == TARGET["sessions"] and fps == TARGET["fps"]:
         row["target"] = row["meets"]
@@ -483,22 +578,30 @@ def _target_cell(r: dict) -> str:
     """Figure and limit side by side on the target row, yes/no on the others."""
     if "target" not in r:
         return "yes" if r["meets"] else "no"
-    return (f"p95 {_fmt(r['p95_ms'])} <= {TARGET['p95_ms']:.0f}, no pose "
-            f"{100 * r['drop_rate']:.1f} % < {100 * TARGET['drop_rate']:.0f} %: "
-            f"**{'PASS' if r['target'] else 'FAIL'}**")
+    return (
+        f"p95 {_fmt(r['p95_ms'])} <= {TARGET['p95_ms']:.0f}, no pose "
+        f"{100 * r['drop_rate']:.1f} % < {100 * TARGET['drop_rate']:.0f} %: "
+        f"**{'PASS' if r['target'] else 'FAIL'}**"
+    )
 
 
 def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
     quick = meta["quick"]
     lines = [f"# Server capacity{' — SMOKE RUN, not a measurement' if quick else ''}", ""]
     if quick:
-        lines += [f"> **Smoke run** (`--quick`: {rows[0]['duration_s']:g} s per row on "
-                  f"{meta['frames']} frames) on a shared, loaded machine: the figures only show "
-                  f"that the pipeline works. Run `python benchmarks/capacity.py` on a quiet "
-                  f"machine for the capacity table.", ""]
+        lines += [
+            f"> **Smoke run** (`--quick`: {rows[0]['duration_s']:g} s per row on "
+            f"{meta['frames']} frames) on a shared, loaded machine: the figures only show "
+            f"that the pipeline works. Run `python benchmarks/capacity.py` on a quiet "
+            f"machine for the capacity table.",
+            "",
+        ]
     v = meta["verdict"]
-    largest = ("none" if v["largest"] is None else
-               f"**{_sessions(v['largest']['sessions'])} x {v['largest']['fps']:g} fps**")
+    largest = (
+        "none"
+        if v["largest"] is None
+        else f"**{_sessions(v['largest']['sessions'])} x {v['largest']['fps']:g} fps**"
+    )
     lines += [
         f"{meta['date']}; commit {meta['commit']}; machine: {meta['machine']}, {meta['cores']} "
         f"cores, load average {meta['load_before']:.2f} before / {meta['load_after']:.2f} after; "
@@ -506,11 +609,14 @@ def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
         f"frames, played back and forth, {meta['mean_frame_kb']:.0f} kB per frame); map fusion "
         f"on (one frame in {meta['fuse_every']} + keyframes); drone simulation: {meta['drone']}; "
         f"idle server (no session, {idle['wall_s']:.0f} s): {100 * idle['cores']:.1f} % of one "
-        f"core.", "",
-        f"Command: `{meta['command']}`", "",
+        f"core.",
+        "",
+        f"Command: `{meta['command']}`",
+        "",
         f"Target: {TARGET['sessions']} sessions at {TARGET['fps']:g} fps with p95 <= "
         f"{TARGET['p95_ms']:.0f} ms and < {100 * TARGET['drop_rate']:.0f} % of captured frames "
-        f"without a pose. Largest sessions x fps run that meets those limits: {largest}.", "",
+        f"without a pose. Largest sessions x fps run that meets those limits: {largest}.",
+        "",
         "| sessions | fps | p50 ms | p95 ms | p99 ms | processed fps / session | drop client | "
         "drop server | no pose | server cores | server CPU ms / frame (above idle) | machine busy "
         "| load tester cores | server processes | server PSS MB | failures | meets target |",
@@ -526,61 +632,111 @@ def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
             f"{_fmt(s['cpu_ms_per_frame'])} ({_fmt(s['cpu_ms_per_frame_above_idle'])}) | "
             f"{100 * s['machine_busy']:.0f} % | {r['client_cpu_percent'] / 100:.2f} | "
             f"{s['processes_max']}{'' if s['consistent'] else '*'} | {s['mem_max_mb']:.0f} | "
-            f"{r['failures']} | {_target_cell(r)} |")
+            f"{r['failures']} | {_target_cell(r)} |"
+        )
     stages = sorted({k for r in rows for k in shown_stages(r["stages_ms"])})
-    lines += ["", "Server stage timings, median ms per row (from the poses' `timings_ms`):", "",
-              "| sessions | fps | " + " | ".join(stages) + " |",
-              "|--:|--:|" + "--:|" * len(stages)]
+    lines += [
+        "",
+        "Server stage timings, median ms per row (from the poses' `timings_ms`):",
+        "",
+        "| sessions | fps | " + " | ".join(stages) + " |",
+        "|--:|--:|" + "--:|" * len(stages),
+    ]
     for r in rows:
-        lines.append(f"| {r['sessions']} | {r['fps']:g} | "
-                     + " | ".join(_fmt(_stage(r, k), "{:.1f}") for k in stages) + " |")
-    lines += ["", "## What limits it", "", analysis, "", "## How to read it", "",
-              "- **p50/p95/p99 ms**: send to pose, per frame, over every session of the row "
-              "(loopback: no network in it).",
-              "- **processed fps / session**: poses per second each phone gets back.",
-              "- **drop client**: captured frames not sent because two frames already awaited "
-              "answers (as a phone does); **drop server**: sent frames the server skipped for a "
-              "newer one; **no pose**: every captured frame without a pose, the target's measure.",
-              "- **server cores**: CPU seconds of the server's whole process tree (the server "
-              "and every process below it, those that ended during the row included) per "
-              "second of the row (1.00 = one core busy); **CPU ms / frame**: those CPU "
-              "seconds over the frames processed by all the row's sessions, and in brackets the "
-              "same after taking off the idle server's CPU over the row.",
-              "- **machine busy**: share of all cores busy with any process (`/proc/stat`); at "
-              f">= {100 * SATURATED:.0f} % the row is CPU-bound. **load tester cores**: the "
-              "clients run on the same machine and take that much from the server.",
-              "- **server processes**: the most processes seen in the server's tree (1: "
-              "sessions in the server process); `*`: a CPU snapshot of the tree kept changing "
-              "and may be off by one process's CPU. **PSS**: the tree's peak proportional "
-              "memory (pages shared between its processes counted once), a fresh server per "
-              "row.",
-              "- **meets target**: p95 and no-pose share within the target's limits and no "
-              "failure; the verdict is the largest sessions x fps among those rows.", ""]
+        lines.append(
+            f"| {r['sessions']} | {r['fps']:g} | "
+            + " | ".join(_fmt(_stage(r, k), "{:.1f}") for k in stages)
+            + " |"
+        )
+    lines += [
+        "",
+        "## What limits it",
+        "",
+        analysis,
+        "",
+        "## How to read it",
+        "",
+        "- **p50/p95/p99 ms**: send to pose, per frame, over every session of the row "
+        "(loopback: no network in it).",
+        "- **processed fps / session**: poses per second each phone gets back.",
+        "- **drop client**: captured frames not sent because two frames already awaited "
+        "answers (as a phone does); **drop server**: sent frames the server skipped for a "
+        "newer one; **no pose**: every captured frame without a pose, the target's measure.",
+        "- **server cores**: CPU seconds of the server's whole process tree (the server "
+        "and every process below it, those that ended during the row included) per "
+        "second of the row (1.00 = one core busy); **CPU ms / frame**: those CPU "
+        "seconds over the frames processed by all the row's sessions, and in brackets the "
+        "same after taking off the idle server's CPU over the row.",
+        "- **machine busy**: share of all cores busy with any process (`/proc/stat`); at "
+        f">= {100 * SATURATED:.0f} % the row is CPU-bound. **load tester cores**: the "
+        "clients run on the same machine and take that much from the server.",
+        "- **server processes**: the most processes seen in the server's tree (1: "
+        "sessions in the server process); `*`: a CPU snapshot of the tree kept changing "
+        "and may be off by one process's CPU. **PSS**: the tree's peak proportional "
+        "memory (pages shared between its processes counted once), a fresh server per "
+        "row.",
+        "- **meets target**: p95 and no-pose share within the target's limits and no "
+        "failure; the verdict is the largest sessions x fps among those rows.",
+        "",
+    ]
     return "\n".join(lines)
 
 
 def console_table(rows: list[dict]) -> Table:
-    table = Table(title="server capacity (latency ms; cores: 1.00 = one core busy)",
-                  box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
-    for col in ("sess", "fps", "p50", "p95", "p99", "fps/sess", "no pose", "srv cores",
-                "CPU ms/frame", "busy", "cli cores", "procs", "PSS MB", "fail", "meets"):
+    table = Table(
+        title="server capacity (latency ms; cores: 1.00 = one core busy)",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+        collapse_padding=True,
+    )
+    for col in (
+        "sess",
+        "fps",
+        "p50",
+        "p95",
+        "p99",
+        "fps/sess",
+        "no pose",
+        "srv cores",
+        "CPU ms/frame",
+        "busy",
+        "cli cores",
+        "procs",
+        "PSS MB",
+        "fail",
+        "meets",
+    ):
         table.add_column(col, justify="right")
     for r in rows:
         s = r["server"]
-        meets_cell = ({True: "PASS", False: "FAIL"}[r["target"]] if "target" in r
-                      else ("yes" if r["meets"] else "no"))
-        table.add_row(str(r["sessions"]), f"{r['fps']:g}", _fmt(r["p50_ms"]), _fmt(r["p95_ms"]),
-                      _fmt(r["p99_ms"]), f"{r['processed_fps_per_session']:.1f}",
-                      f"{100 * r['drop_rate']:.1f}%", _fmt(s["cores"], "{:.2f}"),
-                      f"{_fmt(s['cpu_ms_per_frame'])} ({_fmt(s['cpu_ms_per_frame_above_idle'])})",
-                      f"{100 * s['machine_busy']:.0f}%", f"{r['client_cpu_percent'] / 100:.2f}",
-                      f"{s['processes_max']}{'' if s['consistent'] else '*'}",
-                      f"{s['mem_max_mb']:.0f}", str(r["failures"]), meets_cell)
+        meets_cell = (
+            {True: "PASS", False: "FAIL"}[r["target"]]
+            if "target" in r
+            else ("yes" if r["meets"] else "no")
+        )
+        table.add_row(
+            str(r["sessions"]),
+            f"{r['fps']:g}",
+            _fmt(r["p50_ms"]),
+            _fmt(r["p95_ms"]),
+            _fmt(r["p99_ms"]),
+            f"{r['processed_fps_per_session']:.1f}",
+            f"{100 * r['drop_rate']:.1f}%",
+            _fmt(s["cores"], "{:.2f}"),
+            f"{_fmt(s['cpu_ms_per_frame'])} ({_fmt(s['cpu_ms_per_frame_above_idle'])})",
+            f"{100 * s['machine_busy']:.0f}%",
+            f"{r['client_cpu_percent'] / 100:.2f}",
+            f"{s['processes_max']}{'' if s['consistent'] else '*'}",
+            f"{s['mem_max_mb']:.0f}",
+            str(r["failures"]),
+            meets_cell,
+        )
     return table
 
 
 def git_commit() -> str:
     """HEAD's short hash, with '+uncommitted' when tracked files differ from it."""
+
     def git(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run(["git", *args], cwd=REPO, text=True, capture_output=True)
 
@@ -591,18 +747,27 @@ def git_commit() -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sequence", nargs="?",
-                        default=str(REPO.parent / "shared" / "data" / "synthetic_room0"))
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "synthetic_room0")
+    )
     parser.add_argument("--duration", type=float, default=30.0, help="seconds per row")
     parser.add_argument("--sessions", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--fps", type=float, nargs="+", default=[15.0, 30.0])
     parser.add_argument("--frames", type=int, default=None, help="first N frames of the sequence")
-    parser.add_argument("--idle", type=float, default=5.0,
-                        help="seconds the idle server is measured before the first row")
-    parser.add_argument("--quick", action="store_true",
-                        help="smoke run: 5 s per row on 30 frames, 2 s idle, labelled as such")
+    parser.add_argument(
+        "--idle",
+        type=float,
+        default=5.0,
+        help="seconds the idle server is measured before the first row",
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: 5 s per row on 30 frames, 2 s idle, labelled as such",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     args = parser.parse_args()
     if args.quick:
@@ -627,10 +792,15 @@ def main() -> None:
                         settle_s = wait_until_settled(server.pid)
                     if idle is None:  # once, on the first row's server before its sessions
                         idle = measure_idle(server.pid, args.idle)
-                        console.print(f"idle server: {100 * idle['cores']:.1f} % of one core "
-                                      f"over {idle['wall_s']:.1f} s")
-                    rows.append(run_row(server.url, seq, server.pid, sessions, fps,
-                                        args.duration, idle, commit))
+                        console.print(
+                            f"idle server: {100 * idle['cores']:.1f} % of one core "
+                            f"over {idle['wall_s']:.1f} s"
+                        )
+                    rows.append(
+                        run_row(
+                            server.url, seq, server.pid, sessions, fps, args.duration, idle, commit
+                        )
+                    )
                     rows[-1]["server"]["settle_s"] = settle_s
                 finally:
                     server.terminate()
@@ -642,26 +812,43 @@ def main() -> None:
     drone_states = sum(r["drone_states"] for r in rows)
     cores = os.cpu_count() or 1
     meta = {
-        "date": f"{datetime.datetime.now():%Y-%m-%d %H:%M}", "quick": args.quick,
-        "machine": platform.platform(), "cores": cores, "load_before": load_before,
-        "load_after": os.getloadavg()[0], "dataset": seq.name, "size": list(seq.size),
-        "frames": len(seq.frames), "mean_frame_kb": seq.mean_bytes / 1e3,
-        "fuse_every": Settings().fuse_every, "commit": commit,
-        "drone": f"on ({drone_states} drone_state messages)" if drone_states
+        "date": f"{datetime.datetime.now():%Y-%m-%d %H:%M}",
+        "quick": args.quick,
+        "machine": platform.platform(),
+        "cores": cores,
+        "load_before": load_before,
+        "load_after": os.getloadavg()[0],
+        "dataset": seq.name,
+        "size": list(seq.size),
+        "frames": len(seq.frames),
+        "mean_frame_kb": seq.mean_bytes / 1e3,
+        "fuse_every": Settings().fuse_every,
+        "commit": commit,
+        "drone": f"on ({drone_states} drone_state messages)"
+        if drone_states
         else "not running (no drone_state received; commands answered 'not ready')",
-        "command": "python " + " ".join(sys.argv), "verdict": verdict(rows),
+        "command": "python " + " ".join(sys.argv),
+        "verdict": verdict(rows),
     }
     analysis = what_limits_it(rows, idle, cores)
     console.print(console_table(rows))
     largest = meta["verdict"]["largest"]
-    console.print(f"largest sessions x fps meeting p95 <= {TARGET['p95_ms']:.0f} ms and no pose "
-                  f"< {100 * TARGET['drop_rate']:.0f} %: "
-                  + ("none" if largest is None else f"{largest['sessions']} x {largest['fps']:g}"))
+    console.print(
+        f"largest sessions x fps meeting p95 <= {TARGET['p95_ms']:.0f} ms and no pose "
+        f"< {100 * TARGET['drop_rate']:.0f} %: "
+        + ("none" if largest is None else f"{largest['sessions']} x {largest['fps']:g}")
+    )
     console.print(analysis)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "capacity.md").write_text(markdown(rows, meta, idle, analysis))
-    report = {"meta": meta, "target": TARGET, "idle": idle, "verdict": meta["verdict"],
-              "rows": rows, "analysis": analysis}
+    report = {
+        "meta": meta,
+        "target": TARGET,
+        "idle": idle,
+        "verdict": meta["verdict"],
+        "rows": rows,
+        "analysis": analysis,
+    }
     (args.out / "capacity.json").write_text(json.dumps(report, indent=1))
     console.print(f"wrote {args.out / 'capacity.md'} and capacity.json")
     if any(r["failures"] for r in rows):

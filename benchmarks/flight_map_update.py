@@ -77,8 +77,19 @@ def main(argv: list[str] | None = None) -> int:
     full_map = FlightMap(voxel, config.unknown_is_free)
     feed_map = FlightMap(voxel, config.unknown_is_free)
     merged_map = FlightMap(voxel, config.unknown_is_free)
-    rows = {k: [] for k in ("occupancy", "full_update", "rebuild", "occupancy_update",
-                            "update_region", "merged_update", "box_share", "changed_cells")}
+    rows = {
+        k: []
+        for k in (
+            "occupancy",
+            "full_update",
+            "rebuild",
+            "occupancy_update",
+            "update_region",
+            "merged_update",
+            "box_share",
+            "changed_cells",
+        )
+    }
     pending: Region | None = None
     for n, (i, T) in enumerate(zip(indices, poses, strict=True)):
         if T is None:
@@ -104,8 +115,11 @@ def main(argv: list[str] | None = None) -> int:
             pending = region if pending is None else pending.merged(region, voxel)
             rows["box_share"].append(box[1].size / grid[1].size)
         if (n - args.warmup) % args.merge == args.merge - 1 and pending is not None:
-            _, t_merged = cpu_ms(lambda p=pending: merged_map.update_region(
-                p.origin, p.occupied, p.observed, p.written))
+            _, t_merged = cpu_ms(
+                lambda p=pending: merged_map.update_region(
+                    p.origin, p.occupied, p.observed, p.written
+                )
+            )
             rows["merged_update"].append(t_merged)
             pending = None
         if before is not None and feed_map.shape == before.shape:
@@ -113,31 +127,45 @@ def main(argv: list[str] | None = None) -> int:
         check = FlightMap(voxel, config.unknown_is_free)
         check.update(*grid)
         assert np.array_equal(check.esdf, feed_map.esdf), f"frame {i}: feed differs from rebuild"
-        for key, value in (("occupancy", t_occ), ("full_update", t_full), ("rebuild", t_rebuild),
-                           ("occupancy_update", t_box), ("update_region", t_region)):
+        for key, value in (
+            ("occupancy", t_occ),
+            ("full_update", t_full),
+            ("rebuild", t_rebuild),
+            ("occupancy_update", t_box),
+            ("update_region", t_region),
+        ):
             rows[key].append(value)
 
     def med(key):
         return float(np.median(rows[key])) if rows[key] else float("nan")
 
     shape = full_map.shape
-    print(f"{args.sequence.name}: frames {indices[args.warmup]}..{indices[-1]} every "
-          f"{args.every} (after {args.warmup} fused), grid {shape[0]}x{shape[1]}x{shape[2]} "
-          f"cells of {voxel} m; medians of {len(rows['occupancy'])} frames, CPU ms, one thread")
-    print(f"  dirty box / whole grid: {100 * med('box_share'):.0f} %; cells changed per "
-          f"frame: {med('changed_cells'):.0f}")
+    print(
+        f"{args.sequence.name}: frames {indices[args.warmup]}..{indices[-1]} every "
+        f"{args.every} (after {args.warmup} fused), grid {shape[0]}x{shape[1]}x{shape[2]} "
+        f"cells of {voxel} m; medians of {len(rows['occupancy'])} frames, CPU ms, one thread"
+    )
+    print(
+        f"  dirty box / whole grid: {100 * med('box_share'):.0f} %; cells changed per "
+        f"frame: {med('changed_cells'):.0f}"
+    )
     print(f"  {'step':<34}{'full (today)':>14}{'incremental':>14}")
-    print(f"  {'occupancy extraction':<34}{med('occupancy'):>14.1f}"
-          f"{med('occupancy_update'):>14.1f}")
-    print(f"  {'flight map update (1 frame)':<34}{med('full_update'):>14.1f}"
-          f"{med('update_region'):>14.1f}")
+    print(
+        f"  {'occupancy extraction':<34}{med('occupancy'):>14.1f}{med('occupancy_update'):>14.1f}"
+    )
+    print(
+        f"  {'flight map update (1 frame)':<34}{med('full_update'):>14.1f}"
+        f"{med('update_region'):>14.1f}"
+    )
     print(f"  {'flight map, fresh full rebuild':<34}{med('rebuild'):>14.1f}{'':>14}")
     print(f"  {f'flight map, {args.merge} frames merged':<34}{'':>14}{med('merged_update'):>14.1f}")
     per_frame = med("occupancy_update") + med("update_region")
     today = med("occupancy") + med("full_update")
-    print(f"  per fused frame, incremental: {per_frame:.1f} ms; per 3 s timer today: {today:.1f} "
-          f"ms -> incremental costs less only below {today / max(per_frame, 1e-9) / 3:.2f} fused "
-          f"frames/s")
+    print(
+        f"  per fused frame, incremental: {per_frame:.1f} ms; per 3 s timer today: {today:.1f} "
+        f"ms -> incremental costs less only below {today / max(per_frame, 1e-9) / 3:.2f} fused "
+        f"frames/s"
+    )
     return 0
 
 

@@ -62,8 +62,9 @@ def track_at_camera_rate(frames: list, K) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequence", nargs="?", default=str(REPO.parent / "shared" / "data" /
-                                                             "7scenes_a"))
+    parser.add_argument(
+        "sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "7scenes_a")
+    )
     parser.add_argument("--frames", type=int, default=150)
     args = parser.parse_args()
     dataset = open_dataset(args.sequence)
@@ -71,10 +72,13 @@ def main() -> None:
     frames = [dataset[i] for i in range(min(args.frames, len(dataset)))]
     K, poses = dataset.intrinsics, dataset.ground_truth.poses
     cv2.setNumThreads(2)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                            capture_output=True, text=True).stdout.strip()
-    print(f"{dataset.name}, {len(frames)} frames at {FPS:g} fps, a fusion every "
-          f"{FUSE_PERIOD_S * 1e3:.0f} ms; commit {commit}")
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
+    ).stdout.strip()
+    print(
+        f"{dataset.name}, {len(frames)} frames at {FPS:g} fps, a fusion every "
+        f"{FUSE_PERIOD_S * 1e3:.0f} ms; commit {commit}"
+    )
     results = {"alone": track_at_camera_rate(frames, K)}
     stop = threading.Event()
     fusing = threading.Thread(target=fuse_until, args=(stop, frames, K, poses))
@@ -92,11 +96,14 @@ def main() -> None:
     alone_p95 = np.percentile(results["alone"], 95)
     print(f"{'tracking beside':24s} {'median ms':>10s} {'p95 ms':>8s} {'max ms':>8s}")
     for name, wall in results.items():
-        print(f"{name:24s} {np.median(wall):10.1f} {np.percentile(wall, 95):8.1f} "
-              f"{wall.max():8.0f}")
+        print(
+            f"{name:24s} {np.median(wall):10.1f} {np.percentile(wall, 95):8.1f} {wall.max():8.0f}"
+        )
     ratio = np.percentile(results["fusion in a process"], 95) / alone_p95
-    print(f"p95 beside fusion in a process / alone: {ratio:.2f} (target <= "
-          f"{TARGET_P95_RATIO:g}): {'PASS' if ratio <= TARGET_P95_RATIO else 'FAIL'}")
+    print(
+        f"p95 beside fusion in a process / alone: {ratio:.2f} (target <= "
+        f"{TARGET_P95_RATIO:g}): {'PASS' if ratio <= TARGET_P95_RATIO else 'FAIL'}"
+    )
 
 
 if __name__ == "__main__":

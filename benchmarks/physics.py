@@ -68,8 +68,9 @@ def bench_quadrotor(config: SimulationConfig, steps: int) -> tuple[int, float, f
 def bench_controller(config: SimulationConfig, steps: int) -> tuple[int, float, float]:
     params = QuadrotorParams.from_config(config)
     quad = Quadrotor(params, config.dt_s)
-    ctrl = CascadedController(params, ControlGains.from_config(config),
-                              ControlLimits.from_config(config))
+    ctrl = CascadedController(
+        params, ControlGains.from_config(config), ControlLimits.from_config(config)
+    )
     sp = Setpoint((0.3, -0.2, 0.1), 0.5)  # a small step, then hover
     wall, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
@@ -77,9 +78,12 @@ def bench_controller(config: SimulationConfig, steps: int) -> tuple[int, float, 
     return steps, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def _timed_advance(drone: DroneSimulator, seconds: float,
-                   between: Callable[[DroneSimulator], None] | None = None,
-                   events: list | None = None):
+def _timed_advance(
+    drone: DroneSimulator,
+    seconds: float,
+    between: Callable[[DroneSimulator], None] | None = None,
+    events: list | None = None,
+):
     """Advance in frame slices for ``seconds`` of simulated time; only advance() is timed. The
     events advance() hands back (once: it forgets them) are added to ``events``."""
     steps0, wall_s, cpu_s = drone.time_s, 0.0, 0.0
@@ -133,8 +137,9 @@ def bench_wall(config: SimulationConfig, seconds: float):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=30.0,
-                        help="simulated seconds per case (default 30)")
+    parser.add_argument(
+        "--seconds", type=float, default=30.0, help="simulated seconds per case (default 30)"
+    )
     args = parser.parse_args(argv)
     config = SimulationConfig()
     n = round(args.seconds * config.physics_hz)
@@ -145,10 +150,20 @@ def main(argv: list[str] | None = None) -> int:
         ("simulator goto", lambda: bench_goto(config, args.seconds)),
         ("simulator on a wall", lambda: bench_wall(config, args.seconds)),
     ]
-    table = Table(title=f"Physics, one drone, one core, {config.physics_hz} Hz "
-                        f"({args.seconds:g} simulated s per case)")
-    columns = ("case", "steps", "steps/CPU-s", "us/step (CPU)", "real-time factor (CPU)",
-               "steps/wall-s", "cpu/wall", f">= {TARGET_RTF:g}x")
+    table = Table(
+        title=f"Physics, one drone, one core, {config.physics_hz} Hz "
+        f"({args.seconds:g} simulated s per case)"
+    )
+    columns = (
+        "case",
+        "steps",
+        "steps/CPU-s",
+        "us/step (CPU)",
+        "real-time factor (CPU)",
+        "steps/wall-s",
+        "cpu/wall",
+        f">= {TARGET_RTF:g}x",
+    )
     for column in columns:
         table.add_column(column, justify="left" if column == "case" else "right")
     rows = []
@@ -156,20 +171,30 @@ def main(argv: list[str] | None = None) -> int:
         steps, wall, cpu = run()
         rate = steps / cpu
         rtf = rate / config.physics_hz
-        row = (name, f"{steps}", f"{rate:,.0f}", f"{1e6 / rate:.1f}", f"{rtf:.1f}x",
-               f"{steps / wall:,.0f}", f"{cpu / wall:.2f}", "✓" if rtf >= TARGET_RTF else "✗")
+        row = (
+            name,
+            f"{steps}",
+            f"{rate:,.0f}",
+            f"{1e6 / rate:.1f}",
+            f"{rtf:.1f}x",
+            f"{steps / wall:,.0f}",
+            f"{cpu / wall:.2f}",
+            "✓" if rtf >= TARGET_RTF else "✗",
+        )
         rows.append((row, rtf))
         table.add_row(*row)
     console.print(table)
 
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     with RESULTS.open("a") as out:
-        out.write(f"\n## {datetime.datetime.now().isoformat(timespec='seconds')}, "
-                  f"{platform.platform()}, {platform.processor() or platform.machine()}, "
-                  f"Python {platform.python_version()}, numpy {np.__version__}\n\n"
-                  f"`python {' '.join(['benchmarks/physics.py', *sys.argv[1:]])}`, "
-                  f"{config.physics_hz} Hz, {args.seconds:g} simulated s per case\n\n"
-                  f"| {' | '.join(columns)} |\n|---|{'--:|' * (len(columns) - 2)}:-:|\n")
+        out.write(
+            f"\n## {datetime.datetime.now().isoformat(timespec='seconds')}, "
+            f"{platform.platform()}, {platform.processor() or platform.machine()}, "
+            f"Python {platform.python_version()}, numpy {np.__version__}\n\n"
+            f"`python {' '.join(['benchmarks/physics.py', *sys.argv[1:]])}`, "
+            f"{config.physics_hz} Hz, {args.seconds:g} simulated s per case\n\n"
+            f"| {' | '.join(columns)} |\n|---|{'--:|' * (len(columns) - 2)}:-:|\n"
+        )
         for row, _ in rows:
             out.write(f"| {' | '.join(row)} |\n")
     console.print(f"appended to {RESULTS}")

@@ -96,8 +96,9 @@ def fuse_flight_map(path: Path, every: int, voxel_m: float, config: SimulationCo
     tsdf = TSDFMap()
     flight_map = FlightMap(voxel_m, config.unknown_is_free)
     timings = {}
-    for n, (i, pose) in enumerate(tqdm(list(zip(frames, poses, strict=True)),
-                                       desc=f"fuse {path.name}", unit="frame")):
+    for n, (i, pose) in enumerate(
+        tqdm(list(zip(frames, poses, strict=True)), desc=f"fuse {path.name}", unit="frame")
+    ):
         frame = dataset[i]
         tsdf.integrate(frame.colour, frame.depth, dataset.intrinsics, pose)
         if n >= len(frames) - 2:  # the map before and after the last frame
@@ -109,8 +110,7 @@ def fuse_flight_map(path: Path, every: int, voxel_m: float, config: SimulationCo
     check = FlightMap(voxel_m, config.unknown_is_free)
     check.update(*grid)
     assert np.array_equal(check.esdf, flight_map.esdf), "incremental ESDF differs from a rebuild"
-    return {"flight_map": flight_map, "occupied": grid[1], "frames_fused": len(frames),
-            **timings}
+    return {"flight_map": flight_map, "occupied": grid[1], "frames_fused": len(frames), **timings}
 
 
 def connected_in_grid(flight_map: FlightMap, clearance_m: float, a: np.ndarray, b: np.ndarray):
@@ -130,32 +130,53 @@ def connected_in_grid(flight_map: FlightMap, clearance_m: float, a: np.ndarray, 
 def plan_pairs(flight_map: FlightMap, starts, goals, config: SimulationConfig, name: str):
     """Plan every pair with the drone's settings; per pair: ok, reason, ms, length, route."""
     results = []
-    for start, goal in tqdm(list(zip(starts, goals, strict=True)), desc=f"plan {name}",
-                            unit="route"):
+    for start, goal in tqdm(
+        list(zip(starts, goals, strict=True)), desc=f"plan {name}", unit="route"
+    ):
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             route = plan_route(flight_map, start, goal, config, config.cruise_speed_m_s)
             reason = None
         except PlanningError as exc:
             route, reason = None, exc.reason.value
-        results.append({"ms": (time.perf_counter() - t0) * 1e3,
-                        "cpu_ms": (time.process_time() - c0) * 1e3, "route": route,
-                        "reason": reason, "start": start.tolist(), "goal": goal.tolist()})
+        results.append(
+            {
+                "ms": (time.perf_counter() - t0) * 1e3,
+                "cpu_ms": (time.process_time() - c0) * 1e3,
+                "route": route,
+                "reason": reason,
+                "start": start.tolist(),
+                "goal": goal.tolist(),
+            }
+        )
     return results
 
 
 # --- flying ------------------------------------------------------------------------------------
-def fly_routes(flight_map: FlightMap, pairs: list[tuple[np.ndarray, np.ndarray, float]],
-               config: SimulationConfig, name: str) -> dict:
+def fly_routes(
+    flight_map: FlightMap,
+    pairs: list[tuple[np.ndarray, np.ndarray, float]],
+    config: SimulationConfig,
+    name: str,
+) -> dict:
     """Fly each (start, goal, planned duration s) with ``DroneSimulator``:
     spawn at start, goto goal (the simulator plans with the same planner), advance in 1/30 s
     slices until it arrives or twice the planned duration (plus 5 s) runs out. Returns
     collisions, arrivals, timeouts, the clearance the drone kept, and physics steps per second
     (wall clock of ``advance`` only)."""
     frame_s = 1.0 / 30.0
-    out = {"flown": 0, "collisions": 0, "arrived": 0, "timeouts": 0, "refused": 0,
-           "min_clearance_m": np.inf, "steps": 0, "advance_s": 0.0, "advance_cpu_s": 0.0,
-           "incidents": []}
+    out = {
+        "flown": 0,
+        "collisions": 0,
+        "arrived": 0,
+        "timeouts": 0,
+        "refused": 0,
+        "min_clearance_m": np.inf,
+        "steps": 0,
+        "advance_s": 0.0,
+        "advance_cpu_s": 0.0,
+        "incidents": [],
+    }
     for start, goal, duration_s in tqdm(pairs, desc=f"fly {name}", unit="route"):
         sim = DroneSimulator(config, flight_map)
         try:
@@ -163,8 +184,9 @@ def fly_routes(flight_map: FlightMap, pairs: list[tuple[np.ndarray, np.ndarray, 
             sim.command_goto(goal)
         except DroneSimError as exc:
             out["refused"] += 1
-            out["incidents"].append({"start": start.tolist(), "goal": goal.tolist(),
-                                     "what": f"refused: {exc}"})
+            out["incidents"].append(
+                {"start": start.tolist(), "goal": goal.tolist(), "what": f"refused: {exc}"}
+            )
             continue
         out["flown"] += 1
         budget = 2.0 * duration_s + 5.0
@@ -179,14 +201,20 @@ def fly_routes(flight_map: FlightMap, pairs: list[tuple[np.ndarray, np.ndarray, 
             for event in events:
                 if event.kind == DroneEventKind.COLLISION:
                     out["collisions"] += 1
-                    out["incidents"].append({"start": start.tolist(), "goal": goal.tolist(),
-                                             "what": f"t={event.time_s:.2f} s: {event.message}"})
+                    out["incidents"].append(
+                        {
+                            "start": start.tolist(),
+                            "goal": goal.tolist(),
+                            "what": f"t={event.time_s:.2f} s: {event.message}",
+                        }
+                    )
                 arrived |= event.kind == DroneEventKind.ARRIVED
         out["arrived"] += arrived
         out["timeouts"] += not arrived
         if not arrived:
-            out["incidents"].append({"start": start.tolist(), "goal": goal.tolist(),
-                                     "what": "did not arrive in time"})
+            out["incidents"].append(
+                {"start": start.tolist(), "goal": goal.tolist(), "what": "did not arrive in time"}
+            )
     out["steps_per_s"] = out["steps"] / max(out["advance_s"], 1e-9)
     out["steps_per_cpu_s"] = out["steps"] / max(out["advance_cpu_s"], 1e-9)
     out["realtime_factor"] = out["steps_per_cpu_s"] / config.physics_hz
@@ -194,8 +222,9 @@ def fly_routes(flight_map: FlightMap, pairs: list[tuple[np.ndarray, np.ndarray, 
 
 
 # --- results -------------------------------------------------------------------------------
-def summarise(flight_map: FlightMap, fused: dict, starts, goals, connected, results,
-              flights: dict | None) -> dict:
+def summarise(
+    flight_map: FlightMap, fused: dict, starts, goals, connected, results, flights: dict | None
+) -> dict:
     ok = np.array([r["route"] is not None for r in results])
     ms = np.array([r["cpu_ms"] for r in results])  # one core's time: fair on a shared machine
     wall = np.array([r["ms"] for r in results])
@@ -228,8 +257,11 @@ def summarise(flight_map: FlightMap, fused: dict, starts, goals, connected, resu
         "plan_ms_p95_found": float(np.percentile(ms[1:][ok[1:]], 95)),
         "plan_wall_ms_p50": float(np.percentile(wall[1:], 50)),
         "plan_wall_ms_p95": float(np.percentile(wall[1:], 95)),
-        "failed_pairs": [{k: r[k] for k in ("start", "goal", "reason")} | {"connected": bool(c)}
-                         for r, c in zip(results, connected, strict=True) if r["reason"]],
+        "failed_pairs": [
+            {k: r[k] for k in ("start", "goal", "reason")} | {"connected": bool(c)}
+            for r, c in zip(results, connected, strict=True)
+            if r["reason"]
+        ],
         "length_ratio_median": float(np.median(ratio)),
         "length_ratio_p95": float(np.percentile(ratio, 95)),
     }
@@ -278,14 +310,18 @@ def cell(summary: dict, key: str, fmt) -> str:
 
 
 def tables(summaries: dict[str, dict], config: SimulationConfig) -> tuple[Table, str]:
-    table = Table(title=f"Route planning in fused maps (drone radius {config.radius_m:g} m + "
-                        f"{config.planning_margin_m:g} m margin)")
+    table = Table(
+        title=f"Route planning in fused maps (drone radius {config.radius_m:g} m + "
+        f"{config.planning_margin_m:g} m margin)"
+    )
     table.add_column("figure")
     for name in summaries:
         table.add_column(name, justify="right")
     table.add_column("target")
-    lines = ["| figure | " + " | ".join(summaries) + " | target |",
-             "|---" * (len(summaries) + 2) + "|"]
+    lines = [
+        "| figure | " + " | ".join(summaries) + " | target |",
+        "|---" * (len(summaries) + 2) + "|",
+    ]
     for key, label, fmt in ROWS:
         cells = [cell(s, key, fmt) for s in summaries.values()]
         target = TARGETS.get(key, ("",))[0]
@@ -294,8 +330,14 @@ def tables(summaries: dict[str, dict], config: SimulationConfig) -> tuple[Table,
     return table, "\n".join(lines) + "\n"
 
 
-def plot_routes(path: Path, flight_map: FlightMap, occupied: np.ndarray, clearance_m: float,
-                routes: list, title: str) -> None:
+def plot_routes(
+    path: Path,
+    flight_map: FlightMap,
+    occupied: np.ndarray,
+    clearance_m: float,
+    routes: list,
+    title: str,
+) -> None:
     """Top view: occupied cells within the heights the drone can fly at (darker = more of them
     in the column; floor and ceiling lie outside that band), columns with flyable space light
     blue, a few routes (circle: start, square: goal)."""
@@ -306,10 +348,22 @@ def plot_routes(path: Path, flight_map: FlightMap, occupied: np.ndarray, clearan
     lo, hi = flight_map.bounds.lo, flight_map.bounds.hi
     extent = (lo[0], hi[0], lo[1], hi[1])
     fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
-    ax.imshow(np.where(flyable.any(axis=2), 1.0, np.nan).T, origin="lower", extent=extent,
-              cmap="Blues", vmin=0, vmax=5)
-    ax.imshow(np.where(obstacles > 0, obstacles, np.nan).T, origin="lower", extent=extent,
-              cmap="Greys", vmin=0, vmax=max(obstacles.max(), 1))
+    ax.imshow(
+        np.where(flyable.any(axis=2), 1.0, np.nan).T,
+        origin="lower",
+        extent=extent,
+        cmap="Blues",
+        vmin=0,
+        vmax=5,
+    )
+    ax.imshow(
+        np.where(obstacles > 0, obstacles, np.nan).T,
+        origin="lower",
+        extent=extent,
+        cmap="Greys",
+        vmin=0,
+        vmax=max(obstacles.max(), 1),
+    )
     colours = plt.cm.tab10(np.arange(len(routes)) % 10)
     for route, colour in zip(routes, colours, strict=True):
         ax.plot(route.path[:, 0], route.path[:, 1], "-", color=colour, lw=2)
@@ -331,17 +385,26 @@ def benchmark(path: Path, args, config: SimulationConfig) -> dict:
     rng = np.random.default_rng(args.seed)
     clearance = config.planning_radius_m + 1e-6
     points = flight_map.random_free_points(2 * args.pairs, clearance, rng)
-    starts, goals = points[: args.pairs], points[args.pairs:]
+    starts, goals = points[: args.pairs], points[args.pairs :]
     connected = connected_in_grid(flight_map, clearance, starts, goals)
     results = plan_pairs(flight_map, starts, goals, config, path.name)
-    flown = [(s, g, r["route"].duration_s) for s, g, r in zip(starts, goals, results, strict=True)
-             if r["route"] is not None][: args.fly]
+    flown = [
+        (s, g, r["route"].duration_s)
+        for s, g, r in zip(starts, goals, results, strict=True)
+        if r["route"] is not None
+    ][: args.fly]
     flights = fly_routes(flight_map, flown, config, path.name) if flown else None
     summary = summarise(flight_map, fused, starts, goals, connected, results, flights)
     routes = [r["route"] for r in results if r["route"] is not None]
     picks = sorted(routes[:40], key=lambda r: -r.length_m)[:8]
-    plot_routes(args.out / f"planning_{path.name}.png", flight_map, fused["occupied"],
-                clearance, picks, f"{path.name}: flight map from above, {len(picks)} routes")
+    plot_routes(
+        args.out / f"planning_{path.name}.png",
+        flight_map,
+        fused["occupied"],
+        clearance,
+        picks,
+        f"{path.name}: flight map from above, {len(picks)} routes",
+    )
     return summary
 
 
@@ -349,8 +412,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequences", nargs="*", type=Path,
-                        help=f"TUM-layout folders (default: {', '.join(SEQUENCES)} in {DATA})")
+    parser.add_argument(
+        "sequences",
+        nargs="*",
+        type=Path,
+        help=f"TUM-layout folders (default: {', '.join(SEQUENCES)} in {DATA})",
+    )
     parser.add_argument("--pairs", type=int, default=1000, help="start/goal pairs per sequence")
     parser.add_argument("--fly", type=int, default=1000, help="fly at most this many routes")
     parser.add_argument("--every", type=int, default=5, help="fuse every n-th frame")
@@ -359,10 +426,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     config = SimulationConfig()
     sequences = args.sequences or [DATA / name for name in SEQUENCES]
-    header = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": platform.platform(), "cpu_count": os.cpu_count(),
-              "python": platform.python_version(), "numpy": np.__version__,
-              "command": shlex.join(["python", "benchmarks/planning.py", *argv])}
+    header = {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "command": shlex.join(["python", "benchmarks/planning.py", *argv]),
+    }
     summaries, failed = {}, 0
     args.out.mkdir(parents=True, exist_ok=True)
     for path in sequences:
@@ -378,10 +449,12 @@ def main(argv: list[str] | None = None) -> int:
     table, markdown = tables(summaries, config)
     console.print(table)
     with open(args.out / "planning.md", "a") as md:
-        md.write(f"\n## Run {header['date']}\n\n- machine: {header['machine']}, "
-                 f"{header['cpu_count']} CPUs, numpy on 1 thread; python {header['python']}, "
-                 f"numpy {header['numpy']}\n- drone: radius {config.radius_m:g} m, planning margin "
-                 f"{config.planning_margin_m:g} m\n- command: `{header['command']}`\n\n{markdown}")
+        md.write(
+            f"\n## Run {header['date']}\n\n- machine: {header['machine']}, "
+            f"{header['cpu_count']} CPUs, numpy on 1 thread; python {header['python']}, "
+            f"numpy {header['numpy']}\n- drone: radius {config.radius_m:g} m, planning margin "
+            f"{config.planning_margin_m:g} m\n- command: `{header['command']}`\n\n{markdown}"
+        )
     json_path = args.out / "planning.json"
     stored = json.loads(json_path.read_text()) if json_path.is_file() else {}
     for name, summary in summaries.items():

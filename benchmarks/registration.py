@@ -19,8 +19,14 @@ from __future__ import annotations
 import os
 
 # One thread everywhere, set before numpy, OpenCV and Open3D start their thread pools.
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-               "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS")
+THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "BLIS_NUM_THREADS",
+)
 for _var in THREAD_VARS:
     os.environ[_var] = "1"
 
@@ -139,7 +145,10 @@ def run_o3d_legacy(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
         o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(np.ascontiguousarray(f.colour)),
             o3d.geometry.Image(np.ascontiguousarray(f.depth, dtype=np.float32)),
-            depth_scale=1.0, depth_trunc=trunc, convert_rgb_to_intensity=True)
+            depth_scale=1.0,
+            depth_trunc=trunc,
+            convert_rgb_to_intensity=True,
+        )
         for f in frames
     ]
     jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
@@ -150,7 +159,8 @@ def run_o3d_legacy(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
     for i in range(1, len(frames)):
         with Clock(run):
             ok, T_cur_prev, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
-                images[i - 1], images[i], pinhole, np.eye(4), jacobian, option)
+                images[i - 1], images[i], pinhole, np.eye(4), jacobian, option
+            )
         if ok and np.all(np.isfinite(T_cur_prev)):
             run.poses[i] = run.poses[i - 1] @ np.linalg.inv(T_cur_prev)
         else:
@@ -170,7 +180,8 @@ def run_o3d_tensor(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
     images = [
         o3d.t.geometry.RGBDImage(
             o3d.t.geometry.Image(np.ascontiguousarray(f.colour)),
-            o3d.t.geometry.Image(np.ascontiguousarray(f.depth, dtype=np.float32)))
+            o3d.t.geometry.Image(np.ascontiguousarray(f.depth, dtype=np.float32)),
+        )
         for f in frames
     ]
     run = MethodRun(poses=np.empty((len(frames), 4, 4)))
@@ -181,8 +192,13 @@ def run_o3d_tensor(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
         with Clock(run):
             try:
                 result = odometry.rgbd_odometry_multi_scale(
-                    images[i - 1], images[i], intrinsics, identity, 1.0,
-                    method=odometry.Method.Hybrid)
+                    images[i - 1],
+                    images[i],
+                    intrinsics,
+                    identity,
+                    1.0,
+                    method=odometry.Method.Hybrid,
+                )
                 if result.fitness > 0:
                     T_cur_prev = result.transformation.numpy()
             except RuntimeError:
@@ -216,7 +232,7 @@ def load_frames(path: Path, frames: int | None, stride: int):
     idx_frame, idx_gt = associate(stamps[indices], ds.ground_truth.timestamps, 0.02)
     if len(idx_frame) < 2:
         raise DroneSimError(f"{path}: fewer than 2 selected frames have ground truth")
-    indices = indices[idx_frame[0]:]  # start at the first frame with a ground-truth pose
+    indices = indices[idx_frame[0] :]  # start at the first frame with a ground-truth pose
     gt_poses = ds.ground_truth.poses[idx_gt]
     loaded = [ds[int(i)] for i in tqdm(indices, desc=f"{path.name} load", unit="frame")]
     fps = 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else float("nan")
@@ -229,9 +245,12 @@ def motion_stats(gt_poses: np.ndarray, fps: float, stride: int) -> dict[str, flo
     dist = np.linalg.norm(rel[:, :3, 3], axis=1)
     angle = np.array([rotation_angle_deg(T) for T in rel])
     return {
-        "stride": stride, "fps": fps,
-        "mean_speed_m_s": float(dist.mean() * fps), "max_speed_m_s": float(dist.max() * fps),
-        "mean_rot_deg_s": float(angle.mean() * fps), "max_rot_deg_s": float(angle.max() * fps),
+        "stride": stride,
+        "fps": fps,
+        "mean_speed_m_s": float(dist.mean() * fps),
+        "max_speed_m_s": float(dist.max() * fps),
+        "mean_rot_deg_s": float(angle.mean() * fps),
+        "max_rot_deg_s": float(angle.max() * fps),
     }
 
 
@@ -240,9 +259,13 @@ def summarise(run: MethodRun, metrics: dict, n_frames: int) -> dict:
     wall_s = t.sum() / 1e3
     return {
         **metrics,
-        "frames": n_frames, "lost": run.lost, "weak": run.weak,
-        "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)),
-        "mean_ms": float(t.mean()), "cpu_per_wall": float(run.cpu_s / wall_s) if wall_s else None,
+        "frames": n_frames,
+        "lost": run.lost,
+        "weak": run.weak,
+        "median_ms": float(np.median(t)),
+        "p90_ms": float(np.percentile(t, 90)),
+        "mean_ms": float(t.mean()),
+        "cpu_per_wall": float(run.cpu_s / wall_s) if wall_s else None,
         "stage_mean_ms": run.stage_ms,
     }
 
@@ -255,8 +278,9 @@ def add_ratios(results: dict[str, dict]) -> None:
         r["speedup_legacy"] = legacy["median_ms"] / r["median_ms"] if legacy else None
         r["speedup_tensor"] = tensor["median_ms"] / r["median_ms"] if tensor else None
         if key.startswith("ours"):
-            r["targets"] = {label: (None if r[k] is None else bool(ok(r[k])))
-                            for k, label, ok in TARGETS}
+            r["targets"] = {
+                label: (None if r[k] is None else bool(ok(r[k]))) for k, label, ok in TARGETS
+            }
 
 
 COLUMNS = (  # (key, header, format); a target mark follows the figure where one applies
@@ -297,17 +321,28 @@ def rich_table(title: str, rows) -> Table:
     for _, header, _ in COLUMNS:
         table.add_column(escape(header), justify="right")
     for cells in rows:
-        table.add_row(*(text if ok is None else f"{text} [{'green]✓' if ok else 'red]✗'}[/]"
-                        for text, ok in cells))
+        table.add_row(
+            *(
+                text if ok is None else f"{text} [{'green]✓' if ok else 'red]✗'}[/]"
+                for text, ok in cells
+            )
+        )
     return table
 
 
 def markdown_table(rows) -> str:
-    lines = ["| method | " + " | ".join(h for _, h, _ in COLUMNS) + " |",
-             "|---" + "|---:" * len(COLUMNS) + "|"]
+    lines = [
+        "| method | " + " | ".join(h for _, h, _ in COLUMNS) + " |",
+        "|---" + "|---:" * len(COLUMNS) + "|",
+    ]
     for cells in rows:
-        lines.append("| " + " | ".join(text if ok is None else f"{text} {'✓' if ok else '✗'}"
-                                       for text, ok in cells) + " |")
+        lines.append(
+            "| "
+            + " | ".join(
+                text if ok is None else f"{text} {'✓' if ok else '✗'}" for text, ok in cells
+            )
+            + " |"
+        )
     return "\n".join(lines)
 
 
@@ -354,9 +389,11 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
         estimates[key] = run.poses
     add_ratios(results)
 
-    speed = (f"{len(frames)} frames, stride {args.stride} at {fps:.0f} Hz: camera "
-             f"{motion['mean_speed_m_s']:.2f} m/s (max {motion['max_speed_m_s']:.2f}), "
-             f"{motion['mean_rot_deg_s']:.0f} deg/s (max {motion['max_rot_deg_s']:.0f})")
+    speed = (
+        f"{len(frames)} frames, stride {args.stride} at {fps:.0f} Hz: camera "
+        f"{motion['mean_speed_m_s']:.2f} m/s (max {motion['max_speed_m_s']:.2f}), "
+        f"{motion['mean_rot_deg_s']:.0f} deg/s (max {motion['max_rot_deg_s']:.0f})"
+    )
     rows = table_rows(results)
     console.print(rich_table(f"{run_name} — {speed}", rows))
     targets = "; ".join(label for _, label, _ in TARGETS)
@@ -365,9 +402,11 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
     png = args.out / f"{run_name}_trajectories.png"
     plot_topview(png, run_name, gt_poses, estimates)
     with open(args.out / "registration.md", "a") as md:
-        md.write(f"\n### {run_name}\n\n{speed}. Targets for our rows: {targets}.\n\n"
-                 f"{markdown_table(rows)}\n\nTrajectories: `trajectories/{run_name}/`, "
-                 f"plot: `{png.name}`.\n")
+        md.write(
+            f"\n### {run_name}\n\n{speed}. Targets for our rows: {targets}.\n\n"
+            f"{markdown_table(rows)}\n\nTrajectories: `trajectories/{run_name}/`, "
+            f"plot: `{png.name}`.\n"
+        )
     return {"header": header, "sequence": str(path), "motion": motion, "methods": results}
 
 
@@ -390,22 +429,37 @@ def default_sequences() -> list[tuple[str, Path]]:
 def run_header(argv: list[str]) -> dict:
     return {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": platform.platform(), "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(), "python": platform.python_version(),
-        "numpy": np.__version__, "opencv": cv2.__version__, "open3d": o3d.__version__,
-        "threads": {"env": {v: os.environ[v] for v in THREAD_VARS},
-                    "cv2": cv2.getNumThreads(), "open3d_max": o3d.utility.get_max_threads()},
+        "machine": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "open3d": o3d.__version__,
+        "threads": {
+            "env": {v: os.environ[v] for v in THREAD_VARS},
+            "cv2": cv2.getNumThreads(),
+            "open3d_max": o3d.utility.get_max_threads(),
+        },
         "command": shlex.join(["python", *argv]),
     }
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequences", nargs="*", type=Path,
-                        help="TUM-layout folders (default: every ../shared/data/* and the demo)")
+    parser.add_argument(
+        "sequences",
+        nargs="*",
+        type=Path,
+        help="TUM-layout folders (default: every ../shared/data/* and the demo)",
+    )
     parser.add_argument("--frames", type=int, help="use only the first N frames of each sequence")
-    parser.add_argument("--stride", type=int, default=1,
-                        help="use every S-th frame, to emulate S times faster motion")
+    parser.add_argument(
+        "--stride",
+        type=int,
+        default=1,
+        help="use every S-th frame, to emulate S times faster motion",
+    )
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
     args = parser.parse_args(argv)
@@ -427,18 +481,21 @@ def main(argv: list[str] | None = None) -> int:
         f"opencv {header['opencv']}, open3d {header['open3d']}\n"
         f"threads: {', '.join(f'{k}=1' for k in THREAD_VARS)}, cv2.setNumThreads(1) -> "
         f"{threads['cv2']}, open3d.utility.set_max_threads(1) -> {threads['open3d_max']}\n"
-        f"command: {header['command']}")
+        f"command: {header['command']}"
+    )
     sequences = [(p.name, p) for p in args.sequences] or default_sequences()
 
     args.out.mkdir(parents=True, exist_ok=True)
     md_path, json_path = args.out / "registration.md", args.out / "registration.json"
     with open(md_path, "a") as md:
-        md.write(f"\n## Run {header['date']}\n\n"
-                 f"- machine: {header['machine']} ({header['processor']}), "
-                 f"{header['cpu_count']} CPUs, all methods on 1 thread\n"
-                 f"- python {header['python']}, numpy {header['numpy']}, "
-                 f"opencv {header['opencv']}, open3d {header['open3d']}\n"
-                 f"- command: `{header['command']}`\n")
+        md.write(
+            f"\n## Run {header['date']}\n\n"
+            f"- machine: {header['machine']} ({header['processor']}), "
+            f"{header['cpu_count']} CPUs, all methods on 1 thread\n"
+            f"- python {header['python']}, numpy {header['numpy']}, "
+            f"opencv {header['opencv']}, open3d {header['open3d']}\n"
+            f"- command: `{header['command']}`\n"
+        )
     stored = json.loads(json_path.read_text()) if json_path.is_file() else {}
     failed = 0
     for name, path in sequences:

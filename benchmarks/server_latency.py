@@ -68,8 +68,13 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=None, help="frames per run (default: all)")
     parser.add_argument("--fps", type=float, nargs="+", default=[30.0, 15.0])
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
-    parser.add_argument("--server-env", nargs="*", default=[], metavar="NAME=VALUE",
-                        help="server settings, e.g. DRONESIM_ALLOCATOR=system")
+    parser.add_argument(
+        "--server-env",
+        nargs="*",
+        default=[],
+        metavar="NAME=VALUE",
+        help="server settings, e.g. DRONESIM_ALLOCATOR=system",
+    )
     args = parser.parse_args()
 
     dataset = open_dataset(args.sequence)
@@ -111,7 +116,8 @@ def main() -> None:
             else "-"
         )
         stages = ", ".join(
-            f"{k} {v:.1f}" for k, v in r["stages_median_ms"].items()
+            f"{k} {v:.1f}"
+            for k, v in r["stages_median_ms"].items()
             if not k.startswith("track_") or k == "track_cpu"
         )
         table.add_row(

@@ -92,8 +92,9 @@ class RSSSampler(threading.Thread):
         while True:
             try:
                 live = self.server.health()["live_sessions"]
-                self.samples.append((time.monotonic() - self.t0, tree_memory_mb(self.server.pid),
-                                     live))
+                self.samples.append(
+                    (time.monotonic() - self.t0, tree_memory_mb(self.server.pid), live)
+                )
             except (OSError, ValueError):  # a slow or restarting server: skip the sample
                 pass
             if self._done.wait(self.every_s):
@@ -130,15 +131,29 @@ def ply_points(data: bytes, folder: Path) -> int:
     return len(o3d.io.read_point_cloud(str(path)).points)
 
 
-async def run_client(index: int, server: ServerProcess, dataset: PingPong, args,
-                     deadline: float, t0: float, tmp: Path,
-                     records: list[SessionRecord]) -> None:
+async def run_client(
+    index: int,
+    server: ServerProcess,
+    dataset: PingPong,
+    args,
+    deadline: float,
+    t0: float,
+    tmp: Path,
+    records: list[SessionRecord],
+) -> None:
     async with httpx.AsyncClient(base_url=server.url, timeout=120) as http:
         while time.monotonic() + 20 < deadline:  # a session of at least 20 s
             r = await http.post("/api/sessions")
             if r.status_code != 201:
-                records.append(SessionRecord(index, "-", "-", time.monotonic() - t0,
-                                             problems=[f"create: HTTP {r.status_code} {r.text}"]))
+                records.append(
+                    SessionRecord(
+                        index,
+                        "-",
+                        "-",
+                        time.monotonic() - t0,
+                        problems=[f"create: HTTP {r.status_code} {r.text}"],
+                    )
+                )
                 await asyncio.sleep(5)
                 continue
             body = r.json()
@@ -146,10 +161,16 @@ async def run_client(index: int, server: ServerProcess, dataset: PingPong, args,
             records.append(record)
             seconds = min(args.session_minutes * 60, deadline - time.monotonic())
             try:
-                stats = await replay(f"{server.ws_url}/ws/sessions/{record.id}",
-                                     record.token, dataset, fps=args.fps,
-                                     max_frames=int(seconds * args.fps), loop_sequence=True,
-                                     preencode=True, client_name=f"soak/{index}")
+                stats = await replay(
+                    f"{server.ws_url}/ws/sessions/{record.id}",
+                    record.token,
+                    dataset,
+                    fps=args.fps,
+                    max_frames=int(seconds * args.fps),
+                    loop_sequence=True,
+                    preencode=True,
+                    client_name=f"soak/{index}",
+                )
             except Exception as exc:  # any failure of a session is a finding, not a crash
                 record.problems.append(f"stream: {type(exc).__name__}: {exc}")
                 continue
@@ -173,8 +194,10 @@ def check_live(r: SessionRecord) -> None:
         r.problems.append(f"{len(r.errors)} error messages: {r.errors[:3]}")
     processed = (r.status or {}).get("frames_processed")
     if trajectory_poses(r.trajectory) != processed:
-        r.problems.append(f"trajectory has {trajectory_poses(r.trajectory)} poses, status says "
-                          f"{processed} processed")
+        r.problems.append(
+            f"trajectory has {trajectory_poses(r.trajectory)} poses, status says "
+            f"{processed} processed"
+        )
     if processed is None or processed < r.poses:
         r.problems.append(f"client got {r.poses} poses, server processed {processed}")
     if r.map_points < 1000:
@@ -188,14 +211,15 @@ def check_after_restart(url: str, records: list[SessionRecord], tmp: Path) -> No
             continue
         headers = {"Authorization": f"Bearer {r.token}"}
         status = httpx.get(f"{url}/api/sessions/{r.id}", headers=headers, timeout=60)
-        traj = httpx.get(f"{url}/api/sessions/{r.id}/trajectory.tum", headers=headers,
-                         timeout=60)
+        traj = httpx.get(f"{url}/api/sessions/{r.id}/trajectory.tum", headers=headers, timeout=60)
         ply = httpx.get(f"{url}/api/sessions/{r.id}/map.ply", headers=headers, timeout=120)
         if status.status_code != 200 or not status.json().get("closed"):
             r.problems.append(f"after restart: status HTTP {status.status_code}")
         if traj.content != r.trajectory:
-            r.problems.append(f"after restart: trajectory differs ({trajectory_poses(traj.content)}"
-                              f" poses, {trajectory_poses(r.trajectory)} before)")
+            r.problems.append(
+                f"after restart: trajectory differs ({trajectory_poses(traj.content)}"
+                f" poses, {trajectory_poses(r.trajectory)} before)"
+            )
         points = ply_points(ply.content, tmp) if ply.status_code == 200 else 0
         if points < 0.9 * r.map_points:
             r.problems.append(f"after restart: map has {points} points, {r.map_points} before")
@@ -216,11 +240,16 @@ def rss_analysis(samples: list[tuple[float, float, int]], base_live: int) -> dic
     base = (live == base_live) & half
     slope = float(np.polyfit(t[base], rss[base], 1)[0]) if base.sum() >= 3 else float("nan")
     first = (live == base_live) & ~half
-    return {"start_mb": float(rss[0]), "end_mb": float(rss[-1]), "max_mb": float(rss.max()),
-            "base_live_sessions": base_live,
-            "base_first_half_mb": float(np.median(rss[first])) if first.any() else float("nan"),
-            "base_second_half_mb": float(np.median(rss[base])) if base.any() else float("nan"),
-            "base_slope_mb_per_min": slope, "samples": len(samples)}
+    return {
+        "start_mb": float(rss[0]),
+        "end_mb": float(rss[-1]),
+        "max_mb": float(rss.max()),
+        "base_live_sessions": base_live,
+        "base_first_half_mb": float(np.median(rss[first])) if first.any() else float("nan"),
+        "base_second_half_mb": float(np.median(rss[base])) if base.any() else float("nan"),
+        "base_slope_mb_per_min": slope,
+        "samples": len(samples),
+    }
 
 
 def write_plot(samples, records: list[SessionRecord], args, path: Path) -> None:
@@ -236,24 +265,37 @@ def write_plot(samples, records: list[SessionRecord], args, path: Path) -> None:
     ax.set_ylabel("memory (MB)", color="tab:blue")
     ax.set_ylim(bottom=0)
     twin = ax.twinx()
-    twin.step(t, [s[2] for s in samples], where="post", color="tab:grey", alpha=0.6,
-              label="live sessions")
+    twin.step(
+        t, [s[2] for s in samples], where="post", color="tab:grey", alpha=0.6, label="live sessions"
+    )
     twin.set_ylabel("live sessions", color="tab:grey")
     twin.set_ylim(0, max(s[2] for s in samples) + 1)
     for r in records:
         ax.axvline(r.started_s / 60.0, color="tab:green", alpha=0.25, lw=0.8)
-    ax.set_title(f"Soak: {args.sessions} x {args.fps:g} fps, sessions of "
-                 f"{args.session_minutes:g} min (green: a session starts)")
+    ax.set_title(
+        f"Soak: {args.sessions} x {args.fps:g} fps, sessions of "
+        f"{args.session_minutes:g} min (green: a session starts)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def write_report(path: Path, args, command: str, rss: dict, records, wall_min: float,
-                 load: tuple[float, float], log_problems: list[str], restart_ok: bool) -> bool:
+def write_report(
+    path: Path,
+    args,
+    command: str,
+    rss: dict,
+    records,
+    wall_min: float,
+    load: tuple[float, float],
+    log_problems: list[str],
+    restart_ok: bool,
+) -> bool:
     streamed = [r for r in records if r.status is not None]
-    problems = [(r.id, p) for r in records for p in r.problems] + [("server", p)
-                                                                   for p in log_problems]
+    problems = [(r.id, p) for r in records for p in r.problems] + [
+        ("server", p) for p in log_problems
+    ]
     flat = not rss["base_slope_mb_per_min"] > RSS_GROWTH_LIMIT_MB_PER_MIN
     ok = flat and not problems and restart_ok and bool(streamed)
     short = args.minutes < 30
@@ -263,10 +305,12 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
         "",
     ]
     if short:
-        lines += [f"> **Short run** ({args.minutes:g} min instead of 30) on a shared, loaded "
-                  "machine: it shows the soak works and what to look at; run "
-                  "`python benchmarks/soak.py` (30 min) on a quiet machine for the real figure.",
-                  ""]
+        lines += [
+            f"> **Short run** ({args.minutes:g} min instead of 30) on a shared, loaded "
+            "machine: it shows the soak works and what to look at; run "
+            "`python benchmarks/soak.py` (30 min) on a quiet machine for the real figure.",
+            "",
+        ]
     lines += [
         f"{datetime.datetime.now():%Y-%m-%d %H:%M}; {platform.platform()}, {os.cpu_count()} cores,"
         f" load average {load[0]:.2f} before / {load[1]:.2f} after; sequence {args.sequence.name}"
@@ -304,19 +348,24 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
     ]
     for r in records:
         processed = (r.status or {}).get("frames_processed", "-")
-        lines.append(f"| {r.client} | {r.id} | {r.started_s / 60:.1f} | {r.sent} | {r.poses} | "
-                     f"{processed} | {trajectory_poses(r.trajectory)} | {r.map_points} | "
-                     f"{'; '.join(r.problems) or '-'} |")
+        lines.append(
+            f"| {r.client} | {r.id} | {r.started_s / 60:.1f} | {r.sent} | {r.poses} | "
+            f"{processed} | {trajectory_poses(r.trajectory)} | {r.map_points} | "
+            f"{'; '.join(r.problems) or '-'} |"
+        )
     if log_problems:
         lines += ["", "Server log:", *[f"- {p}" for p in log_problems]]
-    lines += ["", "How to read it: each client streams one session after another; a finished "
-              "session stays live until the TTL closes and saves it, so RSS rises with the "
-              "live sessions and falls as they close. Flat means the level it returns to (the "
-              "base level, with only the streaming sessions live) does not creep up. After the "
-              "run the server is stopped (SIGTERM) and started again, "
-              "and every session's trajectory must download byte for byte as before and its map "
-              "with at least 90 % of its points (fusion may still have added frames after the "
-              "first download)."]
+    lines += [
+        "",
+        "How to read it: each client streams one session after another; a finished "
+        "session stays live until the TTL closes and saves it, so RSS rises with the "
+        "live sessions and falls as they close. Flat means the level it returns to (the "
+        "base level, with only the streaming sessions live) does not creep up. After the "
+        "run the server is stopped (SIGTERM) and started again, "
+        "and every session's trajectory must download byte for byte as before and its map "
+        "with at least 90 % of its points (fusion may still have added frames after the "
+        "first download).",
+    ]
     path.write_text("\n".join(lines) + "\n")
     return ok
 
@@ -326,8 +375,12 @@ def write_report(path: Path, args, command: str, rss: dict, records, wall_min: f
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequence", nargs="?", type=Path,
-                        default=REPO.parent / "shared" / "data" / "synthetic_room0")
+    parser.add_argument(
+        "sequence",
+        nargs="?",
+        type=Path,
+        default=REPO.parent / "shared" / "data" / "synthetic_room0",
+    )
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--sessions", type=int, default=4)
     parser.add_argument("--fps", type=float, default=15.0)
@@ -335,8 +388,13 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=60, help="frames of the sequence played")
     parser.add_argument("--ttl-s", type=float, default=60.0, help="server session TTL")
     parser.add_argument("--sample-s", type=float, default=5.0, help="RSS sampling period")
-    parser.add_argument("--server-env", nargs="*", default=[], metavar="NAME=VALUE",
-                        help="extra environment for the server, e.g. DRONESIM_ALLOCATOR=system")
+    parser.add_argument(
+        "--server-env",
+        nargs="*",
+        default=[],
+        metavar="NAME=VALUE",
+        help="extra environment for the server, e.g. DRONESIM_ALLOCATOR=system",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     command = "python benchmarks/soak.py " + " ".join(sys.argv[1:])
@@ -346,9 +404,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
         tmp = Path(tmp_name)
         data_dir, log = tmp / "data", tmp / "server.log"
-        env = {"DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
-               "DRONESIM_CREATE_RATE_PER_MIN": "0", "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
-               **environment(args.server_env)}
+        env = {
+            "DRONESIM_MAX_SESSIONS": str(2 * args.sessions + 2),
+            "DRONESIM_CREATE_RATE_PER_MIN": "0",
+            "DRONESIM_SESSION_TTL_S": str(args.ttl_s),
+            **environment(args.server_env),
+        }
         records: list[SessionRecord] = []
         with ServerProcess(data_dir, env, log) as server:  # killed if anything below fails
             sampler = RSSSampler(server, args.sample_s)
@@ -357,8 +418,12 @@ def main() -> int:
             deadline = t0 + args.minutes * 60
 
             async def clients():
-                await asyncio.gather(*(run_client(i, server, dataset, args, deadline, t0,
-                                                  tmp, records) for i in range(args.sessions)))
+                await asyncio.gather(
+                    *(
+                        run_client(i, server, dataset, args, deadline, t0, tmp, records)
+                        for i in range(args.sessions)
+                    )
+                )
 
             asyncio.run(clients())
             while time.monotonic() < deadline:  # a client's last session may end early
@@ -371,13 +436,25 @@ def main() -> int:
             restart_code = restarted.terminate()
         restart_ok = restart_code in (0, -signal.SIGTERM) and code in (0, -signal.SIGTERM)
         text = log.read_text()
-        log_problems = [line for line in text.splitlines()
-                        if "Traceback" in line or line.startswith(("ERROR", "CRITICAL"))]
+        log_problems = [
+            line
+            for line in text.splitlines()
+            if "Traceback" in line or line.startswith(("ERROR", "CRITICAL"))
+        ]
     args.out.mkdir(parents=True, exist_ok=True)
     rss = rss_analysis(sampler.samples, base_live=args.sessions)
     write_plot(sampler.samples, records, args, args.out / "soak.png")
-    ok = write_report(args.out / "soak.md", args, command, rss, records, wall_min,
-                      (load_before, os.getloadavg()[0]), log_problems, restart_ok)
+    ok = write_report(
+        args.out / "soak.md",
+        args,
+        command,
+        rss,
+        records,
+        wall_min,
+        (load_before, os.getloadavg()[0]),
+        log_problems,
+        restart_ok,
+    )
     print((args.out / "soak.md").read_text())
     return 0 if ok else 1
 

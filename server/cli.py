@@ -120,17 +120,21 @@ def serve(
     demo: Annotated[
         bool | None, typer.Option("--demo/--no-demo", help="replay the demo sequence")
     ] = None,
-    ray: Annotated[str | None, typer.Option(
-        "--ray", metavar="ADDRESS",
-        help="run sessions as Ray actors: auto, ray://host:10001, or local")] = None,
+    ray: Annotated[
+        str | None,
+        typer.Option(
+            "--ray",
+            metavar="ADDRESS",
+            help="run sessions as Ray actors: auto, ray://host:10001, or local",
+        ),
+    ] = None,
 ) -> None:
     """Run the server (settings from DRONESIM_* environment variables, overridden by flags)."""
     from pydantic import ValidationError
 
     from server.settings import Settings
 
-    flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo,
-             "ray": ray}
+    flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo, "ray": ray}
     try:
         settings = Settings(**{k: v for k, v in flags.items() if v is not None})
     except ValidationError as exc:

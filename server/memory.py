@@ -65,8 +65,10 @@ def restart_on_jemalloc() -> None:
         return
     library = find_jemalloc()
     if library is None:
-        log.warning("jemalloc is not installed (Debian: libjemalloc2): running on glibc's malloc, "
-                    "whose memory can grow with many sessions over hours")
+        log.warning(
+            "jemalloc is not installed (Debian: libjemalloc2): running on glibc's malloc, "
+            "whose memory can grow with many sessions over hours"
+        )
         return
     preload = os.environ.get("LD_PRELOAD", "")
     if library in preload.split():

@@ -61,8 +61,14 @@ class Settings(BaseSettings):
     def _exact_origins(cls, v: list[str]) -> list[str]:
         for origin in v:
             parts = urlsplit(origin)
-            if "*" in origin or parts.scheme not in ("http", "https") or not parts.netloc or (
-                    parts.path or parts.query or parts.fragment):
-                raise ValueError(f"cors origin {origin!r} must be exactly scheme://host[:port] "
-                                 "(no wildcard, no path): a wildcard lets any page call the API")
+            if (
+                "*" in origin
+                or parts.scheme not in ("http", "https")
+                or not parts.netloc
+                or (parts.path or parts.query or parts.fragment)
+            ):
+                raise ValueError(
+                    f"cors origin {origin!r} must be exactly scheme://host[:port] "
+                    "(no wildcard, no path): a wildcard lets any page call the API"
+                )
         return v

@@ -27,10 +27,19 @@ ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "test-artifacts" / "web"
 CHROMIUM = Path(os.environ.get("DRONESIM_CHROMIUM", "/usr/bin/chromium"))
 # Software WebGL (SwiftShader): headless machines have no GPU.
-CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                 "--ignore-gpu-blocklist", "--disable-dev-shm-usage"]
-PHONE = {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True,
-         "device_scale_factor": 1}
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--ignore-gpu-blocklist",
+    "--disable-dev-shm-usage",
+]
+PHONE = {
+    "viewport": {"width": 390, "height": 844},
+    "has_touch": True,
+    "is_mobile": True,
+    "device_scale_factor": 1,
+}
 DESKTOP = {"viewport": {"width": 1280, "height": 800}}
 REPLAY_PATH = "/?mode=demo-small"  # the page with the small demo preselected
 APP_READY = "window.dronesim && window.dronesim.protocol && window.dronesim.pilot"
@@ -67,8 +76,9 @@ class Page:
         self.page = self.context.new_page()
         self.errors: list[str] = []
         self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
-        self.page.on("console",
-                     lambda m: m.type == "error" and self.errors.append(f"console: {m.text}"))
+        self.page.on(
+            "console", lambda m: m.type == "error" and self.errors.append(f"console: {m.text}")
+        )
         self.page.goto(f"{server.url}{path}")
         self.page.wait_for_function(APP_READY, timeout=20_000)
 
@@ -82,11 +92,21 @@ class Page:
             self.page.wait_for_function(js, timeout=timeout_s * 1000, polling=100)
         except sync_api.TimeoutError:
             s = self.snapshot()
-            keys = ("connection", "poses", "states", "sent", "droneStates", "mapPoints", "errors",
-                    "events", "commands")
+            keys = (
+                "connection",
+                "poses",
+                "states",
+                "sent",
+                "droneStates",
+                "mapPoints",
+                "errors",
+                "events",
+                "commands",
+            )
             brief = json.dumps({k: s.get(k) for k in keys}, default=str)[:2000]
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what or js}; "
-                                 f"page saw {brief}") from None
+            raise AssertionError(
+                f"timed out after {timeout_s} s waiting for {what or js}; page saw {brief}"
+            ) from None
 
     def screenshot(self, name: str, selector: str | None = None) -> np.ndarray:
         """Save a screenshot (of the page or one element) under test-artifacts/web; -> RGB."""
@@ -119,8 +139,11 @@ def start_replay(page: Page, min_poses: int, tap: bool = False) -> dict:
     """Press Start; wait for min_poses poses and the HUD's "tracking ok"."""
     (page.page.tap if tap else page.page.click)("#btn-stream")
     page.wait(f"window.dronesim.seen.poses >= {min_poses}", 90, f"{min_poses} poses")
-    page.wait("document.querySelector('[data-field=tracking]').textContent === 'tracking ok'",
-              30, "the HUD to show tracking ok")
+    page.wait(
+        "document.querySelector('[data-field=tracking]').textContent === 'tracking ok'",
+        30,
+        "the HUD to show tracking ok",
+    )
     return page.snapshot()
 
 
@@ -164,8 +187,11 @@ def expected_drone_screen_point(snap: dict) -> tuple[float, float, float] | None
     if not (30 <= u <= W - 30 and 30 <= v <= H - 30):
         return None
     st = ar["stage"]
-    return (st["left"] + (u + 0.5) / W * st["width"], st["top"] + (v + 0.5) / H * st["height"],
-            float(z))
+    return (
+        st["left"] + (u + 0.5) / W * st["width"],
+        st["top"] + (v + 0.5) / H * st["height"],
+        float(z),
+    )
 
 
 def drone_position(snap: dict) -> np.ndarray:
@@ -196,5 +222,7 @@ def wait_for_approach(page: Page, command_id: int, timeout_s: float = 25.0) -> d
             return {"start": d0, "closest": d_min, "arrived": arrived, "target": target.tolist()}
         time.sleep(0.2)
     last = json.dumps(page.snapshot()["lastDrone"], default=str)[:600]
-    raise AssertionError(f"the drone did not approach its target within {timeout_s} s (ids {ids},"
-                         f" first distance {d0}, closest {d_min}; last drone state {last})")
+    raise AssertionError(
+        f"the drone did not approach its target within {timeout_s} s (ids {ids},"
+        f" first distance {d0}, closest {d_min}; last drone state {last})"
+    )

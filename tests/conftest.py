@@ -103,8 +103,9 @@ class LiveServer:
             self.port = s.getsockname()[1]
         self.settings = Settings(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
         self.app = create_app(self.settings)
-        self.server = make_server(self.settings, self.app, log_level="warning",
-                                  ws_max_size=64 * 2**20)
+        self.server = make_server(
+            self.settings, self.app, log_level="warning", ws_max_size=64 * 2**20
+        )
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
         import time
@@ -161,8 +162,9 @@ class Stream:
         """Connect and say hello (a socket of ours that the server still holds is taken over)."""
         K = self.dataset.intrinsics
         self.ws = await websockets.connect(self.url, max_size=None)
-        await self.ws.send(P.encode(P.make_hello("test", (K.fx, K.fy, K.cx, K.cy),
-                                                 (K.width, K.height))))
+        await self.ws.send(
+            P.encode(P.make_hello("test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height)))
+        )
         welcome = await self.answer()
         assert welcome["type"] == "welcome", welcome
         return self

@@ -89,8 +89,9 @@ class Client:
 
     async def next(self, timeout: float = 15.0) -> dict:
         """The next message of any type."""
-        return P.decode(await asyncio.wait_for(self.ws.recv(), timeout),
-                        direction=P.SERVER_TO_CLIENT)
+        return P.decode(
+            await asyncio.wait_for(self.ws.recv(), timeout), direction=P.SERVER_TO_CLIENT
+        )
 
     async def close_code(self, timeout: float = 15.0) -> int:
         """Wait for the server to close; fails on any answer before the close."""
@@ -113,8 +114,9 @@ async def fresh_session(server: LiveServer):
     holds its TSDF buffers, tens of MB)."""
     sid, token = server.create_session()
     try:
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}",
-                                      max_size=None) as ws:
+        async with websockets.connect(
+            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
+        ) as ws:
             yield Client(ws)
     finally:
         httpx.delete(f"{server.url}/api/sessions/{sid}", headers=auth(token))
@@ -131,8 +133,10 @@ class HealthyStream:
     def __init__(self, server: LiveServer, dataset, fps: float = 5.0, frames: int = 20) -> None:
         self.server, self.fps = server, fps
         self.K = dataset.intrinsics
-        self.frames = [P.encode(P.make_frame(i, dataset[i].timestamp, dataset[i].colour,
-                                             dataset[i].depth)) for i in range(frames)]
+        self.frames = [
+            P.encode(P.make_frame(i, dataset[i].timestamp, dataset[i].colour, dataset[i].depth))
+            for i in range(frames)
+        ]
         self.pose_times: list[float] = []
         self.errors: list[dict] = []
         self.close_code: int | None = None
@@ -164,8 +168,10 @@ class HealthyStream:
             if later:
                 return later[0] - t
             time.sleep(0.02)
-        raise AssertionError(f"healthy session: no pose for {timeout} s "
-                             f"(errors {self.errors}, close {self.close_code})")
+        raise AssertionError(
+            f"healthy session: no pose for {timeout} s "
+            f"(errors {self.errors}, close {self.close_code})"
+        )
 
     def longest_gap(self) -> float:
         return float(np.diff(self.pose_times).max()) if len(self.pose_times) > 1 else 0.0
@@ -174,8 +180,9 @@ class HealthyStream:
         sid, token = self.server.create_session()
         order = [*range(len(self.frames)), *range(len(self.frames) - 2, 0, -1)]  # ping-pong
         acked = -1
-        async with websockets.connect(f"{self.server.ws_url}/ws/sessions/{sid}?token={token}",
-                                      max_size=None) as ws:
+        async with websockets.connect(
+            f"{self.server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
+        ) as ws:
             await ws.send(P.encode(self.hello("healthy")))
             assert P.decode(await ws.recv())["type"] == "welcome"
 
@@ -206,8 +213,13 @@ class HealthyStream:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    server = LiveServer(tmp_path_factory.mktemp("bad_input") / "data", max_message_bytes=MAX_BYTES,
-                        max_sessions=1000, create_rate_per_min=0, snapshot_interval_s=3600)
+    server = LiveServer(
+        tmp_path_factory.mktemp("bad_input") / "data",
+        max_message_bytes=MAX_BYTES,
+        max_sessions=1000,
+        create_rate_per_min=0,
+        snapshot_interval_s=3600,
+    )
     yield server
     server.stop()
 
@@ -248,24 +260,41 @@ FATAL = {  # id: (hello first?, what is sent, error name)
     "intrinsics a str": (False, raw({**HELLO, "intrinsics": "fx fy cx cy"}), "invalid_field"),
     "three intrinsics": (False, raw({**HELLO, "intrinsics": [60.0, 60.0, 31.5]}), "invalid_field"),
     "sizes as floats": (False, raw({**HELLO, "colour_size": [64.0, 48.0]}), "invalid_field"),
-    "NaN intrinsics": (False, raw({**HELLO, "intrinsics": [NAN, 60.0, 31.5, 23.5]}),
-                       "invalid_field"),
+    "NaN intrinsics": (
+        False,
+        raw({**HELLO, "intrinsics": [NAN, 60.0, 31.5, 23.5]}),
+        "invalid_field",
+    ),
     "inf depth_scale in hello": (False, raw({**HELLO, "depth_scale": INF}), "invalid_field"),
     "client_name of 10 kB": (False, raw({**HELLO, "client_name": "x" * 10_000}), "invalid_field"),
     "version mismatch": (False, raw({**HELLO, "version": P.VERSION + 1}), "version_mismatch"),
-    "version mismatch, other fields": (False, raw({"type": "hello", "version": 99, "x": 1}),
-                                       "version_mismatch"),
-    "focal length of 1e6 px": (False, raw({**HELLO, "intrinsics": [1e6, 1e6, 31.5, 23.5]}),
-                               "bad_intrinsics"),
-    "negative focal length": (False, raw({**HELLO, "intrinsics": [-60.0, 60.0, 31.5, 23.5]}),
-                              "bad_intrinsics"),
-    "fx ten times fy": (False, raw({**HELLO, "intrinsics": [200.0, 20.0, 31.5, 23.5]}),
-                        "bad_intrinsics"),
-    "principal point outside": (False, raw({**HELLO, "intrinsics": [60.0, 60.0, -5.0, 23.5]}),
-                                "bad_intrinsics"),
+    "version mismatch, other fields": (
+        False,
+        raw({"type": "hello", "version": 99, "x": 1}),
+        "version_mismatch",
+    ),
+    "focal length of 1e6 px": (
+        False,
+        raw({**HELLO, "intrinsics": [1e6, 1e6, 31.5, 23.5]}),
+        "bad_intrinsics",
+    ),
+    "negative focal length": (
+        False,
+        raw({**HELLO, "intrinsics": [-60.0, 60.0, 31.5, 23.5]}),
+        "bad_intrinsics",
+    ),
+    "fx ten times fy": (
+        False,
+        raw({**HELLO, "intrinsics": [200.0, 20.0, 31.5, 23.5]}),
+        "bad_intrinsics",
+    ),
+    "principal point outside": (
+        False,
+        raw({**HELLO, "intrinsics": [60.0, 60.0, -5.0, 23.5]}),
+        "bad_intrinsics",
+    ),
     "zero image size": (False, raw({**HELLO, "colour_size": [0, 0]}), "bad_image_size"),
-    "huge image size": (False, raw({**HELLO, "colour_size": [100_000, 75_000]}),
-                        "bad_image_size"),
+    "huge image size": (False, raw({**HELLO, "colour_size": [100_000, 75_000]}), "bad_image_size"),
     "depth aspect differs": (False, raw({**HELLO, "depth_size": [64, 64]}), "bad_image_size"),
     "frame before hello": (False, raw(frame(0)), "unexpected_message"),
     "command before hello": (False, raw(P.make_command(1, "hold")), "unexpected_message"),
@@ -279,21 +308,34 @@ FATAL = {  # id: (hello first?, what is sent, error name)
     "frame depth_scale inf": (True, raw(frame(0, depth_scale=INF)), "invalid_field"),
     "frame depth_scale negative": (True, raw(frame(0, depth_scale=-1000.0)), "invalid_field"),
     "frame depth_scale zero": (True, raw(frame(0, depth_scale=0.0)), "invalid_field"),
-    "goto with NaN target": (True, raw({**P.make_command(1, "goto", target=[0, 0, 1]),
-                                        "target": [NAN, 0.0, 1.0]}), "invalid_field"),
-    "goto with inf target": (True, raw({**P.make_command(1, "goto", target=[0, 0, 1]),
-                                        "target": [0.0, -INF, 1.0]}), "invalid_field"),
-    "sticks beyond 1": (True, raw(P.make_command(1, "sticks", sticks=[2, 0, 0, 0])),
-                        "invalid_field"),
+    "goto with NaN target": (
+        True,
+        raw({**P.make_command(1, "goto", target=[0, 0, 1]), "target": [NAN, 0.0, 1.0]}),
+        "invalid_field",
+    ),
+    "goto with inf target": (
+        True,
+        raw({**P.make_command(1, "goto", target=[0, 0, 1]), "target": [0.0, -INF, 1.0]}),
+        "invalid_field",
+    ),
+    "sticks beyond 1": (
+        True,
+        raw(P.make_command(1, "sticks", sticks=[2, 0, 0, 0])),
+        "invalid_field",
+    ),
     "oversized garbage": (False, b"\xc1" * (MAX_BYTES + 1), "message_too_big"),
-    "oversized frame": (True, raw(frame(0, colour=b"\xff\xd8\xff" + bytes(MAX_BYTES))),
-                        "message_too_big"),
+    "oversized frame": (
+        True,
+        raw(frame(0, colour=b"\xff\xd8\xff" + bytes(MAX_BYTES))),
+        "message_too_big",
+    ),
 }
 
 
 @pytest.mark.parametrize("case", FATAL, ids=list(FATAL))
 def test_a_fatal_case_is_answered_with_its_code_and_closed_with_its_close_code(
-        server, neighbour_keeps_going, case):
+    server, neighbour_keeps_going, case
+):
     hello_first, payload, name = FATAL[case]
 
     async def go():
@@ -316,7 +358,7 @@ def _png8() -> bytes:
 
 def _corrupt_idat(png: bytes) -> bytes:
     start = png.index(b"IDAT") + 8
-    return png[:start] + bytes(b ^ 0x5A for b in png[start:start + 40]) + png[start + 40:]
+    return png[:start] + bytes(b ^ 0x5A for b in png[start : start + 40]) + png[start + 40 :]
 
 
 def _zlib_depth(units: np.ndarray) -> bytes:
@@ -325,28 +367,42 @@ def _zlib_depth(units: np.ndarray) -> bytes:
 
 _ZERO = np.zeros((SIZE[1], SIZE[0]), np.uint16)
 NON_FATAL = {  # id: (fields replaced in a valid frame, error name)
-    "truncated JPEG": (lambda f: {"colour": f["colour"][: len(f["colour"]) // 2]},
-                       "corrupt_image"),
+    "truncated JPEG": (lambda f: {"colour": f["colour"][: len(f["colour"]) // 2]}, "corrupt_image"),
     "JPEG without start marker": (lambda f: {"colour": b"GIF89a" + f["colour"]}, "corrupt_image"),
-    "JPEG without frame header": (lambda f: {"colour": b"\xff\xd8\xff\xfe\x00\x02\xff\xd9"},
-                                  "corrupt_image"),
-    "colour of another size": (lambda f: {"colour": P.encode_jpeg(IMAGE[:24, :32].copy())},
-                               "size_mismatch"),
+    "JPEG without frame header": (
+        lambda f: {"colour": b"\xff\xd8\xff\xfe\x00\x02\xff\xd9"},
+        "corrupt_image",
+    ),
+    "colour of another size": (
+        lambda f: {"colour": P.encode_jpeg(IMAGE[:24, :32].copy())},
+        "size_mismatch",
+    ),
     "truncated PNG": (lambda f: {"depth": f["depth"][:-30]}, "corrupt_image"),
     "8-bit PNG": (lambda f: {"depth": _png8()}, "corrupt_image"),
-    "PNG with corrupt pixel data": (lambda f: {"depth": _corrupt_idat(f["depth"])},
-                                    "corrupt_image"),
-    "depth PNG of another size": (lambda f: {"depth": P.encode_depth(DEPTH[:24, :32])},
-                                  "size_mismatch"),
-    "zlib garbage": (lambda f: {"depth_format": "zlib", "depth": b"not a zlib stream"},
-                     "corrupt_image"),
-    "truncated zlib": (lambda f: {"depth_format": "zlib", "depth": _zlib_depth(DEPTH * 1000)[:-9]},
-                       "corrupt_image"),
-    "zlib with too few values": (lambda f: {"depth_format": "zlib",
-                                            "depth": _zlib_depth(_ZERO[:10] + 1500)},
-                                 "size_mismatch"),
-    "zlib bomb": (lambda f: {"depth_format": "zlib", "depth": zlib.compress(bytes(2**26), 9)},
-                  "size_mismatch"),
+    "PNG with corrupt pixel data": (
+        lambda f: {"depth": _corrupt_idat(f["depth"])},
+        "corrupt_image",
+    ),
+    "depth PNG of another size": (
+        lambda f: {"depth": P.encode_depth(DEPTH[:24, :32])},
+        "size_mismatch",
+    ),
+    "zlib garbage": (
+        lambda f: {"depth_format": "zlib", "depth": b"not a zlib stream"},
+        "corrupt_image",
+    ),
+    "truncated zlib": (
+        lambda f: {"depth_format": "zlib", "depth": _zlib_depth(DEPTH * 1000)[:-9]},
+        "corrupt_image",
+    ),
+    "zlib with too few values": (
+        lambda f: {"depth_format": "zlib", "depth": _zlib_depth(_ZERO[:10] + 1500)},
+        "size_mismatch",
+    ),
+    "zlib bomb": (
+        lambda f: {"depth_format": "zlib", "depth": zlib.compress(bytes(2**26), 9)},
+        "size_mismatch",
+    ),
     "all-zero depth": (lambda f: {"depth": P.encode_depth(_ZERO)}, "bad_depth"),
     "depth of kilometres (wrong scale)": (lambda f: {"depth_scale": 1.0}, "bad_depth"),
 }
@@ -371,7 +427,8 @@ def test_a_bad_frame_is_refused_and_the_session_goes_on(server, neighbour_keeps_
 
 
 def test_duplicate_and_out_of_order_frames_are_refused_and_the_session_goes_on(
-        server, neighbour_keeps_going):
+    server, neighbour_keeps_going
+):
     async def go():
         async with fresh_session(server) as client:
             await client.hello()
@@ -388,12 +445,17 @@ def test_duplicate_and_out_of_order_frames_are_refused_and_the_session_goes_on(
     run(go())
 
 
-@pytest.mark.parametrize("command", [
-    P.make_command(7, "goto", target=[0.0, 0.0, 1.0]),
-    P.make_command(7, "takeoff"),
-], ids=["goto", "takeoff"])
+@pytest.mark.parametrize(
+    "command",
+    [
+        P.make_command(7, "goto", target=[0.0, 0.0, 1.0]),
+        P.make_command(7, "takeoff"),
+    ],
+    ids=["goto", "takeoff"],
+)
 def test_a_command_before_the_drone_exists_is_refused_and_the_session_goes_on(
-        server, neighbour_keeps_going, command):
+    server, neighbour_keeps_going, command
+):
     async def go():
         async with fresh_session(server) as client:
             await client.hello()  # no frame yet, so no map and no drone
@@ -407,10 +469,12 @@ def test_a_command_before_the_drone_exists_is_refused_and_the_session_goes_on(
     run(go())
 
 
-def test_targets_outside_the_map_are_refused_and_the_drone_flies_on(server, neighbour_keeps_going,
-                                                                    healthy):
+def test_targets_outside_the_map_are_refused_and_the_drone_flies_on(
+    server, neighbour_keeps_going, healthy
+):
     """With the drone spawned in a real map: far-away and missing targets get their documented
     errors, and frames and commands go on."""
+
     async def go():
         async with fresh_session(server) as client:
             await client.hello(healthy.hello("bad-input"))
@@ -470,15 +534,24 @@ def test_a_wrong_depth_scale_that_bypassed_the_codec_is_still_refused_after_deco
 # ---- random variants ---------------------------------------------------------------------------
 
 VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats()
-    | st.text(max_size=20) | st.binary(max_size=64),
-    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner,
-                                                                 max_size=4),
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.floats()
+    | st.text(max_size=20)
+    | st.binary(max_size=64),
+    lambda inner: (
+        st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
     max_leaves=10,
 )
-VALID = {"hello": HELLO, "frame": frame(4), "command": P.make_command(1, "goto", [0, 0, 1], 1.0),
-         "bye": P.make_bye("x"), "frame_zlib": frame(4, **{"depth_format": "zlib",
-                                                          "depth": _zlib_depth(DEPTH * 1000)})}
+VALID = {
+    "hello": HELLO,
+    "frame": frame(4),
+    "command": P.make_command(1, "goto", [0, 0, 1], 1.0),
+    "bye": P.make_bye("x"),
+    "frame_zlib": frame(4, **{"depth_format": "zlib", "depth": _zlib_depth(DEPTH * 1000)}),
+}
 
 
 @st.composite
@@ -515,7 +588,7 @@ def mutated_bytes(draw) -> bytes:
         if op == "flip":
             data[i] ^= 1 << draw(st.integers(0, 7))
         elif op == "cut":
-            del data[i:i + draw(st.integers(1, 64))]
+            del data[i : i + draw(st.integers(1, 64))]
         else:
             data[i:i] = draw(st.binary(min_size=1, max_size=16))
         if not data:
@@ -551,8 +624,12 @@ def test_random_variants_raise_nothing_but_documented_protocol_errors(data):
 LIVE_EXAMPLES = 15
 
 
-@settings(max_examples=LIVE_EXAMPLES, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=LIVE_EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(st.one_of(mutated_message().map(raw), mutated_bytes()))
 def test_random_variants_through_the_socket_get_documented_answers(server, healthy, data):
     """After a hello, a random variant, then a valid frame: every answer is a valid server

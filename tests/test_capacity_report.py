@@ -20,18 +20,43 @@ _spec.loader.exec_module(capacity)
 TARGET = capacity.TARGET  # 4 x 15 fps, p95 <= 100 ms, < 5 % without a pose
 
 
-def row(sessions: int, fps: float, p95: float | None, drop: float, *, failures: int = 0,
-        processed: int = 100, cpu_s: float = 3.0, wall_s: float = 10.0, busy: float = 0.5,
-        client_pct: float = 10.0, idle_cores: float = 0.01, stages: dict | None = None) -> dict:
+def row(
+    sessions: int,
+    fps: float,
+    p95: float | None,
+    drop: float,
+    *,
+    failures: int = 0,
+    processed: int = 100,
+    cpu_s: float = 3.0,
+    wall_s: float = 10.0,
+    busy: float = 0.5,
+    client_pct: float = 10.0,
+    idle_cores: float = 0.01,
+    stages: dict | None = None,
+) -> dict:
     """A row as run_row makes it, from the measured numbers the analysis reads."""
-    server = {"machine_busy": busy, "mem_max_mb": 500.0 + 200 * sessions, "processes_max": 1,
-              "consistent": True,
-              **capacity.server_cpu_figures(cpu_s, wall_s, processed, idle_cores)}
+    server = {
+        "machine_busy": busy,
+        "mem_max_mb": 500.0 + 200 * sessions,
+        "processes_max": 1,
+        "consistent": True,
+        **capacity.server_cpu_figures(cpu_s, wall_s, processed, idle_cores),
+    }
     stages = stages or {"decode": 4.0, "track": 25.0, "track_cpu": 20.0, "track_sparse": 9.0}
-    r = {"sessions": sessions, "fps": fps, "p50_ms": p95 and p95 / 2, "p95_ms": p95,
-         "p99_ms": p95, "drop_rate": drop, "processed": processed, "failures": failures,
-         "client_cpu_percent": client_pct, "server": server,
-         "stages_ms": {k: {"median": v, "p95": 2 * v, "mean": v} for k, v in stages.items()}}
+    r = {
+        "sessions": sessions,
+        "fps": fps,
+        "p50_ms": p95 and p95 / 2,
+        "p95_ms": p95,
+        "p99_ms": p95,
+        "drop_rate": drop,
+        "processed": processed,
+        "failures": failures,
+        "client_cpu_percent": client_pct,
+        "server": server,
+        "stages_ms": {k: {"median": v, "p95": 2 * v, "mean": v} for k, v in stages.items()},
+    }
     r["meets"] = capacity.meets(r)
     return r
 
@@ -68,13 +93,25 @@ def test_a_row_meets_the_target_at_its_limits_and_not_beyond():
 
 
 def test_the_verdict_is_the_largest_sessions_x_fps_that_meets_the_target():
-    rows = [row(1, 15, 40, 0.0), row(2, 15, 60, 0.01), row(4, 15, 180, 0.3),
-            row(8, 15, 900, 0.8), row(1, 30, 50, 0.02), row(2, 30, 90, 0.04),
-            row(4, 30, 400, 0.6), row(8, 30, 1200, 0.9)]
+    rows = [
+        row(1, 15, 40, 0.0),
+        row(2, 15, 60, 0.01),
+        row(4, 15, 180, 0.3),
+        row(8, 15, 900, 0.8),
+        row(1, 30, 50, 0.02),
+        row(2, 30, 90, 0.04),
+        row(4, 30, 400, 0.6),
+        row(8, 30, 1200, 0.9),
+    ]
     v = capacity.verdict(rows)
     # 2 x 30 offers 60 frames/s, as 4 x 15, which misses.
-    assert v["largest"] == {"sessions": 2, "fps": 30, "offered_fps": 60, "p95_ms": 90,
-                            "drop_rate": 0.04}
+    assert v["largest"] == {
+        "sessions": 2,
+        "fps": 30,
+        "offered_fps": 60,
+        "p95_ms": 90,
+        "drop_rate": 0.04,
+    }
     assert v["meeting"] == [[1, 15], [2, 15], [1, 30], [2, 30]]
     assert v["target"] is False
 
@@ -102,10 +139,21 @@ IDLE = {"cores": 0.004, "wall_s": 5.0}
 
 
 def test_what_limits_it_states_measured_figures_not_a_fit():
-    rows = [row(1, 15, 40, 0.0, cpu_s=3.0, processed=150, busy=0.20),  # 20 ms / frame
-            row(2, 15, 60, 0.01, cpu_s=7.0, processed=280, busy=0.40),  # 25 ms / frame
-            row(4, 15, 400, 0.4, cpu_s=18.0, processed=360, busy=0.97, client_pct=12.0,
-                stages={"decode": 9.0, "track": 80.0, "track_cpu": 30.0})]  # 50 ms / frame
+    rows = [
+        row(1, 15, 40, 0.0, cpu_s=3.0, processed=150, busy=0.20),  # 20 ms / frame
+        row(2, 15, 60, 0.01, cpu_s=7.0, processed=280, busy=0.40),  # 25 ms / frame
+        row(
+            4,
+            15,
+            400,
+            0.4,
+            cpu_s=18.0,
+            processed=360,
+            busy=0.97,
+            client_pct=12.0,
+            stages={"decode": 9.0, "track": 80.0, "track_cpu": 30.0},
+        ),
+    ]  # 50 ms / frame
     text = capacity.what_limits_it(rows, IDLE, cores=2)
     assert "**2 sessions x 15 fps**" in text and "p95 60 ms" in text
     assert "4 x 15 fps, **FAIL**: p95 400 ms (limit 100), 40.0 % without a pose" in text
@@ -143,8 +191,18 @@ def stat(pid: int, ppid: int, self_s: float, children_s: float = 0.0, start: int
 
 
 def test_the_tree_holds_the_root_and_every_descendant_only():
-    stats = {s.pid: s for s in [stat(1, 0, 9), stat(10, 1, 1), stat(11, 10, 2), stat(12, 11, 3),
-                                stat(13, 11, 4), stat(20, 1, 5), stat(21, 20, 6)]}
+    stats = {
+        s.pid: s
+        for s in [
+            stat(1, 0, 9),
+            stat(10, 1, 1),
+            stat(11, 10, 2),
+            stat(12, 11, 3),
+            stat(13, 11, 4),
+            stat(20, 1, 5),
+            stat(21, 20, 6),
+        ]
+    }
     assert set(capacity.descendants(stats, 10)) == {10, 11, 12, 13}
     assert capacity.descendants(stats, 99) == {}
     tree = capacity.descendants(stats, 11)
@@ -198,8 +256,12 @@ TREE_SCRIPT = textwrap.dedent("""
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
 def test_the_tree_cpu_counts_children_and_grandchildren_that_started_and_ended_in_between():
-    proc = subprocess.Popen([sys.executable, "-c", TREE_SCRIPT], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", TREE_SCRIPT],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout.readline() == "ready\n"
         before, ok_before = capacity.snapshot_tree(proc.pid)
@@ -222,13 +284,30 @@ def test_the_tree_cpu_counts_children_and_grandchildren_that_started_and_ended_i
 def test_the_markdown_shows_figures_beside_the_target_and_the_stage_medians():
     rows = [row(1, 15, 40, 0.0, busy=0.2), row(4, 15, 400, 0.4, busy=0.97)]
     for r in rows:
-        r.update(processed_fps_per_session=14.0, client_drop_rate=r["drop_rate"],
-                 server_drop_rate=0.0, duration_s=5.0)
+        r.update(
+            processed_fps_per_session=14.0,
+            client_drop_rate=r["drop_rate"],
+            server_drop_rate=0.0,
+            duration_s=5.0,
+        )
     rows[1]["target"] = rows[1]["meets"]
-    meta = {"quick": False, "date": "2026-01-01 00:00", "commit": "abc1234", "machine": "m",
-            "cores": 2, "load_before": 0.1, "load_after": 1.0, "dataset": "d", "size": [640, 480],
-            "frames": 30, "mean_frame_kb": 200.0, "fuse_every": 3, "drone": "on",
-            "command": "python benchmarks/capacity.py", "verdict": capacity.verdict(rows)}
+    meta = {
+        "quick": False,
+        "date": "2026-01-01 00:00",
+        "commit": "abc1234",
+        "machine": "m",
+        "cores": 2,
+        "load_before": 0.1,
+        "load_after": 1.0,
+        "dataset": "d",
+        "size": [640, 480],
+        "frames": 30,
+        "mean_frame_kb": 200.0,
+        "fuse_every": 3,
+        "drone": "on",
+        "command": "python benchmarks/capacity.py",
+        "verdict": capacity.verdict(rows),
+    }
     md = capacity.markdown(rows, meta, IDLE, capacity.what_limits_it(rows, IDLE, cores=2))
     assert "commit abc1234" in md and "0.4 % of one core" in md
     assert "that meets those limits: **1 session x 15 fps**" in md

@@ -249,9 +249,14 @@ def test_stale_sticks_count_as_centred():
 
 
 def test_an_obstacle_on_the_route_triggers_a_replan_and_the_drone_still_arrives():
-    walls = [((-0.1, -0.1, -0.1), (5.1, 3.1, 0.0)), ((-0.1, -0.1, 2.4), (5.1, 3.1, 2.5)),
-             ((-0.1, -0.1, 0.0), (0.0, 3.1, 2.4)), ((5.0, -0.1, 0.0), (5.1, 3.1, 2.4)),
-             ((0.0, -0.1, 0.0), (5.0, 0.0, 2.4)), ((0.0, 3.0, 0.0), (5.0, 3.1, 2.4))]
+    walls = [
+        ((-0.1, -0.1, -0.1), (5.1, 3.1, 0.0)),
+        ((-0.1, -0.1, 2.4), (5.1, 3.1, 2.5)),
+        ((-0.1, -0.1, 0.0), (0.0, 3.1, 2.4)),
+        ((5.0, -0.1, 0.0), (5.1, 3.1, 2.4)),
+        ((0.0, -0.1, 0.0), (5.0, 0.0, 2.4)),
+        ((0.0, 3.0, 0.0), (5.0, 3.1, 2.4)),
+    ]
     lo, hi = (-0.1, -0.1, -0.1), (5.1, 3.1, 2.5)
     flight_map = FlightMap.from_boxes(lo, hi, walls, CONFIG.voxel_m)
     start, goal = np.array([0.8, 1.5, 1.2]), np.array([4.2, 1.5, 1.2])
@@ -286,7 +291,7 @@ def test_a_route_blocked_for_good_emits_blocked_and_holds():
     fm = scene.flight_map
     sealed = fm.blocked.copy()
     i = int((3.5 - fm.origin[0]) / fm.voxel_m)
-    sealed[i:i + 3] = True  # a full wall across the room at x = 3.5
+    sealed[i : i + 3] = True  # a full wall across the room at x = 3.5
     assert drone.update_map(fm.origin, sealed, np.ones(fm.shape, bool)) is not None
     events, _ = fly(drone, 2.0)
     assert DroneEventKind.BLOCKED in kinds(events)
@@ -417,8 +422,10 @@ def test_status_route_is_the_corners_of_the_path_ahead():
         np.testing.assert_allclose(route[0], dense[0])  # where the drone is headed now
         np.testing.assert_allclose(route[-1], scene.goal, atol=1e-9)
         # Every path sample ahead is within the tolerance of the drawn polyline.
-        gaps = np.min([distances_to_segment(dense, a, b) for a, b in zip(route[:-1], route[1:],
-                                                                        strict=True)], axis=0)
+        gaps = np.min(
+            [distances_to_segment(dense, a, b) for a, b in zip(route[:-1], route[1:], strict=True)],
+            axis=0,
+        )
         assert gaps.max() <= ROUTE_TOLERANCE_M + 1e-9
         fly(drone, 0.5)
 
@@ -431,4 +438,4 @@ def test_douglas_peucker_keeps_the_corners_within_the_tolerance():
     keep = simplify(arc, 0.02)
     assert 5 < len(keep) < 40 and keep[0] == 0 and keep[-1] == 200
     for a, b in zip(keep[:-1], keep[1:], strict=True):
-        assert distances_to_segment(arc[a:b + 1], arc[a], arc[b]).max() <= 0.02
+        assert distances_to_segment(arc[a : b + 1], arc[a], arc[b]).max() <= 0.02

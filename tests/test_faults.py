@@ -65,7 +65,8 @@ def assert_session_files_whole(folder: Path) -> dict:
 
 
 def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
-        server_process, room, tmp_path):
+    server_process, room, tmp_path
+):
     data_dir = tmp_path / "data"
     server = server_process(data_dir, snapshot_interval_s=1.0)
     sid, token = server.create_session()
@@ -134,15 +135,15 @@ def test_sigterm_saves_every_processed_frame_before_exiting(server_process, room
     saved = assert_session_files_whole(data_dir / "sessions" / sid)
     assert saved["meta"]["closed"] is True and saved["meta"]["status"]["frames_processed"] == 25
     assert len(saved["trajectory"]) == 25
-    np.testing.assert_allclose(saved["trajectory"].poses[:, :3, 3], stream.matrices()[:, :3, 3],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        saved["trajectory"].poses[:, :3, 3], stream.matrices()[:, :3, 3], atol=1e-6
+    )
 
 
 # ---- a session's worker dies --------------------------------------------------------------------
 
 
-def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(live_server,
-                                                                                 room):
+def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(live_server, room):
     """SIGKILL one session's worker process (as a native crash or the OOM killer would): its
     client gets session_failed and close 4010 at once (never a hung socket); the session is
     closed, downloadable as its last snapshot left it; the neighbour session goes on."""
@@ -201,7 +202,8 @@ def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(
 
 
 def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_session(
-        live_server, room):
+    live_server, room
+):
     server = live_server(session_ttl_s=30)
     sid, token = server.create_session()
     stream = Stream(server.ws_url, sid, token, room)
@@ -229,8 +231,9 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
     assert after["map"]["frames_integrated"] > before["map"]["frames_integrated"] > 0
     assert stream.map_points > points_before > 0
     # One trajectory across both sockets, as if the phone had never left.
-    np.testing.assert_allclose(stream.matrices()[:, :3, 3], offline_track(room, 30)[:, :3, 3],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        stream.matrices()[:, :3, 3], offline_track(room, 30)[:, :3, 3], atol=1e-6
+    )
     tum = httpx.get(f"{server.url}/api/sessions/{sid}/trajectory.tum", headers=auth(token))
     assert len(tum.text.strip().splitlines()) == 1 + 30  # header line + poses
 
@@ -268,8 +271,9 @@ def test_a_phone_back_from_a_silent_wifi_drop_takes_its_session_over_at_once(liv
     assert old_code == P.CLOSE_CODES["session_taken_over"]
     status = session_status(server.url, sid, token)
     assert status["closed"] is False and status["frames_processed"] == 20
-    np.testing.assert_allclose(phone.matrices()[:, :3, 3], offline_track(room, 20)[:, :3, 3],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        phone.matrices()[:, :3, 3], offline_track(room, 20)[:, :3, 3], atol=1e-6
+    )
 
 
 def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server, room):
@@ -281,7 +285,8 @@ def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server
         await phone.open()
         await phone.send_range(range(5))
         deleted = await asyncio.to_thread(
-            httpx.delete, f"{server.url}/api/sessions/{sid}", headers=auth(token), timeout=60)
+            httpx.delete, f"{server.url}/api/sessions/{sid}", headers=auth(token), timeout=60
+        )
         told = [P.decode(m) async for m in _until_closed(phone.ws)]
         return deleted.status_code, told, phone.ws.close_code
 
@@ -289,7 +294,8 @@ def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server
     assert code == 204
     errors = [m for m in told if m["type"] == "error"]
     assert [(e["name"], e["message"]) for e in errors] == [
-        ("unauthorized", "this session was deleted")]
+        ("unauthorized", "this session was deleted")
+    ]
     assert close_code == P.CLOSE_CODES["unauthorized"]
     assert httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).status_code == 404
     assert not (server.settings.data_dir / "sessions" / sid).exists()
@@ -317,7 +323,8 @@ def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_serv
     asyncio.run(stream_and_vanish())
     deadline = time.monotonic() + 30
     while httpx.get(f"{server.url}/healthz").json()["live_sessions"] and (
-            time.monotonic() < deadline):
+        time.monotonic() < deadline
+    ):
         # While it closes, its owner still finds it (marked closed), never a 404.
         r = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token))
         assert r.status_code == 200, r.text
@@ -341,8 +348,7 @@ def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_serv
     assert ply.status_code == 200 and ply.content.startswith(b"ply")
 
 
-def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(
-        live_server, room):
+def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(live_server, room):
     """The disk refuses the map (here a folder sits where map.npz must go; for root, who ignores
     permissions, the closest to a full disk). Closing after the TTL must not drop the session:
     it stays live, closed to frames, downloadable from memory, says why, and is saved as soon

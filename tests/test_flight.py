@@ -98,8 +98,9 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
     # Level flight: the drone's up is the world's up (against gravity).
     up_world = -gravity / np.linalg.norm(gravity)
     assert state.T_world_drone[:3, :3] @ [0, 0, 1] @ up_world > 0.99
-    np.testing.assert_allclose(state.T_camera_drone, np.linalg.inv(T) @ state.T_world_drone,
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        state.T_camera_drone, np.linalg.inv(T) @ state.T_world_drone, atol=1e-9
+    )
 
     # A goal inside the door's wall is refused with a reachable point nearby, in world terms.
     in_wall = R.T @ np.array([2.0, 0.5, 1.0])
@@ -135,10 +136,11 @@ def test_sub_boxes_fed_between_ticks_merge_and_spawn_the_drone():
     v = fm.voxel_m
     # The room in two halves, the second overlapping the first by two cells, then a wall
     # block in the first half (overwriting those cells).
-    boxes = [(fm.origin, blocked[:half], observed[:half]),
-             (fm.origin + [(half - 2) * v, 0, 0], blocked[half - 2:], observed[half - 2:]),
-             (fm.origin + np.array([4, 10, 4]) * v, np.ones((3, 3, 3), bool),
-              np.ones((3, 3, 3), bool))]
+    boxes = [
+        (fm.origin, blocked[:half], observed[:half]),
+        (fm.origin + [(half - 2) * v, 0, 0], blocked[half - 2 :], observed[half - 2 :]),
+        (fm.origin + np.array([4, 10, 4]) * v, np.ones((3, 3, 3), bool), np.ones((3, 3, 3), bool)),
+    ]
     source = _FakeMap(boxes)
     for _ in boxes:
         assert flight.feed_from_map(source)

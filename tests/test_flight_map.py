@@ -252,15 +252,18 @@ def test_sub_box_updates_equal_a_full_rebuild_and_stay_local(unknown_is_free, mo
 def test_merged_regions_equal_the_regions_applied_one_after_the_other():
     rng = np.random.default_rng(9)
     v = 0.05
-    base = FlightMap.from_boxes((0, 0, 0), (2.0, 1.5, 1.0), [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))],
-                                v, max_distance_m=0.4)
-    one_by_one = FlightMap.from_boxes((0, 0, 0), (2.0, 1.5, 1.0),
-                                      [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))], v, max_distance_m=0.4)
+    base = FlightMap.from_boxes(
+        (0, 0, 0), (2.0, 1.5, 1.0), [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))], v, max_distance_m=0.4
+    )
+    one_by_one = FlightMap.from_boxes(
+        (0, 0, 0), (2.0, 1.5, 1.0), [((0.5, 0.5, 0.0), (0.7, 0.7, 1.0))], v, max_distance_m=0.4
+    )
     regions = []
     for at in ([3, 4, 2], [6, 5, 3], [38, 28, 18]):  # two overlapping, one sticking out
         size = (6, 5, 4)
-        regions.append(Region.whole(np.array(at) * v, rng.random(size) < 0.5,
-                                    rng.random(size) < 0.9))
+        regions.append(
+            Region.whole(np.array(at) * v, rng.random(size) < 0.5, rng.random(size) < 0.9)
+        )
         one_by_one.update_region(regions[-1].origin, regions[-1].occupied, regions[-1].observed)
     merged = regions[0].merged(regions[1], v).merged(regions[2], v)
     assert merged.occupied.shape == (41, 29, 20) and not merged.written.all()
@@ -272,5 +275,6 @@ def test_merged_regions_equal_the_regions_applied_one_after_the_other():
 def test_sub_boxes_must_sit_on_the_lattice():
     flight_map = FlightMap.from_boxes((0, 0, 0), (1, 1, 1), [], 0.1)
     with pytest.raises(FlightMapError, match="lattice"):
-        flight_map.update_region(np.array([0.05, 0.0, 0.0]), np.zeros((2, 2, 2), bool),
-                                 np.ones((2, 2, 2), bool))
+        flight_map.update_region(
+            np.array([0.05, 0.0, 0.0]), np.zeros((2, 2, 2), bool), np.ones((2, 2, 2), bool)
+        )

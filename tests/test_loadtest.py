@@ -19,8 +19,22 @@ def run_loadtest(server, shared_data: Path, tmp_path: Path, *args: str):
     """The CLI on the first 12 frames of a real sequence (played back and forth) at 10 fps;
     returns the finished process and the JSON report."""
     report = tmp_path / "report.json"
-    command = [sys.executable, "-m", "server", "loadtest", str(shared_data / "synthetic_room0"),
-               "--url", server.url, "--frames", "12", "--fps", "10", "--json", str(report), *args]
+    command = [
+        sys.executable,
+        "-m",
+        "server",
+        "loadtest",
+        str(shared_data / "synthetic_room0"),
+        "--url",
+        server.url,
+        "--frames",
+        "12",
+        "--fps",
+        "10",
+        "--json",
+        str(report),
+        *args,
+    ]
     proc = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert report.is_file(), proc.stdout + proc.stderr
     return proc, json.loads(report.read_text())
@@ -29,8 +43,9 @@ def run_loadtest(server, shared_data: Path, tmp_path: Path, *args: str):
 def test_every_session_gets_poses_and_the_report_adds_up(live_server, shared_data, tmp_path):
     server = live_server()
     plot = tmp_path / "latency.png"
-    proc, report = run_loadtest(server, shared_data, tmp_path, "--sessions", "2", "--duration", "4",
-                                "--plot", str(plot))
+    proc, report = run_loadtest(
+        server, shared_data, tmp_path, "--sessions", "2", "--duration", "4", "--plot", str(plot)
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "p95" in proc.stdout
 
@@ -63,8 +78,9 @@ def test_every_session_gets_poses_and_the_report_adds_up(live_server, shared_dat
     assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 0
 
 
-def test_exit_status_is_non_zero_when_the_server_refuses_a_session(live_server, shared_data,
-                                                                  tmp_path):
+def test_exit_status_is_non_zero_when_the_server_refuses_a_session(
+    live_server, shared_data, tmp_path
+):
     server = live_server(max_sessions=1)
     proc, report = run_loadtest(server, shared_data, tmp_path, "--sessions", "2", "--duration", "1")
     assert proc.returncode != 0

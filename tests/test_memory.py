@@ -30,16 +30,23 @@ def no_automatic_gc():
     gc.enable()
 
 
-def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_data,
-                                                         no_automatic_gc):
+def test_a_session_closed_after_its_ttl_is_freed_at_once(live_server, shared_data, no_automatic_gc):
     """Its worker process ends (all its memory goes back with it), and the web process's handle
     on it is freed at once, not at Python's next full collection."""
     server = live_server(session_ttl_s=1.0)
     sid, token = server.create_session()
     session = weakref.ref(server.app.state.manager._live[sid])
     room = open_dataset(shared_data / "synthetic_room0")
-    stats = asyncio.run(replay(f"{server.ws_url}/ws/sessions/{sid}", token, room, fps=30,
-                               max_frames=20, drop_when_busy=False))
+    stats = asyncio.run(
+        replay(
+            f"{server.ws_url}/ws/sessions/{sid}",
+            token,
+            room,
+            fps=30,
+            max_frames=20,
+            drop_when_busy=False,
+        )
+    )
     # Sent at 30 fps without waiting: a frame may lose to a newer one (newest wins); what this
     # test is about is the memory after the close.
     assert len(stats.poses) >= 15

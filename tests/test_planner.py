@@ -40,8 +40,9 @@ def check_route_keeps_radius(scene, route):
     np.testing.assert_allclose(positions[-1], scene.goal)
 
 
-@pytest.mark.parametrize("name, max_ratio", [("room_with_door", 1.6), ("corridor", 1.45),
-                                             ("box_in_the_way", 1.45)])
+@pytest.mark.parametrize(
+    "name, max_ratio", [("room_with_door", 1.6), ("corridor", 1.45), ("box_in_the_way", 1.45)]
+)
 def test_route_goes_around_obstacles_and_keeps_the_radius(scene_maps, name, max_ratio):
     scene = scene_maps[name]
     assert not scene.flight_map.segment_is_free(scene.start, scene.goal, RADIUS)  # no shortcut
@@ -77,8 +78,15 @@ def test_open_space_gives_a_straight_route(scene_maps):
 def test_speed_and_acceleration_limits_hold_along_the_route(scene_maps):
     scene = scene_maps["box_in_the_way"]
     v_max, a_max, climb = 1.2, 1.5, 0.5
-    route = plan_path(scene.flight_map, scene.start, scene.goal, RADIUS, max_speed_m_s=v_max,
-                      max_accel_m_s2=a_max, max_climb_rate_m_s=climb)
+    route = plan_path(
+        scene.flight_map,
+        scene.start,
+        scene.goal,
+        RADIUS,
+        max_speed_m_s=v_max,
+        max_accel_m_s2=a_max,
+        max_climb_rate_m_s=climb,
+    )
     dt = 0.002
     t = np.arange(0.0, route.duration_s + dt, dt)
     position, velocity, acceleration = route.sample(t)
@@ -95,8 +103,9 @@ def test_speed_and_acceleration_limits_hold_along_the_route(scene_maps):
     assert np.percentile(np.linalg.norm(fd_acceleration, axis=1), 99) <= a_max * 1.05
     # Scalar and vector sampling agree.
     for k in (0, len(t) // 3, len(t) - 1):
-        for got, want in zip(route.sample(t[k]), (position[k], velocity[k], acceleration[k]),
-                             strict=True):
+        for got, want in zip(
+            route.sample(t[k]), (position[k], velocity[k], acceleration[k]), strict=True
+        ):
             np.testing.assert_allclose(got, want)
 
 
@@ -111,8 +120,9 @@ def test_sealed_room_goal_is_unreachable_with_the_nearest_reachable_point(scene_
     assert error.nearest is not None
     assert 3.2 - RADIUS - 0.2 <= error.nearest[0] <= 3.2 - RADIUS
     route = plan_path(scene.flight_map, scene.start, error.nearest, RADIUS)
-    check_route_keeps_radius(scenes.Scene(scene.name, scene.flight_map, scene.boxes,
-                                          scene.start, error.nearest), route)
+    check_route_keeps_radius(
+        scenes.Scene(scene.name, scene.flight_map, scene.boxes, scene.start, error.nearest), route
+    )
 
 
 def test_goal_inside_a_wall_is_blocked_with_a_sensible_nearest_point(scene_maps):
@@ -150,11 +160,13 @@ def test_start_blocked_outside_map_and_not_finite(scene_maps):
 
 def test_unknown_space_blocks_routes_unless_configured():
     # A room whose far half (x > 2) was never observed.
-    boxes = [(np.array([-0.1, -0.1, -0.1]), np.array([4.1, 3.1, 0.0])),
-             (np.array([-0.1, -0.1, 2.4]), np.array([4.1, 3.1, 2.5]))]
+    boxes = [
+        (np.array([-0.1, -0.1, -0.1]), np.array([4.1, 3.1, 0.0])),
+        (np.array([-0.1, -0.1, 2.4]), np.array([4.1, 3.1, 2.5])),
+    ]
     base = FlightMap.from_boxes([-0.1, -0.1, -0.1], [4.1, 3.1, 2.5], boxes, 0.05)
     observed = np.ones(base.shape, bool)
-    observed[int(2.1 / 0.05):] = False
+    observed[int(2.1 / 0.05) :] = False
     start, goal = np.array([1.0, 1.5, 1.2]), np.array([3.0, 1.5, 1.2])
     for unknown_is_free in (False, True):
         m = FlightMap(0.05, unknown_is_free)

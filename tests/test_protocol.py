@@ -67,9 +67,18 @@ def example_messages() -> dict[str, dict]:
         "bye": P.make_bye("user closed the page"),
         "welcome": P.make_welcome("abc123"),
         "pose": P.make_pose(3, 12.25, T, "weak", 57, {"decode": 3.5, "total": 21.0}, 2, True),
-        "drone_state": P.make_drone_state(4.0, T, [0.1, 0.0, -0.2], "goto", command_id=1,
-                                          T_camera_drone=T, camera_seq=3, clearance=0.4,
-                                          target=[1.0, 0.5, -2.0], route=np.zeros((4, 3))),
+        "drone_state": P.make_drone_state(
+            4.0,
+            T,
+            [0.1, 0.0, -0.2],
+            "goto",
+            command_id=1,
+            T_camera_drone=T,
+            camera_seq=3,
+            clearance=0.4,
+            target=[1.0, 0.5, -2.0],
+            route=np.zeros((4, 3)),
+        ),
         "drone_event": P.make_drone_event("collision", 4.5, [0.1, 0.2, 0.3], "hit a wall", 1),
         "map_chunk": P.make_map_chunk(
             rng.normal(size=(500, 3)), rng.integers(0, 256, (500, 3)), chunk=4, total_points=2500

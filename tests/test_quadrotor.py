@@ -20,8 +20,9 @@ PARAMS = QuadrotorParams.from_config(CONFIG)
 def make_quad(position=(0.0, 0.0, 1.0), yaw=0.0) -> tuple[Quadrotor, CascadedController]:
     quad = Quadrotor(PARAMS, CONFIG.dt_s)
     quad.reset(position, yaw)
-    ctrl = CascadedController(PARAMS, ControlGains.from_config(CONFIG),
-                              ControlLimits.from_config(CONFIG))
+    ctrl = CascadedController(
+        PARAMS, ControlGains.from_config(CONFIG), ControlLimits.from_config(CONFIG)
+    )
     return quad, ctrl
 
 

@@ -48,13 +48,23 @@ def cluster(tmp_path_factory):
     temp = tempfile.mkdtemp(prefix="rt", dir="/tmp")
     saved = os.environ.get("RAY_TMPDIR")
     os.environ["RAY_TMPDIR"] = temp
-    cluster = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "temp_dir": os.path.join(temp, "ray"), "include_dashboard": False})
+    cluster = Cluster(
+        initialize_head=True,
+        head_node_args={
+            "num_cpus": 1,
+            "temp_dir": os.path.join(temp, "ray"),
+            "include_dashboard": False,
+        },
+    )
     try:
         cluster.add_node(num_cpus=1)
         cluster.wait_for_nodes()
-        ray.init(address=cluster.address, namespace=NAMESPACE, logging_level="WARNING",
-                 log_to_driver=False)
+        ray.init(
+            address=cluster.address,
+            namespace=NAMESPACE,
+            logging_level="WARNING",
+            log_to_driver=False,
+        )
         yield cluster
     finally:
         gc.collect()  # actor handles of stopped front-ends let go while Ray is still up
@@ -126,7 +136,7 @@ def _ip(hex_address: str) -> str:
     raw = bytes.fromhex(hex_address.split(":")[0])
     if len(raw) == 4:
         return ".".join(str(b) for b in raw[::-1])
-    words = [raw[i:i + 4][::-1] for i in range(0, 16, 4)]
+    words = [raw[i : i + 4][::-1] for i in range(0, 16, 4)]
     raw = b"".join(words)
     if raw[:12] == b"\0" * 10 + b"\xff\xff":
         return ".".join(str(b) for b in raw[12:])
@@ -134,8 +144,9 @@ def _ip(hex_address: str) -> str:
 
 
 def _loopback(address: str) -> bool:
-    return (address.startswith("127.") or address == "0.0.0.0"
-            or address in ("0" * 31 + "1", "0" * 32))
+    return (
+        address.startswith("127.") or address == "0.0.0.0" or address in ("0" * 31 + "1", "0" * 32)
+    )
 
 
 def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
@@ -162,8 +173,9 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         # Both sessions track the room: poses move along, none lost.
         for stream in (a1, b1):
             assert all(p["state"] != "lost" for p in stream.poses), stream.poses
-            motion = np.linalg.norm(P.pose_matrix(stream.poses[-1])[:3, 3]
-                                    - P.pose_matrix(stream.poses[0])[:3, 3])
+            motion = np.linalg.norm(
+                P.pose_matrix(stream.poses[-1])[:3, 3] - P.pose_matrix(stream.poses[0])[:3, 3]
+            )
             assert motion < 1.0
 
         # A second front-end on the same cluster authorizes s1 with its token and takes its
@@ -171,8 +183,9 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         front2 = LiveServer(data, ray=cluster.address)
         servers.append(front2)
         assert session_status(front2.url, s1, t1)["worker"]["node_id"] == workers[0]["node_id"]
-        assert httpx.get(f"{front2.url}/api/sessions/{s1}", headers=auth("wrong")).status_code \
-            == 404
+        assert (
+            httpx.get(f"{front2.url}/api/sessions/{s1}", headers=auth("wrong")).status_code == 404
+        )
 
         async def take_over():
             await a1.open()  # the phone, still on front1: a new socket, a hello
@@ -219,8 +232,10 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         assert not outside, f"Ray sockets outside 127.0.0.0/8: {outside}"
 
         # Deleting a session ends its actor; closing one saves it and ends its actor.
-        assert httpx.delete(f"{front3.url}/api/sessions/{s2}", headers=auth(t2)).status_code \
-            in (200, 204)
+        assert httpx.delete(f"{front3.url}/api/sessions/{s2}", headers=auth(t2)).status_code in (
+            200,
+            204,
+        )
         deadline = time.monotonic() + 10
         while _actor_alive(s2) and time.monotonic() < deadline:
             time.sleep(0.2)

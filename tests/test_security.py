@@ -30,8 +30,13 @@ from server.transport import protocol as P
 from server.transport.app import RedactTokens
 from server.transport.deps import RateLimiter
 
-RESOURCES = [("GET", ""), ("GET", "/map.ply"), ("GET", "/mesh.ply"), ("GET", "/trajectory.tum"),
-             ("DELETE", "")]
+RESOURCES = [
+    ("GET", ""),
+    ("GET", "/map.ply"),
+    ("GET", "/mesh.ply"),
+    ("GET", "/trajectory.tum"),
+    ("DELETE", ""),
+]
 UNKNOWN_ID = "0123456789abcdef"
 
 
@@ -81,7 +86,8 @@ def test_tokens_are_long_random_secrets_and_only_their_hashes_are_stored(live_se
 
 
 def test_tokens_are_compared_in_constant_time_with_the_same_work_for_unknown_ids(
-        tmp_path, monkeypatch):
+    tmp_path, monkeypatch
+):
     """Every outcome costs one hash and one hmac.compare_digest of two hex digests; an unknown
     id and a wrong token raise the very same error."""
     manager = SessionManager(SessionStore(tmp_path))
@@ -97,8 +103,14 @@ def test_tokens_are_compared_in_constant_time_with_the_same_work_for_unknown_ids
 
     monkeypatch.setattr(manager_module.hmac, "compare_digest", spy)
     refusals = []
-    for sid, presented in ((live.id, token), (closed.id, closed_token), (live.id, "wrong"),
-                           (closed.id, "wrong"), (UNKNOWN_ID, token), ("../../etc", token)):
+    for sid, presented in (
+        (live.id, token),
+        (closed.id, closed_token),
+        (live.id, "wrong"),
+        (closed.id, "wrong"),
+        (UNKNOWN_ID, token),
+        ("../../etc", token),
+    ):
         calls.clear()
         try:
             manager.authorize(sid, presented)
@@ -111,7 +123,8 @@ def test_tokens_are_compared_in_constant_time_with_the_same_work_for_unknown_ids
 
 
 def test_every_session_resource_refuses_a_missing_or_wrong_token_alike_for_unknown_ids(
-        live_server, tmp_path):
+    live_server, tmp_path
+):
     """401 without a token, 404 with a wrong one: the same status and body whether the id
     exists (live or closed) or not, for status, downloads, delete and the WebSocket."""
     data_dir = tmp_path / "uniform"
@@ -121,13 +134,23 @@ def test_every_session_resource_refuses_a_missing_or_wrong_token_alike_for_unkno
     def check(server, sid, token) -> None:
         base = f"{server.url}/api/sessions"
         for method, path in RESOURCES:
-            missing = {answer(httpx.request(method, f"{base}/{i}{path}"))
-                       for i in (sid, UNKNOWN_ID)}
-            refused = {answer(httpx.request(method, f"{base}/{i}{path}", headers=auth(t)))
-                       for i, t in ((sid, "wrong"), (sid, other_token), (UNKNOWN_ID, token),
-                                    (sid, token[:-1]), (sid, token + "x"))}
-            refused |= {answer(httpx.request(method, f"{base}/{sid}{path}", headers=h))
-                        for h in ({"Authorization": f"Basic {token}"}, {"Authorization": "Bearer"})}
+            missing = {
+                answer(httpx.request(method, f"{base}/{i}{path}")) for i in (sid, UNKNOWN_ID)
+            }
+            refused = {
+                answer(httpx.request(method, f"{base}/{i}{path}", headers=auth(t)))
+                for i, t in (
+                    (sid, "wrong"),
+                    (sid, other_token),
+                    (UNKNOWN_ID, token),
+                    (sid, token[:-1]),
+                    (sid, token + "x"),
+                )
+            }
+            refused |= {
+                answer(httpx.request(method, f"{base}/{sid}{path}", headers=h))
+                for h in ({"Authorization": f"Basic {token}"}, {"Authorization": "Bearer"})
+            }
             assert len(missing) == 1 and next(iter(missing))[0] == 401, (method, path, missing)
             # A bad scheme counts as no token (401); every wrong token is one answer (404).
             statuses = {s for s, _ in refused}
@@ -135,9 +158,14 @@ def test_every_session_resource_refuses_a_missing_or_wrong_token_alike_for_unkno
             assert len({a for a in refused if a[0] == 404}) == 1, (method, path, refused)
             # The token goes in a header, never in a REST URL (logs, history, referrers).
             assert httpx.request(method, f"{base}/{sid}{path}?token={token}").status_code == 401
-        refusals = [asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{i}{q}"))
-                    for i, q in ((sid, "?token=wrong"), (UNKNOWN_ID, f"?token={token}"),
-                                 (sid, f"?token={other_token}"))]
+        refusals = [
+            asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{i}{q}"))
+            for i, q in (
+                (sid, "?token=wrong"),
+                (UNKNOWN_ID, f"?token={token}"),
+                (sid, f"?token={other_token}"),
+            )
+        ]
         assert all(code == P.CLOSE_CODES["unauthorized"] for _, code in refusals)
         assert all(msg["name"] == "unauthorized" for msg, _ in refusals)
         assert len({msg["message"] for msg, _ in refusals}) == 1
@@ -154,12 +182,39 @@ def test_every_session_resource_refuses_a_missing_or_wrong_token_alike_for_unkno
 
 # ---- the data directory's walls --------------------------------------------------------------
 
-TRAVERSALS = ["..", "...", "%2e%2e", "%2E%2E", "..%2f", "..%2Fevil", "..%2f..%2fsecret.txt",
-              "%2e%2e%2fevil", "..%5cevil", "..\\evil", "evil", "notanid", "%00",
-              f"{UNKNOWN_ID}%0a", f"{UNKNOWN_ID}%00", UNKNOWN_ID.upper(), f"{UNKNOWN_ID}%2f..",
-              "%252e%252e%252fevil", "....%2f%2f", "~root", "%2fetc%2fpasswd", "a" * 5000]
-SUFFIXES = ["", "/map.ply", "/mesh.ply", "/trajectory.tum", "/meta.json", "/../../secret.txt",
-            "/..%2f..%2fsecret.txt"]
+TRAVERSALS = [
+    "..",
+    "...",
+    "%2e%2e",
+    "%2E%2E",
+    "..%2f",
+    "..%2Fevil",
+    "..%2f..%2fsecret.txt",
+    "%2e%2e%2fevil",
+    "..%5cevil",
+    "..\\evil",
+    "evil",
+    "notanid",
+    "%00",
+    f"{UNKNOWN_ID}%0a",
+    f"{UNKNOWN_ID}%00",
+    UNKNOWN_ID.upper(),
+    f"{UNKNOWN_ID}%2f..",
+    "%252e%252e%252fevil",
+    "....%2f%2f",
+    "~root",
+    "%2fetc%2fpasswd",
+    "a" * 5000,
+]
+SUFFIXES = [
+    "",
+    "/map.ply",
+    "/mesh.ply",
+    "/trajectory.tum",
+    "/meta.json",
+    "/../../secret.txt",
+    "/..%2f..%2fsecret.txt",
+]
 
 
 def test_ids_and_file_names_never_reach_outside_the_data_directory(live_server, tmp_path):
@@ -172,8 +227,11 @@ def test_ids_and_file_names_never_reach_outside_the_data_directory(live_server, 
     (data_dir / "secret.txt").write_text(secret)
     token = "decoy-token"
     meta = {"id": "evil", "token_sha256": hash_token(token), "status": {"secret": secret}}
-    for folder in (data_dir / "evil", data_dir / "sessions" / "notanid",
-                   data_dir / "sessions" / f"{UNKNOWN_ID}\n"):
+    for folder in (
+        data_dir / "evil",
+        data_dir / "sessions" / "notanid",
+        data_dir / "sessions" / f"{UNKNOWN_ID}\n",
+    ):
         folder.mkdir()
         (folder / "meta.json").write_text(json.dumps(meta))
         (folder / "map.ply").write_text(f"ply {secret}")
@@ -185,8 +243,9 @@ def test_ids_and_file_names_never_reach_outside_the_data_directory(live_server, 
     for sid in TRAVERSALS:
         for suffix in SUFFIXES:
             for method in ("GET", "DELETE"):
-                status, body = raw_request(server.port, method, f"/api/sessions/{sid}{suffix}",
-                                           token)
+                status, body = raw_request(
+                    server.port, method, f"/api/sessions/{sid}{suffix}", token
+                )
                 assert status in (307, 400, 404, 405, 414), (method, sid, suffix, status, body)
                 assert secret.encode() not in body
         try:  # a path that matches no route is refused at the handshake
@@ -198,8 +257,21 @@ def test_ids_and_file_names_never_reach_outside_the_data_directory(live_server, 
     assert all(p.is_file() for p in canaries)  # nothing deleted
 
 
-@pytest.mark.parametrize("sid", ["", "..", "../x", f"{UNKNOWN_ID}\n", f"{UNKNOWN_ID}/..",
-                                 f"/{UNKNOWN_ID}", UNKNOWN_ID.upper(), UNKNOWN_ID + "0", None, 7])
+@pytest.mark.parametrize(
+    "sid",
+    [
+        "",
+        "..",
+        "../x",
+        f"{UNKNOWN_ID}\n",
+        f"{UNKNOWN_ID}/..",
+        f"/{UNKNOWN_ID}",
+        UNKNOWN_ID.upper(),
+        UNKNOWN_ID + "0",
+        None,
+        7,
+    ],
+)
 def test_the_store_refuses_any_id_but_sixteen_hex_digits(tmp_path, sid):
     store = SessionStore(tmp_path)
     with pytest.raises(StoreError):
@@ -232,7 +304,8 @@ def test_session_creation_is_rate_limited_per_client_address(live_server):
 
 
 def test_behind_a_trusted_proxy_the_limit_counts_each_phone_and_nobody_else_can_forge_one(
-        live_server):
+    live_server,
+):
     """Through a reverse proxy every phone arrives from the proxy's address; its X-Forwarded-For
     names the phone, and is believed only from the proxies in FORWARDED_ALLOW_IPS."""
     url = "/api/sessions"
@@ -275,9 +348,14 @@ def test_a_full_server_says_so_with_503_until_a_session_ends(live_server):
 
 
 def preflight(server, origin: str) -> httpx.Response:
-    return httpx.options(f"{server.url}/api/sessions", headers={
-        "Origin": origin, "Access-Control-Request-Method": "POST",
-        "Access-Control-Request-Headers": "authorization"})
+    return httpx.options(
+        f"{server.url}/api/sessions",
+        headers={
+            "Origin": origin,
+            "Access-Control-Request-Method": "POST",
+            "Access-Control-Request-Headers": "authorization",
+        },
+    )
 
 
 def test_by_default_no_other_origin_may_call_the_api(live_server):
@@ -297,8 +375,12 @@ def test_configured_origins_are_allowed_exactly_and_others_refused(live_server):
     assert ok.headers["access-control-allow-origin"] == allowed  # echoed, never "*"
     assert "POST" in ok.headers["access-control-allow-methods"]
     assert "authorization" in ok.headers["access-control-allow-headers"].lower()
-    for origin in ("https://evil.example", "https://phone.example", "http://phone.example:8443",
-                   "https://phone.example:8443.evil.example"):
+    for origin in (
+        "https://evil.example",
+        "https://phone.example",
+        "http://phone.example:8443",
+        "https://phone.example:8443.evil.example",
+    ):
         refused = preflight(server, origin)
         assert refused.status_code == 400 and "access-control-allow-origin" not in refused.headers
         r = httpx.get(f"{server.url}/healthz", headers={"Origin": origin})
@@ -307,8 +389,16 @@ def test_configured_origins_are_allowed_exactly_and_others_refused(live_server):
     assert r.headers["access-control-allow-origin"] == allowed
 
 
-@pytest.mark.parametrize("origins", [["*"], ["https://*.example"], ["https://a.example/"],
-                                     ["phone.example"], ["https://a.example/path"]])
+@pytest.mark.parametrize(
+    "origins",
+    [
+        ["*"],
+        ["https://*.example"],
+        ["https://a.example/"],
+        ["phone.example"],
+        ["https://a.example/path"],
+    ],
+)
 def test_a_wildcard_or_malformed_origin_stops_the_server_at_start(origins, monkeypatch):
     with pytest.raises(ValidationError, match="scheme://host"):
         Settings(cors_origins=origins)
@@ -332,8 +422,11 @@ def test_tokens_never_reach_the_logs(tmp_path):
     handler.emit = lambda record: lines.append(record.getMessage())
     logger.addHandler(handler)
     try:
-        logger.warning('%s - "WebSocket %s" [accepted]', ("127.0.0.1", 5000),
-                       "/ws/sessions/0123456789abcdef?token=s3cr3t-Token_value&x=1")
+        logger.warning(
+            '%s - "WebSocket %s" [accepted]',
+            ("127.0.0.1", 5000),
+            "/ws/sessions/0123456789abcdef?token=s3cr3t-Token_value&x=1",
+        )
     finally:
         logger.removeHandler(handler)
     assert lines and "s3cr3t" not in lines[0] and "token=[redacted]&x=1" in lines[0]

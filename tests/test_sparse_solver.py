@@ -27,8 +27,14 @@ def pose_error(T_est, T_true):
 
 def solve_from_identity(P: np.ndarray, Q: np.ndarray):
     """Sparse Gauss-Newton for P ~ T Q from T = I, each point with its sensor noise model."""
-    return solve_sparse(P, Q, point_information(P, K, DEPTH_CFG),
-                        point_information(Q, K, DEPTH_CFG), np.eye(4), SolverConfig())
+    return solve_sparse(
+        P,
+        Q,
+        point_information(P, K, DEPTH_CFG),
+        point_information(Q, K, DEPTH_CFG),
+        np.eye(4),
+        SolverConfig(),
+    )
 
 
 def test_exact_correspondences_recover_the_transform_from_identity():

@@ -59,18 +59,27 @@ def test_the_server_serves_the_page_its_modules_protocol_and_demo(live_server, d
         page = http.get("/")
         assert page.status_code == 200
         assert "importmap" in page.text and "/app/js/app.js" in page.text
-        for path in ("/app/js/app.js", "/vendor/three/build/three.module.js",
-                     "/vendor/three/examples/jsm/controls/OrbitControls.js",
-                     "/vendor/@msgpack/msgpack/dist.esm/index.mjs"):
+        for path in (
+            "/app/js/app.js",
+            "/vendor/three/build/three.module.js",
+            "/vendor/three/examples/jsm/controls/OrbitControls.js",
+            "/vendor/@msgpack/msgpack/dist.esm/index.mjs",
+        ):
             r = http.get(path)
             assert r.status_code == 200, path
             assert r.headers["content-type"].startswith("text/javascript"), path
         protocol_json = (ROOT / "shared" / "protocol.json").read_bytes()
         assert http.get("/protocol.json").content == protocol_json
-        for path in ("/app/package.json", "/app/node_modules/three/package.json",
-                     "/app/js/../../README.md", "/app/js/%2e%2e/%2e%2e/README.md",
-                     "/vendor/three/../../package.json", "/vendor/left-pad/index.js",
-                     "/api/demo/files/../rgb.txt", "/api/demo/files/rgb.txt"):
+        for path in (
+            "/app/package.json",
+            "/app/node_modules/three/package.json",
+            "/app/js/../../README.md",
+            "/app/js/%2e%2e/%2e%2e/README.md",
+            "/vendor/three/../../package.json",
+            "/vendor/left-pad/index.js",
+            "/api/demo/files/../rgb.txt",
+            "/api/demo/files/rgb.txt",
+        ):
             assert http.get(path).status_code == 404, path
 
         index = http.get("/api/demo", params={"preset": "small"}).json()
@@ -207,8 +216,11 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
     cx, cy = 0.08 / 0.13 * 640 - 0.5, 0.06 / 0.105 * 480 - 0.5
     assert out["offCentre"] == pytest.approx([fx, fy, cx, cy], abs=1e-3)
     assert out["roundTripK"] == pytest.approx([500, 505, 300.25, 250.75], abs=1e-3)
-    hello_640 = {"intrinsics": [525, 525, 319.5, 239.5], "colour_size": [640, 480],
-                 "depth_size": [160, 120]}
+    hello_640 = {
+        "intrinsics": [525, 525, 319.5, 239.5],
+        "colour_size": [640, 480],
+        "depth_size": [160, 120],
+    }
     assert out["scaled"] == pytest.approx(proto.depth_intrinsics(hello_640))
     points = [(0.3, -0.2, 1.7), (-1.1, 0.7, 3.0), (0, 0, 0.5)]
     for (u, v), (x, y, z) in zip(out["overlay"], points, strict=True):
@@ -228,24 +240,48 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
 
 def _validation_cases() -> list[tuple[dict, str | None, bool]]:
     """(message, direction, strict): good and bad messages of every kind."""
-    hello = proto.make_hello("web/test", (525, 525, 319.5, 239.5), (640, 480), (320, 240), 1000.0,
-                             gravity=(0, 1, 0))
-    frame = {"type": "frame", "seq": 3, "timestamp": 1.5, "colour": b"\xff\xd8\xff\xd9",
-             "depth": b"\x78\x9c\x00\x00", "depth_format": "zlib"}
+    hello = proto.make_hello(
+        "web/test", (525, 525, 319.5, 239.5), (640, 480), (320, 240), 1000.0, gravity=(0, 1, 0)
+    )
+    frame = {
+        "type": "frame",
+        "seq": 3,
+        "timestamp": 1.5,
+        "colour": b"\xff\xd8\xff\xd9",
+        "depth": b"\x78\x9c\x00\x00",
+        "depth_format": "zlib",
+    }
     pose = proto.make_pose(3, 1.5, np.eye(4), "ok", 120, {"total": 12.5}, 0, True)
-    state = proto.make_drone_state(2.0, np.eye(4), (0.1, 0, 0), "goto", 4, T_camera_drone=np.eye(4),
-                                   camera_seq=3, clearance=0.8, target=(1, 2, 3),
-                                   route=np.arange(12.0).reshape(4, 3))
-    chunk = proto.make_map_chunk(np.ones((2, 3), np.float32), np.ones((2, 3), np.uint8), 0,
-                                 total_points=2)
+    state = proto.make_drone_state(
+        2.0,
+        np.eye(4),
+        (0.1, 0, 0),
+        "goto",
+        4,
+        T_camera_drone=np.eye(4),
+        camera_seq=3,
+        clearance=0.8,
+        target=(1, 2, 3),
+        route=np.arange(12.0).reshape(4, 3),
+    )
+    chunk = proto.make_map_chunk(
+        np.ones((2, 3), np.float32), np.ones((2, 3), np.uint8), 0, total_points=2
+    )
     error = proto.make_error("bad_depth", "all zero", seq=3)
     C, S = proto.CLIENT_TO_SERVER, proto.SERVER_TO_CLIENT
     cases = [
-        (hello, C, True), (frame, C, True), (pose, S, False), (state, S, False), (chunk, S, False),
+        (hello, C, True),
+        (frame, C, True),
+        (pose, S, False),
+        (state, S, False),
+        (chunk, S, False),
         (error, S, False),
         ({"type": "command", "id": 1, "name": "goto", "target": [1, 2, 3]}, C, True),
-        ({"type": "command", "id": 2, "name": "goto_pixel", "pixel": [10.5, 20], "seq": 3}, C,
-         True),
+        (
+            {"type": "command", "id": 2, "name": "goto_pixel", "pixel": [10.5, 20], "seq": 3},
+            C,
+            True,
+        ),
         ({"type": "command", "id": 3, "name": "sticks", "sticks": [0, 0.5, -1, 1]}, C, True),
         ({"type": "command", "id": 4, "name": "land"}, C, True),
         ({"type": "bye"}, C, True),
@@ -284,8 +320,10 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
 
 
 def _python_verdict(message: dict, direction, strict: bool) -> str:
-    message = {k: ([math.nan if x == "__nan__" else x for x in v] if isinstance(v, list) else v)
-               for k, v in message.items()}
+    message = {
+        k: ([math.nan if x == "__nan__" else x for x in v] if isinstance(v, list) else v)
+        for k, v in message.items()
+    }
     try:
         proto.validate(message, direction, strict=strict)
         return "ok"
@@ -349,19 +387,28 @@ def test_message_validation_matches_the_server(live_server, open_page):
     cases = _validation_cases()
     expected = [_python_verdict(m, d, s) for m, d, s in cases]
     got = page.page.evaluate(VALIDATE_JS, [[_to_js(m), d, s] for m, d, s in cases])
-    mismatches = [(case[0].get("type"), e, g)
-                  for case, e, g in zip(cases, expected, got, strict=True) if e != g]
+    mismatches = [
+        (case[0].get("type"), e, g)
+        for case, e, g in zip(cases, expected, got, strict=True)
+        if e != g
+    ]
     assert not mismatches, mismatches
     assert expected.count("ok") >= 13 and len(set(expected)) >= 7  # the cases do test something
 
     # both directions of the codec: the server's encoding decodes in the page, and back
-    state = proto.make_drone_state(2.0, np.eye(4), (0.1, 0, 0), "goto", 4,
-                                   route=np.arange(6.0).reshape(2, 3))
+    state = proto.make_drone_state(
+        2.0, np.eye(4), (0.1, 0, 0), "goto", 4, route=np.arange(6.0).reshape(2, 3)
+    )
     out = page.page.evaluate(CODEC_JS, [list(proto.encode(state))])
     assert out["decoded"]["mode"] == "goto" and out["decoded"]["route"] == [0, 1, 2, 3, 4, 5]
     command = proto.decode(bytes(out["command"]), direction=proto.CLIENT_TO_SERVER)
-    assert command == {"type": "command", "id": 12, "name": "goto_pixel", "pixel": [320, 240.5],
-                       "seq": 41}
+    assert command == {
+        "type": "command",
+        "id": 12,
+        "name": "goto_pixel",
+        "pixel": [320, 240.5],
+        "seq": 41,
+    }
     assert out["tooBig"] == "message_too_big" and out["trailing"] == "malformed_message"
     assert not page.errors, page.errors
 
@@ -395,13 +442,16 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     if seen_first["droneStates"] == 0:  # the picture above was taken before any drone state
         st = seen_first["ar"]["stage"]
         rows = slice(int(st["top"]), int(st["top"] + st["height"]))
-        area = drone_mask(first)[rows, int(st["left"]):int(st["left"] + st["width"])]
+        area = drone_mask(first)[rows, int(st["left"]) : int(st["left"] + st["width"])]
         assert area.sum() < 10, f"{area.sum()} drone-coloured pixels before the drone exists"
 
     # Streaming: >= 30 frames, poses back, tracking ok in the HUD, never more than 2 in flight.
     page.wait("window.dronesim.seen.poses >= 30", 90, "30 poses")
-    page.wait("document.querySelector('[data-field=tracking]').textContent === 'tracking ok'", 30,
-              "the HUD to show tracking ok")
+    page.wait(
+        "document.querySelector('[data-field=tracking]').textContent === 'tracking ok'",
+        30,
+        "the HUD to show tracking ok",
+    )
     s = page.snapshot()
     assert s["sent"] >= 30 and s["poses"] >= 30 and s["states"].get("ok", 0) >= 15, s["states"]
     assert s["counts"]["maxInFlight"] <= 2
@@ -456,8 +506,14 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     page.page.set_viewport_size({"width": 844, "height": 390})
     time.sleep(0.5)
     page.screenshot("phone-landscape.png")
-    for selector in ("#stick-left", "#stick-right", "#btn-stream", "#btn-land", ".ar-stage",
-                     ".map-canvas"):
+    for selector in (
+        "#stick-left",
+        "#stick-right",
+        "#btn-stream",
+        "#btn-land",
+        ".ar-stage",
+        ".map-canvas",
+    ):
         box = page.page.locator(selector).bounding_box()
         assert box and box["width"] > 20 and box["height"] > 20, selector
         assert box["x"] >= 0 and box["x"] + box["width"] <= 845, selector
@@ -487,8 +543,12 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     # A lost connection reconnects into the same session and streaming goes on.
     poses = page.snapshot()["poses"]
     page.page.evaluate("window.dronesim.client.ws.close()")
-    page.wait("window.dronesim.client.counts.reconnects >= 1 && window.dronesim.client.isOpen "
-              f"&& window.dronesim.seen.poses >= {poses + 5}", 40, "a reconnection, 5 more poses")
+    page.wait(
+        "window.dronesim.client.counts.reconnects >= 1 && window.dronesim.client.isOpen "
+        f"&& window.dronesim.seen.poses >= {poses + 5}",
+        40,
+        "a reconnection, 5 more poses",
+    )
     s = page.snapshot()
     assert s["session"] == session
     assert "reconnecting" in [e["state"] for e in s["statusLog"]]
@@ -515,11 +575,14 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     assert sticks[-1]["fields"]["sticks"] == [0, 0, 0, 0]
     ids = {c["id"] for c in sticks}
     ids = sorted(ids)
-    page.wait("window.dronesim.seen.modeLog.some("
-              f"(m) => m.mode === 'manual' && {ids}.includes(m.command_id)) || "
-              "window.dronesim.seen.events.some("
-              f"(e) => e.event === 'collision' && {ids}.includes(e.command_id))",
-              5, "manual flight (or a collision) from the sticks")
+    page.wait(
+        "window.dronesim.seen.modeLog.some("
+        f"(m) => m.mode === 'manual' && {ids}.includes(m.command_id)) || "
+        "window.dronesim.seen.events.some("
+        f"(e) => e.event === 'collision' && {ids}.includes(e.command_id))",
+        5,
+        "manual flight (or a collision) from the sticks",
+    )
     page.page.click("#btn-hold")
     page.wait("window.dronesim.seen.lastDrone.mode === 'hover'", 5, "hover after hold")
 
@@ -568,8 +631,11 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     page.page.reload()
     page.page.wait_for_function(browser.APP_READY, timeout=20_000)
     page.page.click("#btn-stream")
-    page.wait("window.dronesim.seen.poses >= 3 && window.dronesim.seen.mapPoints >= 1000", 40,
-              "poses and the restored map after a reload")
+    page.wait(
+        "window.dronesim.seen.poses >= 3 && window.dronesim.seen.mapPoints >= 1000",
+        40,
+        "poses and the restored map after a reload",
+    )
     s = page.snapshot()
     assert s["session"] == session
     assert s["mapPoints"] >= s["chunkPoints"] + 1000, "the earlier map was not restored"
@@ -617,8 +683,9 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     assert not page.errors, page.errors
 
 
-def test_replay_of_a_tum_folder_picked_in_the_setup_dialog(live_server, open_page, demo_ready,
-                                                           tmp_path):
+def test_replay_of_a_tum_folder_picked_in_the_setup_dialog(
+    live_server, open_page, demo_ready, tmp_path
+):
     # A TUM-layout folder as a phone user would pick it: PNG colour (re-encoded to JPEG by the
     # page), 16-bit PNG depth at 5000 units per metre, intrinsics.json; the first 24 frames.
     folder = tmp_path / "room_small"

@@ -71,8 +71,13 @@ class EncodedSequence:
     frames: list[dict]
 
     @classmethod
-    def from_dataset(cls, dataset: RGBDDataset, max_frames: int | None = None,
-                     depth_format: str = "zlib", workers: int = 4) -> EncodedSequence:
+    def from_dataset(
+        cls,
+        dataset: RGBDDataset,
+        max_frames: int | None = None,
+        depth_format: str = "zlib",
+        workers: int = 4,
+    ) -> EncodedSequence:
         n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
         if n < 1:
             raise LoadTestError(f"{dataset.name} has no frames to stream")
@@ -166,12 +171,15 @@ def _http(method: str, url: str, token: str | None, context) -> tuple[int, dict 
         return 0, None
 
 
-async def _rest(result: SessionResult, method: str, url: str, token: str | None, context,
-                ok: tuple[int, ...]) -> dict | None:
+async def _rest(
+    result: SessionResult, method: str, url: str, token: str | None, context, ok: tuple[int, ...]
+) -> dict | None:
     status, body = await asyncio.to_thread(_http, method, url, token, context)
     if status not in ok:
-        result.failures.append(f"{method} {url.split('/api/')[-1]}: "
-                               f"{'unreachable' if status == 0 else f'HTTP {status}'}")
+        result.failures.append(
+            f"{method} {url.split('/api/')[-1]}: "
+            f"{'unreachable' if status == 0 else f'HTTP {status}'}"
+        )
         return None
     return body or {}
 
@@ -227,8 +235,9 @@ class _Client:
         r.id, token = body["id"], body["token"]
         ws_base = base.replace("http", "ws", 1)
         try:
-            async with websockets.connect(f"{ws_base}/ws/sessions/{r.id}?token={token}",
-                                          max_size=None, ssl=self.context) as ws:
+            async with websockets.connect(
+                f"{ws_base}/ws/sessions/{r.id}?token={token}", max_size=None, ssl=self.context
+            ) as ws:
                 await self._stream(ws, phase_s)
         except websockets.InvalidHandshake as exc:
             status = getattr(getattr(exc, "response", None), "status_code", None)
@@ -247,8 +256,10 @@ class _Client:
         session_url = f"{base}/api/sessions/{r.id}"
         status = await _rest(r, "GET", session_url, token, self.context, ok=(200,))
         if status:
-            r.server_status = {k: status.get(k) for k in ("frames_received", "frames_processed",
-                                                          "frames_dropped", "fusion_skipped")}
+            r.server_status = {
+                k: status.get(k)
+                for k in ("frames_received", "frames_processed", "frames_dropped", "fusion_skipped")
+            }
             r.server_dropped = max(r.server_dropped, status.get("frames_dropped") or 0)
         if not self.cfg.keep_sessions:
             await _rest(r, "DELETE", session_url, token, self.context, ok=(204,))
@@ -261,8 +272,9 @@ class _Client:
     async def _stream(self, ws, phase_s: float) -> None:
         r, cfg, seq = self.result, self.cfg, self.seq
         (fx, fy, cx, cy), size = seq.intrinsics, seq.size
-        hello = proto.make_hello(f"{cfg.client_name}/{r.index}", (fx, fy, cx, cy), size,
-                                 depth_scale=1000.0)
+        hello = proto.make_hello(
+            f"{cfg.client_name}/{r.index}", (fx, fy, cx, cy), size, depth_scale=1000.0
+        )
         await ws.send(proto.encode(hello))
         welcome = proto.decode(await asyncio.wait_for(ws.recv(), cfg.grace_s))
         if welcome["type"] != "welcome":
@@ -283,8 +295,14 @@ class _Client:
             if len(self.in_flight) >= max_in_flight:
                 r.client_dropped += 1
             else:
-                data = proto.encode({"type": "frame", **seq.frames[seq.index(k)], "seq": k,
-                                     "timestamp": due - self.t0})
+                data = proto.encode(
+                    {
+                        "type": "frame",
+                        **seq.frames[seq.index(k)],
+                        "seq": k,
+                        "timestamp": due - self.t0,
+                    }
+                )
                 now = time.monotonic()
                 r.send_lag_ms.append((now - due) * 1e3)
                 self.in_flight[k] = now
@@ -296,8 +314,9 @@ class _Client:
                 next_command += cfg.command_every_s
             k += 1
         # The last answers (bounded), then bye; the server closes with 1000.
-        await await_answers(self.in_flight, self.answered, time.monotonic() + cfg.grace_s,
-                            receiver.done)
+        await await_answers(
+            self.in_flight, self.answered, time.monotonic() + cfg.grace_s, receiver.done
+        )
         if not receiver.done():
             await ws.send(proto.encode(proto.make_bye("load test done")))
         try:
@@ -352,8 +371,9 @@ class _Client:
                 self.spawn = [float(v) for v in msg["position"]]
         elif kind == "error":
             r.errors[msg["name"]] += 1
-            if msg["name"] == "bad_command" and (self.spawn is None
-                                                 or _NOT_READY.search(msg["message"])):
+            if msg["name"] == "bad_command" and (
+                self.spawn is None or _NOT_READY.search(msg["message"])
+            ):
                 r.commands_not_ready += 1
             else:
                 r.failures.append(f"error {msg['code']} {msg['name']}: {msg['message']}")
@@ -370,9 +390,12 @@ class _Client:
 # ---- the run ------------------------------------------------------------------------------------
 
 
-async def run_loadtest(seq: EncodedSequence, cfg: LoadTestConfig,
-                       on_progress: Callable[[list[SessionResult], float], None] | None = None,
-                       progress_every_s: float = 0.5) -> dict:
+async def run_loadtest(
+    seq: EncodedSequence,
+    cfg: LoadTestConfig,
+    on_progress: Callable[[list[SessionResult], float], None] | None = None,
+    progress_every_s: float = 0.5,
+) -> dict:
     """Run ``cfg.sessions`` clients at once; returns the report (see ``build_report``)."""
     t_zero = time.monotonic()
     cpu_zero = time.process_time()
@@ -386,8 +409,13 @@ async def run_loadtest(seq: EncodedSequence, cfg: LoadTestConfig,
         await asyncio.wait(tasks, timeout=progress_every_s)
     results = await asyncio.gather(*tasks)
     wall = time.monotonic() - t_zero
-    return build_report(results, cfg, seq, wall_s=wall,
-                        client_cpu_percent=100 * (time.process_time() - cpu_zero) / wall)
+    return build_report(
+        results,
+        cfg,
+        seq,
+        wall_s=wall,
+        client_cpu_percent=100 * (time.process_time() - cpu_zero) / wall,
+    )
 
 
 def _percentiles(values) -> dict:
@@ -395,12 +423,23 @@ def _percentiles(values) -> dict:
     if not len(v):
         return {"p50_ms": None, "p95_ms": None, "p99_ms": None, "mean_ms": None, "max_ms": None}
     p50, p95, p99 = np.percentile(v, [50, 95, 99])
-    return {"p50_ms": float(p50), "p95_ms": float(p95), "p99_ms": float(p99),
-            "mean_ms": float(v.mean()), "max_ms": float(v.max())}
+    return {
+        "p50_ms": float(p50),
+        "p95_ms": float(p95),
+        "p99_ms": float(p99),
+        "mean_ms": float(v.mean()),
+        "max_ms": float(v.max()),
+    }
 
 
-def _rates(captured: int, sent: int, processed: int, client_dropped: int, server_dropped: int,
-           duration_s: float) -> dict:
+def _rates(
+    captured: int,
+    sent: int,
+    processed: int,
+    client_dropped: int,
+    server_dropped: int,
+    duration_s: float,
+) -> dict:
     return {
         "processed_fps": processed / duration_s,
         "client_drop_rate": client_dropped / captured if captured else 0.0,
@@ -412,45 +451,84 @@ def _rates(captured: int, sent: int, processed: int, client_dropped: int, server
 
 def _session_report(r: SessionResult, duration_s: float) -> dict:
     return {
-        "index": r.index, "id": r.id, "captured": r.captured, "sent": r.sent,
-        "processed": r.processed, "client_dropped": r.client_dropped,
-        "server_dropped": r.server_dropped, "unanswered": r.unanswered,
+        "index": r.index,
+        "id": r.id,
+        "captured": r.captured,
+        "sent": r.sent,
+        "processed": r.processed,
+        "client_dropped": r.client_dropped,
+        "server_dropped": r.server_dropped,
+        "unanswered": r.unanswered,
         **_rates(r.captured, r.sent, r.processed, r.client_dropped, r.server_dropped, duration_s),
         "latency": _percentiles([ms for _, ms in r.latency]),
         "send_lag_p95_ms": float(np.percentile(r.send_lag_ms, 95)) if r.send_lag_ms else None,
-        "states": dict(r.states), "errors": dict(r.errors), "failures": r.failures,
-        "commands": {"sent": r.commands_sent, "not_ready": r.commands_not_ready,
-                     "drone_states": r.drone_states, "drone_events": dict(r.drone_events)},
-        "map_points": r.map_points, "close_code": r.close_code, "server_status": r.server_status,
+        "states": dict(r.states),
+        "errors": dict(r.errors),
+        "failures": r.failures,
+        "commands": {
+            "sent": r.commands_sent,
+            "not_ready": r.commands_not_ready,
+            "drone_states": r.drone_states,
+            "drone_events": dict(r.drone_events),
+        },
+        "map_points": r.map_points,
+        "close_code": r.close_code,
+        "server_status": r.server_status,
     }
 
 
-def build_report(results: list[SessionResult], cfg: LoadTestConfig, seq: EncodedSequence,
-                 wall_s: float, client_cpu_percent: float) -> dict:
+def build_report(
+    results: list[SessionResult],
+    cfg: LoadTestConfig,
+    seq: EncodedSequence,
+    wall_s: float,
+    client_cpu_percent: float,
+) -> dict:
     """Per session and total: counts, rates, latency percentiles, server stage times, failures;
     plus each session's latency timeline [[t_s, ms], ...] for plots."""
     d = cfg.duration_s
-    totals = {k: sum(getattr(r, k) for r in results)
-              for k in ("captured", "sent", "processed", "client_dropped", "server_dropped",
-                        "unanswered")}
+    totals = {
+        k: sum(getattr(r, k) for r in results)
+        for k in ("captured", "sent", "processed", "client_dropped", "server_dropped", "unanswered")
+    }
     stages: dict[str, list[float]] = {}
     for r in results:
         for stage, values in r.stages_ms.items():
             stages.setdefault(stage, []).extend(values)
     errors = sum((r.errors for r in results), Counter())
     return {
-        "config": {**cfg.__dict__, "dataset": seq.name, "frames": len(seq.frames),
-                   "size": list(seq.size), "mean_frame_bytes": seq.mean_bytes},
+        "config": {
+            **cfg.__dict__,
+            "dataset": seq.name,
+            "frames": len(seq.frames),
+            "size": list(seq.size),
+            "mean_frame_bytes": seq.mean_bytes,
+        },
         "wall_s": wall_s,
         "client_cpu_percent": client_cpu_percent,
-        "total": {**totals, **_rates(totals["captured"], totals["sent"], totals["processed"],
-                                     totals["client_dropped"], totals["server_dropped"], d),
-                  "processed_fps_per_session": totals["processed"] / d / max(1, len(results)),
-                  "latency": _percentiles([ms for r in results for _, ms in r.latency]),
-                  "errors": dict(errors),
-                  "failures": sum(len(r.failures) for r in results)},
-        "stages_ms": {k: {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
-                          "mean": float(np.mean(v))} for k, v in sorted(stages.items())},
+        "total": {
+            **totals,
+            **_rates(
+                totals["captured"],
+                totals["sent"],
+                totals["processed"],
+                totals["client_dropped"],
+                totals["server_dropped"],
+                d,
+            ),
+            "processed_fps_per_session": totals["processed"] / d / max(1, len(results)),
+            "latency": _percentiles([ms for r in results for _, ms in r.latency]),
+            "errors": dict(errors),
+            "failures": sum(len(r.failures) for r in results),
+        },
+        "stages_ms": {
+            k: {
+                "median": float(np.median(v)),
+                "p95": float(np.percentile(v, 95)),
+                "mean": float(np.mean(v)),
+            }
+            for k, v in sorted(stages.items())
+        },
         "sessions": [_session_report(r, d) for r in results],
         "timeline": [[[round(t, 4), round(ms, 3)] for t, ms in r.latency] for r in results],
     }
@@ -461,11 +539,13 @@ def live_line(results: list[SessionResult], elapsed_s: float) -> str:
     latencies = [ms for r in results for _, ms in r.latency]
     p95 = f"{np.percentile(latencies, 95):.0f} ms" if latencies else "-"
     captured = sum(r.captured for r in results) or 1
-    return (f"{sum(r.id is not None for r in results)} sessions | "
-            f"{sum(r.processed for r in results) / max(elapsed_s, 1e-3):.1f} poses/s | p95 {p95} | "
-            f"client drops {100 * sum(r.client_dropped for r in results) / captured:.1f}% | "
-            f"server drops {sum(r.server_dropped for r in results)} | "
-            f"failures {sum(len(r.failures) for r in results)}")
+    return (
+        f"{sum(r.id is not None for r in results)} sessions | "
+        f"{sum(r.processed for r in results) / max(elapsed_s, 1e-3):.1f} poses/s | p95 {p95} | "
+        f"client drops {100 * sum(r.client_dropped for r in results) / captured:.1f}% | "
+        f"server drops {sum(r.server_dropped for r in results)} | "
+        f"failures {sum(len(r.failures) for r in results)}"
+    )
 
 
 # ---- presentation -------------------------------------------------------------------------------
@@ -481,43 +561,78 @@ def report_table(report: dict):
     from rich.table import Table
 
     c, t = report["config"], report["total"]
-    table = Table(title=f"{c['sessions']} sessions x {c['fps']:g} fps x {c['duration_s']:g} s, "
-                        f"{c['dataset']} {c['size'][0]}x{c['size'][1]}: latency ms, drops",
-                  box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1), collapse_padding=True)
+    table = Table(
+        title=f"{c['sessions']} sessions x {c['fps']:g} fps x {c['duration_s']:g} s, "
+        f"{c['dataset']} {c['size'][0]}x{c['size'][1]}: latency ms, drops",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+        padding=(0, 1),
+        collapse_padding=True,
+    )
     # Latency (ms) send to pose; drops: on the client, on the server; err: failures.
-    for col in ("sess", "sent", "poses", "pose/s", "drop c", "drop s", "p50", "p95", "p99",
-                "ok/wk/lost", "err"):
+    for col in (
+        "sess",
+        "sent",
+        "poses",
+        "pose/s",
+        "drop c",
+        "drop s",
+        "p50",
+        "p95",
+        "p99",
+        "ok/wk/lost",
+        "err",
+    ):
         table.add_column(col, justify="right")
 
     def row(name: str, s: dict, states: str, errors: int, style=None) -> None:
-        table.add_row(name, str(s["sent"]), str(s["processed"]), f"{s['processed_fps']:.1f}",
-                      f"{100 * s['client_drop_rate']:.1f}%", f"{100 * s['server_drop_rate']:.1f}%",
-                      _ms(s["latency"]["p50_ms"]), _ms(s["latency"]["p95_ms"]),
-                      _ms(s["latency"]["p99_ms"]), states, str(errors), style=style)
+        table.add_row(
+            name,
+            str(s["sent"]),
+            str(s["processed"]),
+            f"{s['processed_fps']:.1f}",
+            f"{100 * s['client_drop_rate']:.1f}%",
+            f"{100 * s['server_drop_rate']:.1f}%",
+            _ms(s["latency"]["p50_ms"]),
+            _ms(s["latency"]["p95_ms"]),
+            _ms(s["latency"]["p99_ms"]),
+            states,
+            str(errors),
+            style=style,
+        )
 
     for s in report["sessions"]:
         st = s["states"]
-        row(str(s["index"]), s, f"{st.get('ok', 0)}/{st.get('weak', 0)}/{st.get('lost', 0)}",
-            len(s["failures"]))
+        row(
+            str(s["index"]),
+            s,
+            f"{st.get('ok', 0)}/{st.get('weak', 0)}/{st.get('lost', 0)}",
+            len(s["failures"]),
+        )
     row("all", t, "", t["failures"], style="bold")
     return table
 
 
 def report_footer(report: dict) -> str:
     """Stage times, drop rate against capture, client CPU and command answers in a few lines."""
-    stages = ", ".join(f"{k} {v['median']:.1f}" for k, v in report["stages_ms"].items()
-                       if not k.startswith("track_"))
+    stages = ", ".join(
+        f"{k} {v['median']:.1f}"
+        for k, v in report["stages_ms"].items()
+        if not k.startswith("track_")
+    )
     commands = [s["commands"] for s in report["sessions"]]
     lags = [s["send_lag_p95_ms"] for s in report["sessions"] if s["send_lag_p95_ms"] is not None]
     t = report["total"]
-    return (f"server stages, median ms: {stages or '-'}\n"
-            f"frames captured {t['captured']}, without a pose {100 * t['drop_rate']:.1f}%; "
-            f"client CPU {report['client_cpu_percent']:.0f}% of one core, "
-            f"capture-to-send lag p95 {max(lags, default=0):.1f} ms\n"
-            f"drone commands sent {sum(c['sent'] for c in commands)}, answered 'not ready' "
-            f"{sum(c['not_ready'] for c in commands)} (tolerated), drone_state messages "
-            f"{sum(c['drone_states'] for c in commands)}; errors by name: "
-            f"{', '.join(f'{k} {v}' for k, v in report['total']['errors'].items()) or 'none'}")
+    return (
+        f"server stages, median ms: {stages or '-'}\n"
+        f"frames captured {t['captured']}, without a pose {100 * t['drop_rate']:.1f}%; "
+        f"client CPU {report['client_cpu_percent']:.0f}% of one core, "
+        f"capture-to-send lag p95 {max(lags, default=0):.1f} ms\n"
+        f"drone commands sent {sum(c['sent'] for c in commands)}, answered 'not ready' "
+        f"{sum(c['not_ready'] for c in commands)} (tolerated), drone_state messages "
+        f"{sum(c['drone_states'] for c in commands)}; errors by name: "
+        f"{', '.join(f'{k} {v}' for k, v in report['total']['errors'].items()) or 'none'}"
+    )
 
 
 def write_plot(report: dict, path) -> None:
@@ -528,8 +643,9 @@ def write_plot(report: dict, path) -> None:
     import matplotlib.pyplot as plt
 
     c = report["config"]
-    fig, (ax, ax_rate) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True,
-                                      gridspec_kw={"height_ratios": [3, 1]})
+    fig, (ax, ax_rate) = plt.subplots(
+        2, 1, figsize=(10, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+    )
     everything = []
     for i, timeline in enumerate(report["timeline"]):
         if timeline:
@@ -546,8 +662,10 @@ def write_plot(report: dict, path) -> None:
         ax_rate.bar(bins[:-1] + 0.5, np.histogram(t, bins)[0], width=0.9, color="tab:gray")
     ax.set_ylim(bottom=0)
     ax.set_ylabel("send to pose, ms")
-    ax.set_title(f"{c['sessions']} sessions x {c['fps']:g} fps, {c['dataset']}: "
-                 f"p95 {_ms(report['total']['latency']['p95_ms'])} ms")
+    ax.set_title(
+        f"{c['sessions']} sessions x {c['fps']:g} fps, {c['dataset']}: "
+        f"p95 {_ms(report['total']['latency']['p95_ms'])} ms"
+    )
     ax.grid(alpha=0.3)
     if len(everything) <= 10:
         ax.legend(loc="upper right", fontsize=7, markerscale=3)

@@ -35,8 +35,12 @@ class ReplayStats:
     drone_events: list[dict] = field(default_factory=list)
 
 
-async def await_answers(in_flight: dict, answered: asyncio.Event, deadline: float,
-                        gone: Callable[[], bool] = lambda: False) -> None:
+async def await_answers(
+    in_flight: dict,
+    answered: asyncio.Event,
+    deadline: float,
+    gone: Callable[[], bool] = lambda: False,
+) -> None:
     """Wait until no frame is in flight (``answered`` is set on each answer), the monotonic
     ``deadline`` passes, or ``gone()`` says the connection ended."""
     while in_flight and not gone() and time.monotonic() < deadline:

@@ -47,17 +47,35 @@ class ServerProcess:
     """A server process. env: extra environment (``DRONESIM_*`` settings); log: a file that
     gets its output (appended), or None to discard it."""
 
-    def __init__(self, data_dir: Path, env: Mapping[str, str] | None = None,
-                 log: Path | None = None, timeout_s: float = 90.0) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        env: Mapping[str, str] | None = None,
+        log: Path | None = None,
+        timeout_s: float = 90.0,
+    ) -> None:
         self.port = free_port()
         self.url, self.ws_url = f"http://127.0.0.1:{self.port}", f"ws://127.0.0.1:{self.port}"
         self.log = log
         # The child keeps its own copy of the log's descriptor; ours is closed at once.
         with log.open("ab") if log is not None else nullcontext(subprocess.DEVNULL) as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "server", "serve", "--port", str(self.port),
-                 "--data-dir", str(data_dir), "--no-demo"],
-                cwd=REPO, env={**os.environ, **(env or {})}, stdout=out, stderr=subprocess.STDOUT)
+                [
+                    sys.executable,
+                    "-m",
+                    "server",
+                    "serve",
+                    "--port",
+                    str(self.port),
+                    "--data-dir",
+                    str(data_dir),
+                    "--no-demo",
+                ],
+                cwd=REPO,
+                env={**os.environ, **(env or {})},
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
         deadline = time.monotonic() + timeout_s
         while not self._healthy():
             if self.proc.poll() is not None or time.monotonic() > deadline:

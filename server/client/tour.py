@@ -34,8 +34,12 @@ class TourPilot:
             if self.resume_at is not None and len(self.cameras) >= self.resume_at:
                 self.resume_at = None
                 return self._goto(self._pick())
-        elif kind == "drone_event" and msg["event"] in ("spawned", "arrived", "blocked",
-                                                        "collision"):
+        elif kind == "drone_event" and msg["event"] in (
+            "spawned",
+            "arrived",
+            "blocked",
+            "collision",
+        ):
             self.refusals = 0
             return self._goto(self._pick())
         elif kind == "error" and msg.get("command_id") is not None:

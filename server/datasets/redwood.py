@@ -106,4 +106,3 @@ class RedwoodDataset(ImagePairDataset):
 
         self.ground_truth = read_ground_truth(self.path / "groundtruth.txt")
         logger.info("%s: %d frames", self.name, len(self))
-

@@ -247,4 +247,3 @@ class TUMDataset(ImagePairDataset):
         )
 
         self.ground_truth = read_ground_truth(self.path / "groundtruth.txt")
-

@@ -22,8 +22,14 @@ class MapPreview:
         self._rng = np.random.default_rng(0)
         self.total = 0
 
-    def new_points(self, colour: np.ndarray, depth: np.ndarray, K: Intrinsics,
-                   T_world_camera: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    def new_points(
+        self,
+        colour: np.ndarray,
+        depth: np.ndarray,
+        K: Intrinsics,
+        T_world_camera: np.ndarray,
+        max_points: int,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Points (N, 3) float32 world metres and colours (N, 3) uint8 of voxels this frame shows
         for the first time, at most ``max_points`` (the rest can come with later frames)."""
         d = np.where(depth <= self.max_depth_m, depth, 0.0)

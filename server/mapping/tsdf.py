@@ -96,8 +96,9 @@ def _rotate(points: np.ndarray, R: np.ndarray | None) -> np.ndarray:
     if R is None:
         return p
     R = np.asarray(R, dtype=np.float64)
-    return np.stack([p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2]
-                     for i in range(3)], axis=1)
+    return np.stack(
+        [p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2] for i in range(3)], axis=1
+    )
 
 
 def _atomic_write(path: str | Path, suffix: str, write) -> None:
@@ -131,14 +132,20 @@ class TSDFMap:
         if grid is None:
             f32 = o3c.float32
             grid = o3d.t.geometry.VoxelBlockGrid(
-                list(_ATTRIBUTES), [f32, f32, f32], [[1], [1], [3]],
-                config.voxel_m, config.block_resolution, config.block_count, self._device,
+                list(_ATTRIBUTES),
+                [f32, f32, f32],
+                [[1], [1], [3]],
+                config.voxel_m,
+                config.block_resolution,
+                config.block_count,
+                self._device,
             )
         self._grid = grid
         self._lock = threading.Lock()
         # Where each fused frame's camera was: known free space, even just behind the camera.
-        self._cameras = list(np.reshape([] if camera_positions is None else camera_positions,
-                                        (-1, 3)))
+        self._cameras = list(
+            np.reshape([] if camera_positions is None else camera_positions, (-1, 3))
+        )
         self._dirty = np.sort(_pack(self._active_keys()))  # blocks touched since the last preview
         # Blocks touched, and cameras added, since the last occupancy_update (all at first, so
         # that the first update is the whole grid).
@@ -149,8 +156,13 @@ class TSDFMap:
         self._rng = np.random.default_rng(0)
 
     # --- fusion ------------------------------------------------------------------------------
-    def integrate(self, colour_rgb_uint8: np.ndarray, depth_m: np.ndarray, K: Intrinsics,
-                  T_world_camera: np.ndarray) -> int:
+    def integrate(
+        self,
+        colour_rgb_uint8: np.ndarray,
+        depth_m: np.ndarray,
+        K: Intrinsics,
+        T_world_camera: np.ndarray,
+    ) -> int:
         """Fuse one frame and return the number of newly allocated blocks.
 
         colour_rgb_uint8: (Hc, Wc, 3) RGB uint8, registered to the depth image; resized (area
@@ -163,8 +175,10 @@ class TSDFMap:
         depth = np.asarray(depth_m, dtype=np.float32)
         colour = np.asarray(colour_rgb_uint8)
         if depth.ndim != 2 or colour.ndim != 3 or colour.shape[2] != 3 or colour.dtype != np.uint8:
-            raise MapError(f"need depth (H, W) and colour (H, W, 3) uint8, got depth "
-                           f"{depth.shape} and colour {colour.shape} {colour.dtype}")
+            raise MapError(
+                f"need depth (H, W) and colour (H, W, 3) uint8, got depth "
+                f"{depth.shape} and colour {colour.shape} {colour.dtype}"
+            )
         T = np.asarray(T_world_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise MapError(f"T_world_camera must be a finite 4x4 matrix, got shape {T.shape}")
@@ -177,14 +191,16 @@ class TSDFMap:
         extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64)  # T_camera_world, as Open3D wants
         depth_img = o3d.t.geometry.Image(o3c.Tensor(depth)).to(self._device)
         colour_img = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0)).to(self._device)
+            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0)
+        ).to(self._device)
 
         with self._lock:
             self._cameras.append(T[:3, 3].copy())
             if not np.any(depth):
                 return 0
             blocks = self._grid.compute_unique_block_coordinates(
-                depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels)
+                depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels
+            )
             keys = np.unique(_pack(blocks.cpu().numpy()))
             carve = cfg.carve_free_space and self._integrations % cfg.carve_every == 0
             self._integrations += 1
@@ -195,8 +211,16 @@ class TSDFMap:
             hashmap = self._grid.hashmap()
             before = hashmap.size()
             coords = o3c.Tensor(_unpack(keys).astype(np.int32)).to(self._device)
-            self._grid.integrate(coords, depth_img, colour_img, intrinsic, extrinsic,
-                                 1.0, cfg.depth_max_m, cfg.trunc_voxels)
+            self._grid.integrate(
+                coords,
+                depth_img,
+                colour_img,
+                intrinsic,
+                extrinsic,
+                1.0,
+                cfg.depth_max_m,
+                cfg.trunc_voxels,
+            )
             self._dirty = np.union1d(self._dirty, keys)
             self._occupancy_dirty = np.union1d(self._occupancy_dirty, keys)
             return hashmap.size() - before
@@ -217,8 +241,14 @@ class TSDFMap:
         v, u = np.nonzero((d > 0) & (d <= cfg.depth_max_m))
         z = d[v, u]
         # Ray direction scaled to unit depth, so that a point at depth t is rays * t.
-        rays = np.stack([(u * s + s // 2 - K.cx) / K.fx, (v * s + s // 2 - K.cy) / K.fy,
-                         np.ones_like(z, dtype=np.float64)], axis=1)
+        rays = np.stack(
+            [
+                (u * s + s // 2 - K.cx) / K.fx,
+                (v * s + s // 2 - K.cy) / K.fy,
+                np.ones_like(z, dtype=np.float64),
+            ],
+            axis=1,
+        )
         t = np.arange(0.0, cfg.depth_max_m, cfg.block_m / 2)
         r, c = np.nonzero(t[None, :] < z[:, None] - cfg.trunc_m)
         world = (rays[r] * t[c, None]) @ T[:3, :3].T + T[:3, 3]
@@ -328,7 +358,7 @@ class TSDFMap:
         with self._lock:
             dirty = _unpack(self._occupancy_dirty)
             cameras = np.array(self._cameras).reshape(-1, 3)
-            new_cameras = cameras[self._occupancy_cameras:]
+            new_cameras = cameras[self._occupancy_cameras :]
             self._occupancy_dirty = np.empty(0, np.int64)
             self._occupancy_cameras = len(cameras)
             if len(dirty) == 0 and len(new_cameras) == 0:
@@ -480,8 +510,10 @@ class TSDFMap:
         if config is None:
             config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
         elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
-            raise ConfigError(f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
-                              f"asks for {config.voxel_m} m in {config.block_resolution}^3")
+            raise ConfigError(
+                f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
+                f"asks for {config.voxel_m} m in {config.block_resolution}^3"
+            )
         return cls(config, grid=grid.to(o3c.Device(config.device)), camera_positions=cameras)
 
     def stats(self) -> dict:
@@ -492,6 +524,10 @@ class TSDFMap:
             active, capacity = hashmap.size(), hashmap.capacity()
             frames = len(self._cameras)
         per_block = self.config.block_resolution**3 * _BYTES_PER_VOXEL + 3 * 4
-        return {"frames_integrated": frames, "active_blocks": active, "capacity_blocks": capacity,
-                "voxel_m": self.config.voxel_m, "memory_bytes": capacity * per_block}
-
+        return {
+            "frames_integrated": frames,
+            "active_blocks": active,
+            "capacity_blocks": capacity,
+            "voxel_m": self.config.voxel_m,
+            "memory_bytes": capacity * per_block,
+        }

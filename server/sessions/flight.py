@@ -106,9 +106,15 @@ class Flight:
     from the session's workers, ``command`` from the transport; a thread of its own advances the
     simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``."""
 
-    def __init__(self, config: SimulationConfig, K: Intrinsics, gravity_world: np.ndarray | None,
-                 publish: Callable[[DroneUpdate | DroneNotice], None], state_hz: float = 20.0,
-                 spawn_ahead_m: float = 0.8) -> None:
+    def __init__(
+        self,
+        config: SimulationConfig,
+        K: Intrinsics,
+        gravity_world: np.ndarray | None,
+        publish: Callable[[DroneUpdate | DroneNotice], None],
+        state_hz: float = 20.0,
+        spawn_ahead_m: float = 0.8,
+    ) -> None:
         self.config = config
         self.K = K
         self.R_flight_world = flight_frame(gravity_world)
@@ -160,8 +166,9 @@ class Flight:
             self._pending_map = (origin, occupied, observed)
             self._pending_region = None
 
-    def map_region_changed(self, origin: np.ndarray, occupied: np.ndarray,
-                           observed: np.ndarray) -> None:
+    def map_region_changed(
+        self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray
+    ) -> None:
         """New occupancy for a sub-box of the grid, flight frame (``TSDFMap.occupancy_update``:
         origin (3,) metres on the grid's lattice, occupied and observed (X, Y, Z) bool). Cheap
         to call often: boxes pending together merge (the newer wins where they overlap) and
@@ -169,8 +176,9 @@ class Flight:
         region = Region.whole(origin, occupied, observed)
         with self._pending_lock:
             pending = self._pending_region
-            self._pending_region = region if pending is None else \
-                pending.merged(region, self.flight_map.voxel_m)
+            self._pending_region = (
+                region if pending is None else pending.merged(region, self.flight_map.voxel_m)
+            )
 
     def feed_from_map(self, tsdf_map) -> bool:
         """Hand the drone what the frames fused into ``tsdf_map`` (a ``TSDFMap``) since the last
@@ -187,13 +195,25 @@ class Flight:
             log.exception("feeding the flight map from the TSDF failed")
             return False
 
-    def command(self, name: str, command_id: int, *, target=None, pixel=None, seq=None,
-                sticks=None, speed=None) -> None:
+    def command(
+        self,
+        name: str,
+        command_id: int,
+        *,
+        target=None,
+        pixel=None,
+        seq=None,
+        sticks=None,
+        speed=None,
+    ) -> None:
         """Carry out a pilot command (names and fields as the protocol's ``command``).
         Raises CommandRefused (code bad_command or unreachable_target)."""
         if not self.spawned and name != "sticks":
-            raise CommandRefused("bad_command", "the drone appears once the map has its first "
-                                 "frames; wait for the drone_event 'spawned'")
+            raise CommandRefused(
+                "bad_command",
+                "the drone appears once the map has its first "
+                "frames; wait for the drone_event 'spawned'",
+            )
         if name == "goto_pixel":
             target = self._pixel_target(pixel, seq)
         with self._lock:
@@ -227,8 +247,7 @@ class Flight:
         if not np.all(np.isfinite(target_world)):
             raise CommandRefused("bad_command", "the target must be three finite numbers")
         try:
-            self.sim.command_goto(self._to_flight(target_world), speed=speed,
-                                  command_id=command_id)
+            self.sim.command_goto(self._to_flight(target_world), speed=speed, command_id=command_id)
         except PlanningError as exc:
             # The planner speaks in flight-frame coordinates; the client knows the world's.
             nearest = None if exc.nearest is None else self._to_world(exc.nearest)
@@ -256,19 +275,26 @@ class Flight:
                 seq = next(reversed(self._frames))
             frame = self._frames.get(seq)
         if frame is None:
-            raise CommandRefused("bad_command", f"frame {seq} is not among the last "
-                                 f"{_RECENT_FRAMES} processed frames; tap again")
+            raise CommandRefused(
+                "bad_command",
+                f"frame {seq} is not among the last {_RECENT_FRAMES} processed frames; tap again",
+            )
         u, v = float(pixel[0]), float(pixel[1])
         h, w = frame.depth.shape
         if not (0 <= u < w and 0 <= v < h):
-            raise CommandRefused("bad_command", f"pixel ({u:.0f}, {v:.0f}) is outside the "
-                                 f"{w}x{h} image")
+            raise CommandRefused(
+                "bad_command", f"pixel ({u:.0f}, {v:.0f}) is outside the {w}x{h} image"
+            )
         r = _PIXEL_WINDOW
-        window = frame.depth[max(0, int(v) - r):int(v) + r + 1, max(0, int(u) - r):int(u) + r + 1]
+        window = frame.depth[
+            max(0, int(v) - r) : int(v) + r + 1, max(0, int(u) - r) : int(u) + r + 1
+        ]
         valid = window[(window > 0) & np.isfinite(window)]
         if valid.size == 0:
-            raise CommandRefused("bad_command", f"no depth at pixel ({u:.0f}, {v:.0f}); tap "
-                                 "a surface the camera measured")
+            raise CommandRefused(
+                "bad_command",
+                f"no depth at pixel ({u:.0f}, {v:.0f}); tap a surface the camera measured",
+            )
         z = float(np.median(valid))
         K = self.K
         ray = np.array([(u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0])
@@ -346,8 +372,13 @@ class Flight:
                 continue
 
     def _notice(self, event) -> DroneNotice:
-        return DroneNotice(event.kind.value, event.time_s, self._to_world(event.position),
-                           event.message, event.command_id)
+        return DroneNotice(
+            event.kind.value,
+            event.time_s,
+            self._to_world(event.position),
+            event.message,
+            event.command_id,
+        )
 
     def state(self) -> DroneUpdate:
         with self._lock:
@@ -374,5 +405,10 @@ class Flight:
         if not self.spawned:
             return {"spawned": False}
         s = self.state()
-        return {"spawned": True, "mode": s.mode, "position": s.T_world_drone[:3, 3].tolist(),
-                "clearance_m": s.clearance, "events": dict(self.event_counts)}
+        return {
+            "spawned": True,
+            "mode": s.mode,
+            "position": s.T_world_drone[:3, 3].tolist(),
+            "clearance_m": s.clearance,
+            "events": dict(self.event_counts),
+        }

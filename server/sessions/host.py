@@ -111,14 +111,21 @@ class HostArgs:
 class SessionHost:
     """A live session in its worker: frames in as bytes, updates out through ``publish``."""
 
-    def __init__(self, args: HostArgs, publish: Callable[[object], None],
-                 mapper: MapperClient | None = None) -> None:
+    def __init__(
+        self, args: HostArgs, publish: Callable[[object], None], mapper: MapperClient | None = None
+    ) -> None:
         """mapper: the session's mapping process; None maps in a thread of this process."""
         limit_threads(args.threads)
         self.args = args
         self.publish = publish
-        self.session = Session(args.session_id, args.token_hash, SessionStore(Path(args.data_dir)),
-                               args.config, created_at=args.created_at, mapper=mapper)
+        self.session = Session(
+            args.session_id,
+            args.token_hash,
+            SessionStore(Path(args.data_dir)),
+            args.config,
+            created_at=args.created_at,
+            mapper=mapper,
+        )
         self._hello: dict | None = None
 
     def describe(self) -> dict:
@@ -151,8 +158,14 @@ class SessionHost:
             if self._hello is None:
                 raise SessionError("no_hello", "send a hello before frames")
             colour, depth = proto.decode_frame_images(message, self._hello)
-            frame = FrameData(seq, message["timestamp"], colour, depth, received_at=received_at,
-                              decode_ms=(time.perf_counter() - t0) * 1e3)
+            frame = FrameData(
+                seq,
+                message["timestamp"],
+                colour,
+                depth,
+                received_at=received_at,
+                decode_ms=(time.perf_counter() - t0) * 1e3,
+            )
             self.session.submit(frame)
         except (proto.ProtocolError, SessionError) as exc:
             self.publish(FrameRefused(seq, exc.code, str(exc)))

@@ -42,9 +42,14 @@ class LiveSession:
     ``kill``, ``describe`` and ``dropped`` (``server.sessions.worker.ProcessWorker``, or the Ray
     actor's handle); ``on_lost`` is told when the worker dies on its own."""
 
-    def __init__(self, session_id: str, token_hash: str, created_at: float,
-                 start_worker: Callable[[LiveSession], object],
-                 on_lost: Callable[[LiveSession, str], None] | None = None) -> None:
+    def __init__(
+        self,
+        session_id: str,
+        token_hash: str,
+        created_at: float,
+        start_worker: Callable[[LiveSession], object],
+        on_lost: Callable[[LiveSession, str], None] | None = None,
+    ) -> None:
         self.id = session_id
         self.token_hash = token_hash
         self.created_at = created_at

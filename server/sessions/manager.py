@@ -62,8 +62,14 @@ class SessionManager:
     ``threads``: native threads per session's libraries; 0 shares the cores among the live
     sessions (rebalanced as sessions come and go)."""
 
-    def __init__(self, store: SessionStore, config: SessionConfig | None = None,
-                 max_sessions: int = 16, workers=None, threads: int = 0) -> None:
+    def __init__(
+        self,
+        store: SessionStore,
+        config: SessionConfig | None = None,
+        max_sessions: int = 16,
+        workers=None,
+        threads: int = 0,
+    ) -> None:
         self.store = store
         self.config = config or SessionConfig()
         self.max_sessions = max_sessions
@@ -85,8 +91,12 @@ class SessionManager:
                 continue
             removed = self.store.remove_partial_files(sid)
             if removed:
-                log.warning("session %s: removed %d partial files of an interrupted write: %s",
-                            sid, len(removed), ", ".join(removed))
+                log.warning(
+                    "session %s: removed %d partial files of an interrupted write: %s",
+                    sid,
+                    len(removed),
+                    ", ".join(removed),
+                )
         return len(self._saved)
 
     def _threads_each(self, sessions: int) -> int:
@@ -97,19 +107,33 @@ class SessionManager:
         hash is kept)."""
         with self._lock:
             if len(self._live) + len(self._closing) >= self.max_sessions:
-                raise SessionError("server_full", f"the server holds its maximum of "
-                                   f"{self.max_sessions} live sessions; try again later")
+                raise SessionError(
+                    "server_full",
+                    f"the server holds its maximum of "
+                    f"{self.max_sessions} live sessions; try again later",
+                )
             sid = secrets.token_hex(8)
             while sid in self._live or sid in self._saved:
                 sid = secrets.token_hex(8)
             self._closing.add(sid)  # holds its place while the worker starts
             threads = self._threads_each(len(self._live) + 1)
         token = secrets.token_urlsafe(32)
-        args = HostArgs(sid, hash_token(token), str(Path(self.store.root).parent), self.config,
-                        time.time(), threads)
+        args = HostArgs(
+            sid,
+            hash_token(token),
+            str(Path(self.store.root).parent),
+            self.config,
+            time.time(),
+            threads,
+        )
         try:
-            session = LiveSession(sid, args.token_hash, args.created_at,
-                                  lambda s: self.workers.start(args, s), self.session_lost)
+            session = LiveSession(
+                sid,
+                args.token_hash,
+                args.created_at,
+                lambda s: self.workers.start(args, s),
+                self.session_lost,
+            )
             session.worker.call("save_meta")
         except BaseException:
             with self._lock:
@@ -145,8 +169,12 @@ class SessionManager:
         try:
             meta = self.store.read_meta(session.id)
         except StoreError:
-            meta = {"id": session.id, "token_sha256": session.token_hash,
-                    "created_at": session.created_at, "status": {}}
+            meta = {
+                "id": session.id,
+                "token_sha256": session.token_hash,
+                "created_at": session.created_at,
+                "status": {},
+            }
         meta["closed"] = True
         meta["failure"] = reason
         meta["status"] = dict(meta.get("status") or {}, closed=True, failure=reason)
@@ -191,8 +219,9 @@ class SessionManager:
             return None
         if found is None:
             return None
-        session = LiveSession(session_id, found.token_hash, found.created_at, found.attach,
-                              self.session_lost)
+        session = LiveSession(
+            session_id, found.token_hash, found.created_at, found.attach, self.session_lost
+        )
         with self._lock:
             return self._live.setdefault(session_id, session)
 
@@ -246,12 +275,18 @@ class SessionManager:
         those whose save failed). Returns the ids closed and saved."""
         now = time.monotonic()
         with self._lock:
-            idle = [(sid, s.closed) for sid, s in self._live.items()
-                    if sid not in connected and (s.closed or now - s.last_seen > ttl_s)]
+            idle = [
+                (sid, s.closed)
+                for sid, s in self._live.items()
+                if sid not in connected and (s.closed or now - s.last_seen > ttl_s)
+            ]
         closed = []
         for sid, unsaved in idle:
-            log.info("session %s %s", sid, "retrying its save" if unsaved
-                     else f"idle for {ttl_s:.0f} s: closing")
+            log.info(
+                "session %s %s",
+                sid,
+                "retrying its save" if unsaved else f"idle for {ttl_s:.0f} s: closing",
+            )
             if self.close(sid):
                 closed.append(sid)
         return closed

@@ -63,15 +63,22 @@ class Mapper:
         self.preview_points = preview_points
         self._lock = threading.Lock()
 
-    def fuse(self, colour: np.ndarray, depth: np.ndarray, K: Intrinsics, T_world_camera:
-             np.ndarray, occupancy: tuple[float, np.ndarray] | None = None) -> Fused:
+    def fuse(
+        self,
+        colour: np.ndarray,
+        depth: np.ndarray,
+        K: Intrinsics,
+        T_world_camera: np.ndarray,
+        occupancy: tuple[float, np.ndarray] | None = None,
+    ) -> Fused:
         """Integrate a frame (colour RGB uint8, depth metres at K's size, T_world_camera 4x4);
         ``occupancy``: (cell edge in metres, R_flight_world) to also return the drone's grid
         for what changed, or None."""
         with self._lock:
             self.map.integrate(colour, depth, K, T_world_camera)
-            points, colours = self.preview.new_points(colour, depth, K, T_world_camera,
-                                                      self.preview_points)
+            points, colours = self.preview.new_points(
+                colour, depth, K, T_world_camera, self.preview_points
+            )
             grid = None
             if occupancy is not None:
                 grid = self.map.occupancy_update(*occupancy)
@@ -96,8 +103,9 @@ class Mapper:
 
     def download(self, name: str) -> bytes:
         """``map.ply`` (surface points) or ``mesh.ply``, as the bytes of the file."""
-        write = {"map.ply": self.map.write_point_cloud_ply,
-                 "mesh.ply": self.map.write_mesh_ply}[name]
+        write = {"map.ply": self.map.write_point_cloud_ply, "mesh.ply": self.map.write_mesh_ply}[
+            name
+        ]
         with tempfile.TemporaryDirectory() as tmp, self._lock:
             path = Path(tmp) / name
             write(path)

@@ -78,8 +78,7 @@ class SessionActor:
     owner, until another front-end sends a hello)."""
 
     def __init__(self, args, owner: str) -> None:
-        logging.basicConfig(level=logging.WARNING,
-                            format="%(levelname)s %(name)s: %(message)s")
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         from server.sessions.host import SessionHost
 
         self._cond = threading.Condition()
@@ -112,8 +111,13 @@ class SessionActor:
 
     @ray.method(concurrency_group="query")
     def identity(self) -> dict:
-        return {"token_hash": self.args.token_hash, "created_at": self.args.created_at,
-                "data_dir": self.args.data_dir, "info": self.info, "ended": self._ended}
+        return {
+            "token_hash": self.args.token_hash,
+            "created_at": self.args.created_at,
+            "data_dir": self.args.data_dir,
+            "info": self.info,
+            "ended": self._ended,
+        }
 
     @ray.method(concurrency_group="ordered")
     def ordered(self, owner: str, number: int, method: str, args: tuple):
@@ -157,8 +161,9 @@ class SessionActor:
             return self.host.frame(data, self._last_active)
         if method == "command":
             if owner != self._owner:
-                raise SessionError("session_taken_over",
-                                   "another connection took this session over")
+                raise SessionError(
+                    "session_taken_over", "another connection took this session over"
+                )
             return self.host.command(*args)
         if method == "stop":
             meta = self.host.stop(*args)
@@ -178,9 +183,11 @@ class SessionActor:
         except Exception as exc:
             return False, as_remote(exc)
         if method == "status":
-            value = value | {"out_of_order_calls": self.out_of_order,
-                             "foreign_frames": self.foreign_frames,
-                             "skipped_updates": self.skipped_updates}
+            value = value | {
+                "out_of_order_calls": self.out_of_order,
+                "foreign_frames": self.foreign_frames,
+                "skipped_updates": self.skipped_updates,
+            }
         return True, value
 
     @ray.method(concurrency_group="poll")
@@ -198,8 +205,12 @@ class SessionActor:
             if owner == self._owner:
                 items = list(self._items)
                 self._items.clear()
-            return {"items": items, "owner": owner == self._owner,
-                    "idle_s": time.monotonic() - self._last_active, "ended": self._ended}
+            return {
+                "items": items,
+                "owner": owner == self._owner,
+                "idle_s": time.monotonic() - self._last_active,
+                "ended": self._ended,
+            }
 
 
 # ---- the front-end's side --------------------------------------------------------------------
@@ -212,8 +223,16 @@ class RayWorker:
 
     kind = "ray"
 
-    def __init__(self, backend: RayWorkers, actor, session_id: str, identity: dict,
-                 on_update, on_lost, owner: bool) -> None:
+    def __init__(
+        self,
+        backend: RayWorkers,
+        actor,
+        session_id: str,
+        identity: dict,
+        on_update,
+        on_lost,
+        owner: bool,
+    ) -> None:
         self.backend, self.actor, self.session_id = backend, actor, session_id
         self.info = identity["info"]
         self.data_dir = identity["data_dir"]
@@ -229,9 +248,10 @@ class RayWorker:
         self._stopped = False  # this front-end stopped or killed it: its end is expected
         self._ended_elsewhere = False
         self._closing = False
-        self._threads = [threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True)
-                         for target, name in ((self._send_loop, "ray-out"),
-                                              (self._poll_loop, "ray-poll"))]
+        self._threads = [
+            threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True)
+            for target, name in ((self._send_loop, "ray-out"), (self._poll_loop, "ray-poll"))
+        ]
         for thread in self._threads:
             thread.start()
         backend._workers.add(self)
@@ -257,8 +277,9 @@ class RayWorker:
             try:
                 ref = future.result(timeout_s)
             except FutureTimeout:
-                raise WorkerLost(f"the session's actor did not take {method} within "
-                                 f"{timeout_s:.0f} s") from None
+                raise WorkerLost(
+                    f"the session's actor did not take {method} within {timeout_s:.0f} s"
+                ) from None
         else:
             if self._lost is not None:
                 raise WorkerLost(self._lost)
@@ -271,8 +292,9 @@ class RayWorker:
         try:
             ok, value = ray.get(ref, timeout=timeout_s)
         except GetTimeoutError:
-            raise WorkerLost(f"the session's actor did not answer {method} within "
-                             f"{timeout_s:.0f} s") from None
+            raise WorkerLost(
+                f"the session's actor did not answer {method} within {timeout_s:.0f} s"
+            ) from None
         except RayActorError as exc:
             raise WorkerLost(self._lost or _death(exc)) from None
         if not ok:
@@ -293,8 +315,9 @@ class RayWorker:
             self._cond.notify_all()
 
     def _sendable(self) -> bool:
-        return bool(self._queue) and (self._queue[0][0] != "frame"
-                                      or self._in_flight < MAX_FRAMES_IN_FLIGHT)
+        return bool(self._queue) and (
+            self._queue[0][0] != "frame" or self._in_flight < MAX_FRAMES_IN_FLIGHT
+        )
 
     def _send_loop(self) -> None:
         """The one thread that submits ordered calls, numbered in queue order."""
@@ -335,8 +358,11 @@ class RayWorker:
             try:
                 reply = ray.get(self.actor.updates.remote(owner, POLL_S), timeout=POLL_S + 30)
             except GetTimeoutError:
-                log.warning("session %s: its actor did not answer a poll in %.0f s",
-                            self.session_id, POLL_S + 30)
+                log.warning(
+                    "session %s: its actor did not answer a poll in %.0f s",
+                    self.session_id,
+                    POLL_S + 30,
+                )
                 continue
             except RayActorError as exc:
                 reason = _death(exc)
@@ -357,8 +383,11 @@ class RayWorker:
                 self._owner = True
             elif self._owner:
                 self._owner = False
-                self._deliver(SessionTakenOver(
-                    "a newer connection, on another front-end, took the session over"))
+                self._deliver(
+                    SessionTakenOver(
+                        "a newer connection, on another front-end, took the session over"
+                    )
+                )
             if reply["ended"] is not None and not self._stopped:
                 return self._end_elsewhere("the session was closed by another front-end")
 
@@ -474,8 +503,7 @@ def _connect(address: str) -> bool:
         _RAY_USERS += 1
         if ray.is_initialized():
             return local
-        options = {"namespace": NAMESPACE, "logging_level": logging.WARNING,
-                   "log_to_driver": False}
+        options = {"namespace": NAMESPACE, "logging_level": logging.WARNING, "log_to_driver": False}
         if local:
             # One machine: Ray on the loopback only (its node address, and what it listens on).
             os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
@@ -506,20 +534,28 @@ class RayWorkers:
     def start(self, args, session) -> RayWorker:
         args = replace(args, threads=SESSION_THREADS)
         actor = SessionActor.options(
-            name=actor_name(args.session_id), namespace=NAMESPACE, lifetime="detached",
-            num_cpus=SESSION_CPUS, scheduling_strategy="SPREAD", max_restarts=0,
+            name=actor_name(args.session_id),
+            namespace=NAMESPACE,
+            lifetime="detached",
+            num_cpus=SESSION_CPUS,
+            scheduling_strategy="SPREAD",
+            max_restarts=0,
         ).remote(args, self.owner)
         try:
             identity = ray.get(actor.identity.remote(), timeout=START_TIMEOUT_S)
         except GetTimeoutError:
             ray.kill(actor, no_restart=True)
-            raise SessionError("server_full", f"the Ray cluster did not start the session within "
-                               f"{START_TIMEOUT_S:.0f} s (no free CPU for another one?); "
-                               "try again later") from None
+            raise SessionError(
+                "server_full",
+                f"the Ray cluster did not start the session within "
+                f"{START_TIMEOUT_S:.0f} s (no free CPU for another one?); "
+                "try again later",
+            ) from None
         except RayActorError as exc:
             raise WorkerLost(_death(exc)) from None
-        return RayWorker(self, actor, args.session_id, identity, session.deliver, session.lost,
-                         owner=True)
+        return RayWorker(
+            self, actor, args.session_id, identity, session.deliver, session.lost, owner=True
+        )
 
     def find(self, session_id: str):
         """The live session ``session_id`` on the cluster (any front-end's), or None."""
@@ -536,8 +572,9 @@ class RayWorkers:
             return None
 
         def attach(session) -> RayWorker:
-            return RayWorker(self, actor, session_id, identity, session.deliver, session.lost,
-                             owner=False)
+            return RayWorker(
+                self, actor, session_id, identity, session.deliver, session.lost, owner=False
+            )
 
         return FoundSession(identity["token_hash"], identity["created_at"], attach)
 

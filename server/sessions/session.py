@@ -227,8 +227,9 @@ class Session:
             self.flight.start()
         if self._worker is None:
             self._worker = threading.Thread(target=self._run, name=f"track-{self.id}", daemon=True)
-            self._mapping_thread = threading.Thread(target=self._map, name=f"map-{self.id}",
-                                                    daemon=True)
+            self._mapping_thread = threading.Thread(
+                target=self._map, name=f"map-{self.id}", daemon=True
+            )
             self._worker.start()
             self._mapping_thread.start()
 
@@ -280,9 +281,13 @@ class Session:
                     log.exception("session %s: frame %d failed", self.id, frame.seq)
                     with self._lock:
                         self.failed_frames += 1
-                    self._publish(FrameRefused(frame.seq, "internal_error",
-                                               f"the server failed on this frame "
-                                               f"({type(exc).__name__}: {exc})"))
+                    self._publish(
+                        FrameRefused(
+                            frame.seq,
+                            "internal_error",
+                            f"the server failed on this frame ({type(exc).__name__}: {exc})",
+                        )
+                    )
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()  # for drain()
@@ -327,17 +332,19 @@ class Session:
             dropped, processed = self.dropped, self.processed
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
-        self._publish(PoseUpdate(
-            frame.seq,
-            frame.timestamp,
-            result.T_world_camera,
-            result.state.value,
-            result.inliers,
-            result.new_keyframe or result.keyframe_due,
-            timings,
-            dropped,
-            processed,
-        ))
+        self._publish(
+            PoseUpdate(
+                frame.seq,
+                frame.timestamp,
+                result.T_world_camera,
+                result.state.value,
+                result.inliers,
+                result.new_keyframe or result.keyframe_due,
+                timings,
+                dropped,
+                processed,
+            )
+        )
         new_keyframe = result.new_keyframe
         if result.keyframe_due:
             new_keyframe = self.tracker.update_keyframe()
@@ -375,8 +382,9 @@ class Session:
                 return
             self._snapshot_if_due()
             try:
-                fused = self.mapper.fuse(job.colour, job.depth, K, job.T_world_camera,
-                                         self._occupancy_request())
+                fused = self.mapper.fuse(
+                    job.colour, job.depth, K, job.T_world_camera, self._occupancy_request()
+                )
             except MapperLost:
                 return  # the session cannot go on: MapperClient has ended its worker
             except Exception:

@@ -131,9 +131,14 @@ class ProcessWorker:
 
     kind = "process"
 
-    def __init__(self, args, on_update: Callable[[object], None],
-                 on_lost: Callable[[str], None], start_timeout_s: float = 60.0,
-                 max_waiting_frames: int = 4) -> None:
+    def __init__(
+        self,
+        args,
+        on_update: Callable[[object], None],
+        on_lost: Callable[[str], None],
+        start_timeout_s: float = 60.0,
+        max_waiting_frames: int = 4,
+    ) -> None:
         from server.sessions.mapping import mapper_main
 
         ctx = _context()
@@ -142,10 +147,17 @@ class ProcessWorker:
         # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
         # call, which in one process would stall tracking (server/sessions/mapping.py).
         self.mapper_process = ctx.Process(
-            target=mapper_main, daemon=True, name=f"session-{args.session_id}-map",
-            args=(mapper_end, args.config.voxel_m, args.config.preview_points, 1))
-        self.process = ctx.Process(target=_worker_main, args=(child, args, to_mapper),
-                                   daemon=True, name=f"session-{args.session_id}")
+            target=mapper_main,
+            daemon=True,
+            name=f"session-{args.session_id}-map",
+            args=(mapper_end, args.config.voxel_m, args.config.preview_points, 1),
+        )
+        self.process = ctx.Process(
+            target=_worker_main,
+            args=(child, args, to_mapper),
+            daemon=True,
+            name=f"session-{args.session_id}",
+        )
         self.on_update, self.on_lost = on_update, on_lost
         started: Future = Future()
         self._calls: dict[int, Future] = {0: started}  # 0: the host's start-up
@@ -163,11 +175,13 @@ class ProcessWorker:
         _RUNNING.add(self)
         for end in (child, to_mapper, mapper_end):  # theirs now
             end.close()
-        self._reader = threading.Thread(target=self._read, name=f"worker-{args.session_id}",
-                                        daemon=True)
+        self._reader = threading.Thread(
+            target=self._read, name=f"worker-{args.session_id}", daemon=True
+        )
         self._reader.start()
-        threading.Thread(target=self._write, name=f"worker-out-{args.session_id}",
-                         daemon=True).start()
+        threading.Thread(
+            target=self._write, name=f"worker-out-{args.session_id}", daemon=True
+        ).start()
         self.info = self._wait(started, start_timeout_s, "start")
 
     def describe(self) -> dict:
@@ -200,8 +214,9 @@ class ProcessWorker:
         except FutureTimeout:
             with self._lock:
                 self._calls.pop(call_id, None)
-            raise WorkerLost(f"the session's worker did not answer {method} within "
-                             f"{timeout_s:.0f} s") from None
+            raise WorkerLost(
+                f"the session's worker did not answer {method} within {timeout_s:.0f} s"
+            ) from None
         if not ok:
             raise_remote(value)
         return value
@@ -263,8 +278,11 @@ class ProcessWorker:
         code = self.process.exitcode
         if not self._stopped:
             self._end_mapper()
-        reason = ("the session's worker process ended" if code in (0, None) and self._stopped
-                  else f"the session's worker process died ({_describe_exit(code)})")
+        reason = (
+            "the session's worker process ended"
+            if code in (0, None) and self._stopped
+            else f"the session's worker process died ({_describe_exit(code)})"
+        )
         with self._wake:
             self._lost = reason
             waiting, self._calls = list(self._calls.values()), {}

@@ -81,29 +81,37 @@ class SimulationConfig:
         if len(self.inertia_kg_m2) != 3:
             raise ConfigError("simulation.inertia_kg_m2 must hold 3 values (Ixx, Iyy, Izz)")
         if not 0 < self.max_tilt_deg < 80:
-            raise ConfigError(f"simulation.max_tilt_deg must be in (0, 80), got "
-                              f"{self.max_tilt_deg}")
+            raise ConfigError(
+                f"simulation.max_tilt_deg must be in (0, 80), got {self.max_tilt_deg}"
+            )
         hover_ratio = self.mass_kg * self.gravity_m_s2 / (4 * self.max_motor_thrust_n)
         if hover_ratio > 0.8:
             raise ConfigError(
                 f"4 x max_motor_thrust_n = {4 * self.max_motor_thrust_n:.2f} N cannot lift "
                 f"{self.mass_kg} kg with margin (hover needs {hover_ratio:.0%} of full thrust; "
-                f"at most 80% allowed)")
+                f"at most 80% allowed)"
+            )
         if self.motor_time_constant_s < 2.0 / self.physics_hz:
             raise ConfigError("simulation.motor_time_constant_s must span at least 2 physics steps")
         if self.cruise_speed_m_s > self.max_speed_m_s:
-            raise ConfigError(f"simulation.cruise_speed_m_s ({self.cruise_speed_m_s}) exceeds "
-                              f"max_speed_m_s ({self.max_speed_m_s})")
+            raise ConfigError(
+                f"simulation.cruise_speed_m_s ({self.cruise_speed_m_s}) exceeds "
+                f"max_speed_m_s ({self.max_speed_m_s})"
+            )
         if self.route_accel_m_s2 > self.max_accel_m_s2:
-            raise ConfigError(f"simulation.route_accel_m_s2 ({self.route_accel_m_s2}) exceeds "
-                              f"max_accel_m_s2 ({self.max_accel_m_s2})")
+            raise ConfigError(
+                f"simulation.route_accel_m_s2 ({self.route_accel_m_s2}) exceeds "
+                f"max_accel_m_s2 ({self.max_accel_m_s2})"
+            )
         if self.stick_deadband >= 1:
             raise ConfigError("simulation.stick_deadband must be below 1")
         if self.replan_min_gain >= 1:
             raise ConfigError("simulation.replan_min_gain must be below 1")
         if self.radius_m < self.voxel_m:
-            raise ConfigError(f"simulation.radius_m ({self.radius_m}) must be at least one voxel "
-                              f"({self.voxel_m}) so that the distance field can see contact")
+            raise ConfigError(
+                f"simulation.radius_m ({self.radius_m}) must be at least one voxel "
+                f"({self.voxel_m}) so that the distance field can see contact"
+            )
         if self.max_speed_m_s / self.physics_hz > self.radius_m:
             raise ConfigError("one physics step at max_speed_m_s must move less than radius_m")
 

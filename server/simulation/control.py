@@ -55,12 +55,14 @@ class ControlLimits:
     @classmethod
     def from_config(cls, config: SimulationConfig) -> ControlLimits:
         """The defaults live in SimulationConfig alone."""
-        return cls(max_speed_m_s=config.max_speed_m_s,
-                   max_climb_rate_m_s=config.max_climb_rate_m_s,
-                   max_accel_m_s2=config.max_accel_m_s2,
-                   max_tilt_rad=math.radians(config.max_tilt_deg),
-                   max_yaw_rate_rad_s=math.radians(config.max_yaw_rate_deg_s),
-                   brake_accel_m_s2=config.route_accel_m_s2)
+        return cls(
+            max_speed_m_s=config.max_speed_m_s,
+            max_climb_rate_m_s=config.max_climb_rate_m_s,
+            max_accel_m_s2=config.max_accel_m_s2,
+            max_tilt_rad=math.radians(config.max_tilt_deg),
+            max_yaw_rate_rad_s=math.radians(config.max_yaw_rate_deg_s),
+            brake_accel_m_s2=config.route_accel_m_s2,
+        )
 
 
 class Setpoint:
@@ -71,8 +73,21 @@ class Setpoint:
     (rad, counter-clockwise from +x), ``yaw_rate`` its feed-forward (rad/s).
     """
 
-    __slots__ = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "yaw_rate",
-                 "hold_xy", "hold_z")
+    __slots__ = (
+        "x",
+        "y",
+        "z",
+        "vx",
+        "vy",
+        "vz",
+        "ax",
+        "ay",
+        "az",
+        "yaw",
+        "yaw_rate",
+        "hold_xy",
+        "hold_z",
+    )
 
     def __init__(self, position=(0.0, 0.0, 0.0), yaw: float = 0.0) -> None:
         self.hold(position, yaw)
@@ -100,8 +115,7 @@ def _sqrt_controller(error: float, gain: float, accel: float) -> float:
 class CascadedController:
     """Turns the quadrotor's state and a setpoint into four motor thrust commands."""
 
-    def __init__(self, params: QuadrotorParams, gains: ControlGains,
-                 limits: ControlLimits) -> None:
+    def __init__(self, params: QuadrotorParams, gains: ControlGains, limits: ControlLimits) -> None:
         self.params = params
         self.gains = gains
         self.limits = limits
@@ -200,8 +214,13 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def fly_sticks(q: Quadrotor, sp: Setpoint, sticks: tuple[float, float, float, float],
-               limits: ControlLimits, dt: float) -> None:
+def fly_sticks(
+    q: Quadrotor,
+    sp: Setpoint,
+    sticks: tuple[float, float, float, float],
+    limits: ControlLimits,
+    dt: float,
+) -> None:
     """Angle-mode sticks ``(throttle, yaw, pitch, roll)``, each in -1..1 and already zero where
     centred, as a setpoint: climb rate, yaw rate (positive counter-clockwise from above),
     forward and rightward speed, each a fraction of its limit. A centred axis brakes to a stop,
@@ -260,7 +279,8 @@ class RouteTracker:
         i = int(u)
         f = u - i
         x, y, z, vx, vy, vz, ax, ay, az = (
-            a + f * (b - a) for a, b in zip(self._table[i], self._table[i + 1], strict=True))
+            a + f * (b - a) for a, b in zip(self._table[i], self._table[i + 1], strict=True)
+        )
         r2 = rate * rate
         sp.hold_xy = sp.hold_z = True
         sp.x, sp.y, sp.z = x, y, z

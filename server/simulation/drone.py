@@ -110,16 +110,27 @@ class DroneStatus:
     command_id: int | None
 
 
-def plan_route(flight_map: FlightMap, start: np.ndarray, goal: np.ndarray,
-               config: SimulationConfig, speed_m_s: float):
+def plan_route(
+    flight_map: FlightMap,
+    start: np.ndarray,
+    goal: np.ndarray,
+    config: SimulationConfig,
+    speed_m_s: float,
+):
     """The route the drone flies from ``start`` to ``goal`` (flight frame, m) at up to
     ``speed_m_s``, with the drone's radius, margin and limits; raises PlanningError."""
-    return plan_path(flight_map, start, goal, config.radius_m,
-                     margin_m=config.planning_margin_m, max_speed_m_s=speed_m_s,
-                     max_accel_m_s2=config.route_accel_m_s2,
-                     # Headroom below the controller's own limit, so it can catch up at the
-                     # end of a descent instead of overshooting into the floor.
-                     max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s)
+    return plan_path(
+        flight_map,
+        start,
+        goal,
+        config.radius_m,
+        margin_m=config.planning_margin_m,
+        max_speed_m_s=speed_m_s,
+        max_accel_m_s2=config.route_accel_m_s2,
+        # Headroom below the controller's own limit, so it can catch up at the
+        # end of a descent instead of overshooting into the floor.
+        max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s,
+    )
 
 
 class DroneSimulator:
@@ -162,7 +173,8 @@ class DroneSimulator:
             if free is None or np.linalg.norm(free - near) > self.config.spawn_search_m:
                 raise DroneCommandError(
                     f"no observed free space for the drone within {self.config.spawn_search_m} m "
-                    f"of {np.round(near, 2).tolist()}")
+                    f"of {np.round(near, 2).tolist()}"
+                )
             position = free
             self._quad.reset(position, yaw_rad, hovering=True)
             self._hold(position)
@@ -172,8 +184,9 @@ class DroneSimulator:
             self._emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
             return position.copy()
 
-    def command_goto(self, target: np.ndarray, speed: float | None = None,
-                     command_id: int | None = None) -> None:
+    def command_goto(
+        self, target: np.ndarray, speed: float | None = None, command_id: int | None = None
+    ) -> None:
         """Fly a planned route to ``target`` at ``speed`` (m/s, cruise speed when None).
 
         Raises PlanningError (with ``reason`` and ``nearest``) when there is no route; the drone
@@ -196,8 +209,9 @@ class DroneSimulator:
             self._speed = speed
             self._start_route(route)
 
-    def command_sticks(self, sticks: Sequence[float], now_s: float | None = None,
-                       command_id: int | None = None) -> None:
+    def command_sticks(
+        self, sticks: Sequence[float], now_s: float | None = None, command_id: int | None = None
+    ) -> None:
         """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1 (climb rate, yaw rate with
         positive counter-clockwise seen from above, forward speed, rightward speed; each a
         fraction of its limit). ``now_s`` is when they were read, in simulation time (now when
@@ -244,7 +258,14 @@ class DroneSimulator:
             self._mode = DroneMode.LANDING
             sp = self._sp
             sp.x, sp.y, sp.vx, sp.vy, sp.ax, sp.ay, sp.az = (
-                self._quad.px, self._quad.py, 0.0, 0.0, 0.0, 0.0, 0.0)
+                self._quad.px,
+                self._quad.py,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
             sp.hold_xy, sp.hold_z, sp.yaw_rate = True, False, 0.0
             sp.vz = -self.config.landing_speed_m_s
 
@@ -282,8 +303,9 @@ class DroneSimulator:
         """``flight_map.update_region`` (a sub-box, flight_map.Region) and ``on_map_update``
         under the simulator's lock; returns the changed box (or None)."""
         with self._lock:
-            changed = self.flight_map.update_region(region.origin, region.occupied,
-                                                    region.observed, region.written)
+            changed = self.flight_map.update_region(
+                region.origin, region.occupied, region.observed, region.written
+            )
             self.on_map_update(changed)
             return changed
 
@@ -309,8 +331,12 @@ class DroneSimulator:
             margin = self.config.replan_margin_m + self.config.planning_radius_m
             if not changed_box.contains(remaining, margin).any():
                 return
-            blocked = not route_is_clear(self.flight_map, self._tracker.route,
-                                         self.config.radius_m, from_time_s=self._tracker.t_s)
+            blocked = not route_is_clear(
+                self.flight_map,
+                self._tracker.route,
+                self.config.radius_m,
+                from_time_s=self._tracker.t_s,
+            )
             if not blocked and self._time_s - self._planned_at < self.config.replan_min_interval_s:
                 return
             try:
@@ -324,8 +350,10 @@ class DroneSimulator:
             if blocked or route.length_m < (1 - self.config.replan_min_gain) * old:
                 self._start_route(route)
                 why = "the route was blocked" if blocked else "a shorter route opened"
-                self._emit(DroneEventKind.REPLANNED,
-                           f"{why}: new route {route.length_m:.2f} m (was {old:.2f} m to go)")
+                self._emit(
+                    DroneEventKind.REPLANNED,
+                    f"{why}: new route {route.length_m:.2f} m (was {old:.2f} m to go)",
+                )
             else:
                 self._planned_at = self._time_s
 
@@ -427,21 +455,30 @@ class DroneSimulator:
         touching = (d[1:] < radius) & (d[1:] < d[:-1])
         long = np.linalg.norm(np.diff(track, axis=0), axis=1) > 0.5 * radius
         if long.any():  # never at the configured limits; sweep such steps explicitly
-            touching[long] |= ~self.flight_map.segment_is_free(track[:-1][long], track[1:][long],
-                                                               radius)
+            touching[long] |= ~self.flight_map.segment_is_free(
+                track[:-1][long], track[1:][long], radius
+            )
         return int(np.argmax(touching)) if touching.any() else None
 
     def _save(self) -> tuple:
         """What a physics step may change, for ``_restore``."""
         sp = self._sp
         tracker = self._tracker
-        return (self._quad.state(), tuple(getattr(sp, name) for name in Setpoint.__slots__),
-                self._mode, tracker, tracker.t_s if tracker else 0.0, self._goal, self._time_s,
-                len(self._events))
+        return (
+            self._quad.state(),
+            tuple(getattr(sp, name) for name in Setpoint.__slots__),
+            self._mode,
+            tracker,
+            tracker.t_s if tracker else 0.0,
+            self._goal,
+            self._time_s,
+            len(self._events),
+        )
 
     def _restore(self, saved: tuple) -> None:
-        quad_state, sp_state, self._mode, self._tracker, t_s, self._goal, self._time_s, \
-            n_events = saved
+        quad_state, sp_state, self._mode, self._tracker, t_s, self._goal, self._time_s, n_events = (
+            saved
+        )
         if self._tracker is not None:
             self._tracker.t_s = t_s
         self._quad.set_state(quad_state)
@@ -475,10 +512,13 @@ class DroneSimulator:
         q.reset(last_free, yaw, hovering=True)
         self._hold(last_free)
         t_last, p_last = self._last_collision
-        if (self._time_s - t_last > COLLISION_REPEAT_S
-                or np.linalg.norm(last_free - p_last) > COLLISION_REPEAT_M):
-            self._emit(DroneEventKind.COLLISION,
-                       f"hit the map at {speed:.2f} m/s; stopped and hovering")
+        if (
+            self._time_s - t_last > COLLISION_REPEAT_S
+            or np.linalg.norm(last_free - p_last) > COLLISION_REPEAT_M
+        ):
+            self._emit(
+                DroneEventKind.COLLISION, f"hit the map at {speed:.2f} m/s; stopped and hovering"
+            )
             self._last_collision = (self._time_s, last_free)
 
     def _leave_obstacle(self) -> None:
@@ -520,8 +560,9 @@ class DroneSimulator:
 
     def _start_route(self, route) -> None:
         cfg = self.config
-        self._tracker = RouteTracker(route, cfg.dt_s, cfg.max_tracking_lag_m,
-                                     self._limits.max_yaw_rate_rad_s)
+        self._tracker = RouteTracker(
+            route, cfg.dt_s, cfg.max_tracking_lag_m, self._limits.max_yaw_rate_rad_s
+        )
         self._corners = simplify(route.path, ROUTE_TOLERANCE_M)  # once: the status is at 20 Hz
         self._planned_at = self._time_s
         self._mode = DroneMode.GOTO

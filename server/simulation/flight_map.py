@@ -66,8 +66,12 @@ class Region:
     @classmethod
     def whole(cls, origin, occupied: np.ndarray, observed: np.ndarray) -> Region:
         """A region that sets every cell of its box."""
-        return cls(np.asarray(origin, dtype=np.float64), occupied, observed,
-                   np.ones(np.shape(occupied), dtype=bool))
+        return cls(
+            np.asarray(origin, dtype=np.float64),
+            occupied,
+            observed,
+            np.ones(np.shape(occupied), dtype=bool),
+        )
 
     def merged(self, newer: Region, voxel_m: float) -> Region:
         """One region setting what both set (``newer`` wins where both do), in the smallest
@@ -129,15 +133,17 @@ def _subtract(a, b) -> list:
 class FlightMap:
     """Occupancy grid plus ESDF, replaced grid by grid as the session's map grows."""
 
-    def __init__(self, voxel_m: float = 0.05, unknown_is_free: bool = False,
-                 max_distance_m: float = 1.0):
+    def __init__(
+        self, voxel_m: float = 0.05, unknown_is_free: bool = False, max_distance_m: float = 1.0
+    ):
         """voxel_m: cell edge (m). unknown_is_free: treat unobserved cells (and the outside of
         the grid) as free instead of blocked. max_distance_m: the field is clipped to +- this
         (m); it also bounds how far an incremental update recomputes around a change, so it is
         kept short: 1 m is 21 cells at 5 cm, and nothing here needs clearances beyond it."""
         if not (voxel_m > 0 and max_distance_m > 0):
-            raise ConfigError(f"voxel_m and max_distance_m must be positive, got {voxel_m}, "
-                              f"{max_distance_m}")
+            raise ConfigError(
+                f"voxel_m and max_distance_m must be positive, got {voxel_m}, {max_distance_m}"
+            )
         self.voxel_m = float(voxel_m)
         self.unknown_is_free = bool(unknown_is_free)
         self.max_distance_m = float(max_distance_m)
@@ -151,8 +157,15 @@ class FlightMap:
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
-    def from_boxes(cls, bounds_min, bounds_max, boxes, voxel_m: float = 0.05,
-                   unknown_is_free: bool = False, max_distance_m: float = 1.0) -> FlightMap:
+    def from_boxes(
+        cls,
+        bounds_min,
+        bounds_max,
+        boxes,
+        voxel_m: float = 0.05,
+        unknown_is_free: bool = False,
+        max_distance_m: float = 1.0,
+    ) -> FlightMap:
         """A map where everything inside ``bounds`` (metres) is observed and every cell that
         overlaps one of ``boxes`` (pairs of (3,) corners) is occupied. For tests and scenes."""
         lo = np.asarray(bounds_min, dtype=np.float64)
@@ -215,8 +228,10 @@ class FlightMap:
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
             raise FlightMapError(f"origin must be 3 finite numbers, got {origin}")
         if occupied.ndim != 3 or occupied.shape != observed.shape:
-            raise FlightMapError(f"occupied and observed must be (X, Y, Z) arrays of one shape, "
-                                 f"got {occupied.shape} and {observed.shape}")
+            raise FlightMapError(
+                f"occupied and observed must be (X, Y, Z) arrays of one shape, "
+                f"got {occupied.shape} and {observed.shape}"
+            )
         blocked = occupied if self.unknown_is_free else occupied | ~observed
 
         lo_new = self._lattice_index(origin)
@@ -224,8 +239,13 @@ class FlightMap:
             return self._rebuild(origin, blocked, first=True)
         return self._update_incremental(origin, lo_new, blocked)
 
-    def update_region(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray,
-                      written: np.ndarray | None = None) -> Box | None:
+    def update_region(
+        self,
+        origin: np.ndarray,
+        occupied: np.ndarray,
+        observed: np.ndarray,
+        written: np.ndarray | None = None,
+    ) -> Box | None:
         """Overwrite a sub-box of the map and bring the distance field up to date around it.
 
         origin: (3,) corner of the sub-box's cell (0, 0, 0), metres, on the map's lattice (a
@@ -242,9 +262,11 @@ class FlightMap:
         occupied, observed = np.asarray(occupied, dtype=bool), np.asarray(observed, dtype=bool)
         written = np.ones(occupied.shape, bool) if written is None else np.asarray(written, bool)
         if occupied.ndim != 3 or not occupied.shape == observed.shape == written.shape:
-            raise FlightMapError(f"occupied, observed and written must be (X, Y, Z) arrays of "
-                                 f"one shape, got {occupied.shape}, {observed.shape} and "
-                                 f"{written.shape}")
+            raise FlightMapError(
+                f"occupied, observed and written must be (X, Y, Z) arrays of "
+                f"one shape, got {occupied.shape}, {observed.shape} and "
+                f"{written.shape}"
+            )
         if self._anchor is None or 0 in self.shape:  # nothing to merge with
             return self.update(origin, occupied & written, observed & written)
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
@@ -322,8 +344,10 @@ class FlightMap:
         if changed is not None:
             c_lo, c_hi = changed
             regions.append((c_lo - k, c_hi + k))
-            changed_box = Box(self._anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
-                              self._anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m)
+            changed_box = Box(
+                self._anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
+                self._anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m,
+            )
         near_old = (old_lo - k - u_lo, old_hi + k - u_lo)
         for box in _subtract((p_lo, p_hi), (old_lo - 1 - u_lo, old_hi + 1 - u_lo)):
             regions.append(_intersect(box, near_old))
@@ -337,15 +361,20 @@ class FlightMap:
         ov_lo = np.maximum(old_lo - 1, new_lo - 1)
         ov_hi = np.minimum(old_hi + 1, new_hi + 1)
         if np.all(ov_hi > ov_lo):
-            field[_slices(ov_lo - new_lo + 1, ov_hi - new_lo + 1)] = \
-                self._field[_slices(ov_lo - old_lo + 1, ov_hi - old_lo + 1)]
+            field[_slices(ov_lo - new_lo + 1, ov_hi - new_lo + 1)] = self._field[
+                _slices(ov_lo - old_lo + 1, ov_hi - old_lo + 1)
+            ]
         for r_lo, r_hi in regions:
             # Recompute the region from a window grown by the reach (nothing farther matters).
             w_lo, w_hi = np.maximum(r_lo - k, p_lo), np.minimum(r_hi + k, p_hi)
             window = self._signed_distance(new_u[_slices(w_lo, w_hi)])
             field[_slices(r_lo - p_lo, r_hi - p_lo)] = window[_slices(r_lo - w_lo, r_hi - w_lo)]
-        self.origin, self._lo, self._blocked, self._field = origin.copy(), new_lo, \
-            blocked.copy(), field
+        self.origin, self._lo, self._blocked, self._field = (
+            origin.copy(),
+            new_lo,
+            blocked.copy(),
+            field,
+        )
         self.version += 1
         return changed_box
 
@@ -375,7 +404,7 @@ class FlightMap:
         gx = c1 - c0
         gy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
         dz = [c[2 * m + 1] - c[2 * m] for m in range(4)]  # along z, at (a, b) = 00, 01, 10, 11
-        gz = ((dz[0] * (1 - fy) + dz[1] * fy) * (1 - fx) + (dz[2] * (1 - fy) + dz[3] * fy) * fx)
+        gz = (dz[0] * (1 - fy) + dz[1] * fy) * (1 - fx) + (dz[2] * (1 - fy) + dz[3] * fy) * fx
         grad = np.stack([gx, gy, gz], axis=1) / self.voxel_m
         return value, grad.reshape(p.shape)
 
@@ -441,8 +470,7 @@ class FlightMap:
                 return None
             half *= 2
 
-    def random_free_points(self, n: int, radius_m: float,
-                           rng: np.random.Generator) -> np.ndarray:
+    def random_free_points(self, n: int, radius_m: float, rng: np.random.Generator) -> np.ndarray:
         """(n, 3) cell centres drawn uniformly among those with clearance >= ``radius_m``;
         (0, 3) when there are none."""
         cells = np.argwhere(self.esdf >= radius_m)

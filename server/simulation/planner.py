@@ -128,8 +128,9 @@ class _Lattice:
 _LATTICES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _lattice(flight_map: FlightMap, required_m: float, cell_m: float, weight: float,
-             preferred_m: float) -> _Lattice:
+def _lattice(
+    flight_map: FlightMap, required_m: float, cell_m: float, weight: float, preferred_m: float
+) -> _Lattice:
     """The lattice for these settings, built once per map version."""
     key = (flight_map.version, required_m, cell_m, weight, preferred_m)
     cached = _LATTICES.setdefault(flight_map, {})
@@ -162,13 +163,18 @@ def _lattice(flight_map: FlightMap, required_m: float, cell_m: float, weight: fl
     n = int(np.prod(shape))
     rows, cols, costs = np.concatenate(rows), np.concatenate(cols), np.concatenate(costs)
     # Both directions stored: scipy would otherwise transpose the graph on every search.
-    graph = coo_matrix((np.concatenate([costs, costs]), (np.concatenate([rows, cols]),
-                                                         np.concatenate([cols, rows]))),
-                       shape=(n, n)).tocsr()
+    graph = coo_matrix(
+        (
+            np.concatenate([costs, costs]),
+            (np.concatenate([rows, cols]), np.concatenate([cols, rows])),
+        ),
+        shape=(n, n),
+    ).tocsr()
     labels = connected_components(graph, directed=True, connection="weak")[1]
     labels[~free.ravel()] = -1
-    lattice = _Lattice(flight_map.origin + (off + 0.5) * v, cell, required_m, shape, free,
-                       flat_pen, graph, labels)
+    lattice = _Lattice(
+        flight_map.origin + (off + 0.5) * v, cell, required_m, shape, free, flat_pen, graph, labels
+    )
     if any(k[0] != flight_map.version for k in cached):
         cached.clear()  # the map changed: older lattices are stale
     cached[key] = lattice
@@ -180,7 +186,7 @@ def _nodes_near(flight_map, lattice, point, hard_m, reach=2):
     keeps ``hard_m``: (flat indices, segment lengths)."""
     u = np.floor((point - lattice.base) / lattice.cell_m).astype(np.int64)
     grid = np.stack(np.meshgrid(*[np.arange(-reach + 1, reach + 1)] * 3, indexing="ij"), -1)
-    ijk = (u + grid.reshape(-1, 3))
+    ijk = u + grid.reshape(-1, 3)
     ijk = ijk[np.all((ijk >= 0) & (ijk < lattice.shape), axis=1)]
     ijk = ijk[lattice.free[tuple(ijk.T)]]
     if len(ijk) == 0:
@@ -194,8 +200,14 @@ def _nodes_near(flight_map, lattice, point, hard_m, reach=2):
 def _search(lattice: _Lattice, sources, targets, target_costs, limit_m: float):
     """Dijkstra (scipy, in C) from every source at once, explored up to a cost of ``limit_m``;
     returns the node path to the target with the least cost plus connection cost, or None."""
-    cost, pred, _ = dijkstra(lattice.graph, directed=True, indices=sources, min_only=True,
-                          return_predecessors=True, limit=limit_m)
+    cost, pred, _ = dijkstra(
+        lattice.graph,
+        directed=True,
+        indices=sources,
+        min_only=True,
+        return_predecessors=True,
+        limit=limit_m,
+    )
     total = cost[targets] + target_costs
     best = int(np.argmin(total))
     if not np.isfinite(total[best]):
@@ -220,9 +232,11 @@ def _shortcut(flight_map, raw, clear_raw, required_m, wanted_m, slack_m) -> np.n
     while i < last:
         js = ends[ends > i]
         seg = flight_map.segment_clearance(np.repeat(raw[i][None], len(js), 0), raw[js])
-        had = np.minimum.accumulate(clear_raw[i + 1:])[js - i - 1]
-        need = np.maximum(np.minimum(required_m, np.minimum(clear_raw[i], clear_raw[js])),
-                          np.minimum(wanted_m, np.minimum(had, clear_raw[i]) - slack_m))
+        had = np.minimum.accumulate(clear_raw[i + 1 :])[js - i - 1]
+        need = np.maximum(
+            np.minimum(required_m, np.minimum(clear_raw[i], clear_raw[js])),
+            np.minimum(wanted_m, np.minimum(had, clear_raw[i]) - slack_m),
+        )
         ok = seg >= need - 1e-9
         if not ok.any():  # the raw run itself: kept clear by the search's move rule
             ok[0], js[0] = True, i + 1
@@ -259,8 +273,14 @@ def _smooth(flight_map, pts, floor_m, step_m, max_arm_m=1.0):
         n = math.ceil(np.linalg.norm(q - current) / step_m)
         if n:
             t = np.linspace(0.0, 1.0, n + 1)[1:, None]
-            out.append([current + t * (q - current), np.repeat(direction[None], n, 0),
-                        np.zeros((n, 3)), np.zeros(n, bool)])
+            out.append(
+                [
+                    current + t * (q - current),
+                    np.repeat(direction[None], n, 0),
+                    np.zeros((n, 3)),
+                    np.zeros(n, bool),
+                ]
+            )
 
     for k in range(1, len(pts) - 1):
         u1, u2 = dirs[k - 1], dirs[k]
@@ -334,12 +354,21 @@ def _endpoint_nodes(flight_map, lattice, point, radius_m):
     return flat, lengths
 
 
-def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
-              margin_m: float | None = None, cell_m: float = 0.1,
-              clearance_weight: float = 1.0, preferred_clearance_m: float = 0.3,
-              max_speed_m_s: float = 1.0, max_accel_m_s2: float = 2.0,
-              max_climb_rate_m_s: float | None = None,
-              search_detour: float = 3.0) -> Route:
+def plan_path(
+    flight_map: FlightMap,
+    start,
+    goal,
+    radius_m: float,
+    *,
+    margin_m: float | None = None,
+    cell_m: float = 0.1,
+    clearance_weight: float = 1.0,
+    preferred_clearance_m: float = 0.3,
+    max_speed_m_s: float = 1.0,
+    max_accel_m_s2: float = 2.0,
+    max_climb_rate_m_s: float | None = None,
+    search_detour: float = 3.0,
+) -> Route:
     """A timed route for a sphere of ``radius_m`` from ``start`` to ``goal`` ((3,), flight
     frame, metres), starting and ending at rest.
 
@@ -358,34 +387,44 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
     if start.shape != (3,) or goal.shape != (3,):
         raise ConfigError(f"start and goal must be 3-vectors, got {start.shape} and {goal.shape}")
     if not (np.all(np.isfinite(start)) and np.all(np.isfinite(goal)) and math.isfinite(radius_m)):
-        raise PlanningError(Reason.NOT_FINITE, f"start {start}, goal {goal} and radius {radius_m} "
-                                               "must be finite")
+        raise PlanningError(
+            Reason.NOT_FINITE, f"start {start}, goal {goal} and radius {radius_m} must be finite"
+        )
     if radius_m < 0 or cell_m <= 0 or max_speed_m_s <= 0 or max_accel_m_s2 <= 0:
         raise ConfigError("radius must be >= 0 and cell, speed and acceleration limits > 0")
     margin = 0.5 * flight_map.voxel_m if margin_m is None else margin_m
     required = radius_m + margin
     bounds = flight_map.bounds
     if not bounds.contains(start)[0]:
-        raise PlanningError(Reason.OUTSIDE_MAP,
-                            f"start {_fmt(start)} is outside the map {_fmt(bounds.lo)}.."
-                            f"{_fmt(bounds.hi)}", flight_map.nearest_free(start, required))
+        raise PlanningError(
+            Reason.OUTSIDE_MAP,
+            f"start {_fmt(start)} is outside the map {_fmt(bounds.lo)}..{_fmt(bounds.hi)}",
+            flight_map.nearest_free(start, required),
+        )
     c_start = float(flight_map.distance(start))
     if c_start < radius_m:
-        raise PlanningError(Reason.START_BLOCKED,
-                            f"start {_fmt(start)} has {c_start:.2f} m clearance, less than the "
-                            f"radius {radius_m:.2f} m", flight_map.nearest_free(start, required))
+        raise PlanningError(
+            Reason.START_BLOCKED,
+            f"start {_fmt(start)} has {c_start:.2f} m clearance, less than the "
+            f"radius {radius_m:.2f} m",
+            flight_map.nearest_free(start, required),
+        )
     lattice = _lattice(flight_map, required, cell_m, clearance_weight, preferred_clearance_m)
     sources, _ = _endpoint_nodes(flight_map, lattice, start, radius_m)
     if not bounds.contains(goal)[0]:
-        raise PlanningError(Reason.OUTSIDE_MAP,
-                            f"goal {_fmt(goal)} is outside the map {_fmt(bounds.lo)}.."
-                            f"{_fmt(bounds.hi)}", _nearest_reachable(lattice, sources, goal))
+        raise PlanningError(
+            Reason.OUTSIDE_MAP,
+            f"goal {_fmt(goal)} is outside the map {_fmt(bounds.lo)}..{_fmt(bounds.hi)}",
+            _nearest_reachable(lattice, sources, goal),
+        )
     c_goal = float(flight_map.distance(goal))
     if c_goal < radius_m:
-        raise PlanningError(Reason.GOAL_BLOCKED,
-                            f"goal {_fmt(goal)} is in or too close to an obstacle ({c_goal:.2f} m "
-                            f"clearance, radius {radius_m:.2f} m)",
-                            _nearest_reachable(lattice, sources, goal))
+        raise PlanningError(
+            Reason.GOAL_BLOCKED,
+            f"goal {_fmt(goal)} is in or too close to an obstacle ({c_goal:.2f} m "
+            f"clearance, radius {radius_m:.2f} m)",
+            _nearest_reachable(lattice, sources, goal),
+        )
 
     # A straight route when it is as clear as its ends allow; else search the lattice.
     wanted = required + preferred_clearance_m
@@ -393,8 +432,16 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
     if direct >= min(wanted, c_start, c_goal) - 1e-9:
         raw = np.stack([start, goal])
     else:
-        raw = _search_lattices(flight_map, start, goal, radius_m, lattice, sources,
-                               (required, clearance_weight, preferred_clearance_m), search_detour)
+        raw = _search_lattices(
+            flight_map,
+            start,
+            goal,
+            radius_m,
+            lattice,
+            sources,
+            (required, clearance_weight, preferred_clearance_m),
+            search_detour,
+        )
     raw = raw[np.concatenate([[True], np.linalg.norm(np.diff(raw, axis=0), axis=1) > 1e-9])]
     if len(raw) == 1:  # already there
         zero = np.zeros((1, 3))
@@ -407,14 +454,16 @@ def plan_path(flight_map: FlightMap, start, goal, radius_m: float, *,
         path = np.stack([path[0], path.mean(axis=0), path[1]])
         tangents, kvecs = tangents[[0, 0, 1]], np.zeros((3, 3))
         stops = np.array([stops[0], False, stops[1]])
-    speeds, times = _time(path, tangents, kvecs, stops, max_speed_m_s, max_accel_m_s2,
-                          max_climb_rate_m_s)
+    speeds, times = _time(
+        path, tangents, kvecs, stops, max_speed_m_s, max_accel_m_s2, max_climb_rate_m_s
+    )
     length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
     return Route(corners, path, times, speeds, length, float(times[-1]), tangents, kvecs)
 
 
-def _search_lattices(flight_map, start, goal, radius_m, lattice, sources, settings,
-                     detour) -> np.ndarray:
+def _search_lattices(
+    flight_map, start, goal, radius_m, lattice, sources, settings, detour
+) -> np.ndarray:
     """The raw path through the coarse lattice, or, where that finds none, through the lattice
     of the map's own cells (built on demand: narrow passages the coarse one cannot see)."""
     try:
@@ -428,18 +477,21 @@ def _search_lattices(flight_map, start, goal, radius_m, lattice, sources, settin
     return _search_route(flight_map, fine, start, goal, radius_m, sources, detour)
 
 
-def _search_route(flight_map, lattice, start, goal, radius_m, sources,
-                  detour: float) -> np.ndarray:
+def _search_route(flight_map, lattice, start, goal, radius_m, sources, detour: float) -> np.ndarray:
     """The raw path (K, 3) from start through the lattice to goal, or PlanningError."""
     if len(sources) == 0:
-        raise PlanningError(Reason.START_BLOCKED,
-                            f"no free lattice node next to the start {_fmt(start)}: it is boxed "
-                            f"in", flight_map.nearest_free(start, lattice.required_m))
+        raise PlanningError(
+            Reason.START_BLOCKED,
+            f"no free lattice node next to the start {_fmt(start)}: it is boxed in",
+            flight_map.nearest_free(start, lattice.required_m),
+        )
     targets, target_lengths = _endpoint_nodes(flight_map, lattice, goal, radius_m)
     if not np.intersect1d(lattice.labels[sources], lattice.labels[targets]).size:
-        raise PlanningError(Reason.UNREACHABLE,
-                            f"goal {_fmt(goal)} is not connected to the start {_fmt(start)} "
-                            f"through free space", _nearest_reachable(lattice, sources, goal))
+        raise PlanningError(
+            Reason.UNREACHABLE,
+            f"goal {_fmt(goal)} is not connected to the start {_fmt(start)} through free space",
+            _nearest_reachable(lattice, sources, goal),
+        )
     target_costs = target_lengths * (1 + lattice.penalty[targets])
     # Most routes stay within a small detour: explore that far first, then everything.
     limit = detour * np.linalg.norm(goal - start) + 1.0
@@ -449,8 +501,9 @@ def _search_route(flight_map, lattice, start, goal, radius_m, sources,
     return np.concatenate([start[None], lattice.positions(np.array(nodes)), goal[None]])
 
 
-def route_is_clear(flight_map: FlightMap, route: Route, radius_m: float,
-                   from_time_s: float = 0.0) -> bool:
+def route_is_clear(
+    flight_map: FlightMap, route: Route, radius_m: float, from_time_s: float = 0.0
+) -> bool:
     """Whether the part of ``route`` from ``from_time_s`` on still keeps ``radius_m`` in
     ``flight_map`` (e.g. after a map update)."""
     i = max(int(np.searchsorted(route.times, from_time_s, side="right")) - 1, 0)

@@ -47,8 +47,9 @@ class QuadrotorParams:
         return self.mass_kg * self.gravity_m_s2 / 4.0
 
 
-def mix(params: QuadrotorParams, thrust_n: float, tx: float, ty: float, tz: float
-        ) -> tuple[float, float, float, float]:
+def mix(
+    params: QuadrotorParams, thrust_n: float, tx: float, ty: float, tz: float
+) -> tuple[float, float, float, float]:
     """Collective thrust (N) and body torques (N m) -> four motor thrusts within [0, max].
 
     When the motors cannot deliver everything, yaw torque is given up first, then the result is
@@ -80,8 +81,12 @@ def mix(params: QuadrotorParams, thrust_n: float, tx: float, ty: float, tz: floa
         f1 = base - rx - ry - rz
         f2 = base - rx + ry + rz
         f3 = base + rx + ry - rz
-    return (min(max(f0, 0.0), f_max), min(max(f1, 0.0), f_max),
-            min(max(f2, 0.0), f_max), min(max(f3, 0.0), f_max))
+    return (
+        min(max(f0, 0.0), f_max),
+        min(max(f1, 0.0), f_max),
+        min(max(f2, 0.0), f_max),
+        min(max(f3, 0.0), f_max),
+    )
 
 
 class Quadrotor:
@@ -92,9 +97,34 @@ class Quadrotor:
     body rates ``wx, wy, wz`` (rad/s, body frame) and motor thrusts ``f0..f3`` (N).
     """
 
-    __slots__ = ("params", "dt", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
-                 "wx", "wy", "wz", "f0", "f1", "f2", "f3", "_alpha", "_a", "_k", "_drag",
-                 "_ixx", "_iyy", "_izz")
+    __slots__ = (
+        "params",
+        "dt",
+        "px",
+        "py",
+        "pz",
+        "vx",
+        "vy",
+        "vz",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "wx",
+        "wy",
+        "wz",
+        "f0",
+        "f1",
+        "f2",
+        "f3",
+        "_alpha",
+        "_a",
+        "_k",
+        "_drag",
+        "_ixx",
+        "_iyy",
+        "_izz",
+    )
 
     def __init__(self, params: QuadrotorParams, dt_s: float) -> None:
         self.params = params
@@ -116,8 +146,12 @@ class Quadrotor:
 
     def set_level(self, yaw_rad: float) -> None:
         """Attitude level with heading ``yaw_rad``, body rates zero."""
-        self.qw, self.qx, self.qy, self.qz = math.cos(0.5 * yaw_rad), 0.0, 0.0, math.sin(
-            0.5 * yaw_rad)
+        self.qw, self.qx, self.qy, self.qz = (
+            math.cos(0.5 * yaw_rad),
+            0.0,
+            0.0,
+            math.sin(0.5 * yaw_rad),
+        )
         self.wx = self.wy = self.wz = 0.0
 
     def step(self, c0: float, c1: float, c2: float, c3: float) -> None:
@@ -143,8 +177,9 @@ class Quadrotor:
         drag = self._drag
         self.vx += (t_m * 2.0 * (qx * qz + qw * qy) - drag * self.vx) * dt
         self.vy += (t_m * 2.0 * (qy * qz - qw * qx) - drag * self.vy) * dt
-        self.vz += (t_m * (1.0 - 2.0 * (qx * qx + qy * qy)) - drag * self.vz
-                    - self.params.gravity_m_s2) * dt
+        self.vz += (
+            t_m * (1.0 - 2.0 * (qx * qx + qy * qy)) - drag * self.vz - self.params.gravity_m_s2
+        ) * dt
         self.px += self.vx * dt
         self.py += self.vy * dt
         self.pz += self.vz * dt
@@ -163,30 +198,74 @@ class Quadrotor:
             half = 0.5 * n * dt
             s = math.sin(half) / n
             dw, dx, dy, dz = math.cos(half), wx * s, wy * s, wz * s
-            qw, qx, qy, qz = (qw * dw - qx * dx - qy * dy - qz * dz,
-                              qw * dx + qx * dw + qy * dz - qz * dy,
-                              qw * dy - qx * dz + qy * dw + qz * dx,
-                              qw * dz + qx * dy - qy * dx + qz * dw)
+            qw, qx, qy, qz = (
+                qw * dw - qx * dx - qy * dy - qz * dz,
+                qw * dx + qx * dw + qy * dz - qz * dy,
+                qw * dy - qx * dz + qy * dw + qz * dx,
+                qw * dz + qx * dy - qy * dx + qz * dw,
+            )
             inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             self.qw, self.qx, self.qy, self.qz = qw * inv, qx * inv, qy * inv, qz * inv
 
     def state(self) -> tuple[float, ...]:
         """Position, velocity, quaternion, body rates and motor thrusts, for ``set_state``."""
-        return (self.px, self.py, self.pz, self.vx, self.vy, self.vz, self.qw, self.qx, self.qy,
-                self.qz, self.wx, self.wy, self.wz, self.f0, self.f1, self.f2, self.f3)
+        return (
+            self.px,
+            self.py,
+            self.pz,
+            self.vx,
+            self.vy,
+            self.vz,
+            self.qw,
+            self.qx,
+            self.qy,
+            self.qz,
+            self.wx,
+            self.wy,
+            self.wz,
+            self.f0,
+            self.f1,
+            self.f2,
+            self.f3,
+        )
 
     def set_state(self, state: tuple[float, ...]) -> None:
-        (self.px, self.py, self.pz, self.vx, self.vy, self.vz, self.qw, self.qx, self.qy,
-         self.qz, self.wx, self.wy, self.wz, self.f0, self.f1, self.f2, self.f3) = state
+        (
+            self.px,
+            self.py,
+            self.pz,
+            self.vx,
+            self.vy,
+            self.vz,
+            self.qw,
+            self.qx,
+            self.qy,
+            self.qz,
+            self.wx,
+            self.wy,
+            self.wz,
+            self.f0,
+            self.f1,
+            self.f2,
+            self.f3,
+        ) = state
 
     # Read-outs (numpy, for callers outside the hot loop)
 
     def rotation(self) -> tuple[float, ...]:
         """R_flight_body as 9 floats, row-major."""
         qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
-        return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
-                2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
-                2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
+        return (
+            1 - 2 * (qy * qy + qz * qz),
+            2 * (qx * qy - qw * qz),
+            2 * (qx * qz + qw * qy),
+            2 * (qx * qy + qw * qz),
+            1 - 2 * (qx * qx + qz * qz),
+            2 * (qy * qz - qw * qx),
+            2 * (qx * qz - qw * qy),
+            2 * (qy * qz + qw * qx),
+            1 - 2 * (qx * qx + qy * qy),
+        )
 
     @property
     def position(self) -> np.ndarray:

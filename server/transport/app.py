@@ -53,8 +53,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         from server.sessions.ray_workers import RayWorkers
 
         workers = RayWorkers(settings.ray)
-    manager = SessionManager(SessionStore(settings.data_dir), config, settings.max_sessions,
-                             workers=workers, threads=settings.worker_threads)
+    manager = SessionManager(
+        SessionStore(settings.data_dir),
+        config,
+        settings.max_sessions,
+        workers=workers,
+        threads=settings.worker_threads,
+    )
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -81,8 +86,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             unsaved = await asyncio.to_thread(manager.shutdown)
             await asyncio.to_thread(manager.workers.close)
             if unsaved:
-                log.critical("could not save sessions %s at shutdown (see the errors above): "
-                             "their maps since the last snapshot are lost", ", ".join(unsaved))
+                log.critical(
+                    "could not save sessions %s at shutdown (see the errors above): "
+                    "their maps since the last snapshot are lost",
+                    ", ".join(unsaved),
+                )
 
     app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
     app.state.settings = settings
@@ -145,8 +153,9 @@ async def _reap(app: FastAPI) -> None:
     while True:
         await asyncio.sleep(min(10.0, settings.session_ttl_s / 4))
         try:
-            await asyncio.to_thread(manager.reap, settings.session_ttl_s,
-                                    set(app.state.connections))
+            await asyncio.to_thread(
+                manager.reap, settings.session_ttl_s, set(app.state.connections)
+            )
         except Exception:  # one session's failure must not end the reaping of all others
             log.exception("reaping idle sessions failed; trying again")
 
@@ -154,8 +163,12 @@ async def _reap(app: FastAPI) -> None:
 def make_server(settings: Settings, app: FastAPI | None = None, **uvicorn_options) -> Server:
     """The uvicorn server for ``settings`` (the app made from them unless given)."""
     config = uvicorn.Config(
-        app or create_app(settings), host=settings.host, port=settings.port, proxy_headers=True,
-        forwarded_allow_ips=settings.forwarded_allow_ips, **uvicorn_options
+        app or create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        proxy_headers=True,
+        forwarded_allow_ips=settings.forwarded_allow_ips,
+        **uvicorn_options,
     )
     return Server(config)
 

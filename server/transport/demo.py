@@ -24,8 +24,14 @@ async def run_demo(app: FastAPI) -> None:
     app.state.demo = {"id": session.id, "token": token}
     scheme = "https" if settings.tls else "http"
     base = f"{scheme}://{settings.host}:{settings.port}"
-    log.warning("demo session %s (token %s): map at %s/api/sessions/%s/map.ply "
-                "(header 'Authorization: Bearer <token>')", session.id, token, base, session.id)
+    log.warning(
+        "demo session %s (token %s): map at %s/api/sessions/%s/map.ply "
+        "(header 'Authorization: Bearer <token>')",
+        session.id,
+        token,
+        base,
+        session.id,
+    )
     await asyncio.sleep(0.5)  # let uvicorn start listening
     ws_url = f"{'wss' if settings.tls else 'ws'}://{settings.host}:{settings.port}/ws/sessions/{session.id}"
     ssl = None
@@ -35,11 +41,24 @@ async def run_demo(app: FastAPI) -> None:
         ssl = ssl_module.create_default_context()
         ssl.check_hostname, ssl.verify_mode = False, ssl_module.CERT_NONE
     try:
-        stats = await replay(ws_url, token, dataset, fps=settings.demo_fps, client_name="demo",
-                             ssl=ssl, pilot=TourPilot())
+        stats = await replay(
+            ws_url,
+            token,
+            dataset,
+            fps=settings.demo_fps,
+            client_name="demo",
+            ssl=ssl,
+            pilot=TourPilot(),
+        )
         arrivals = sum(e["event"] == "arrived" for e in stats.drone_events)
-        log.warning("demo session %s: %d frames sent, %d poses, %d map points streamed, "
-                    "the drone reached %d targets", session.id, stats.sent, len(stats.poses),
-                    stats.map_points, arrivals)
+        log.warning(
+            "demo session %s: %d frames sent, %d poses, %d map points streamed, "
+            "the drone reached %d targets",
+            session.id,
+            stats.sent,
+            len(stats.poses),
+            stats.map_points,
+            arrivals,
+        )
     except Exception:
         log.exception("demo replay failed")

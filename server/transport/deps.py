@@ -48,8 +48,11 @@ class RateLimiter:
                 return (1 - tokens) / self.rate_per_s
             if key not in self._buckets and len(self._buckets) >= self.max_keys:
                 recent = sorted(self._buckets.items(), key=lambda kv: kv[1][1])
-                self._buckets = {k: v for k, v in recent[-self.max_keys // 2:]
-                                 if self._tokens(k, now) < self.burst}
+                self._buckets = {
+                    k: v
+                    for k, v in recent[-self.max_keys // 2 :]
+                    if self._tokens(k, now) < self.burst
+                }
             self._buckets[key] = (tokens - 1, now)
             return 0.0
 
@@ -84,8 +87,10 @@ def creation_allowed(request: Request) -> None:
     limiter: RateLimiter = request.app.state.create_limiter
     wait_s = limiter.take(request.client.host if request.client else "unknown")
     if wait_s > 0:
-        raise RateLimited(f"too many new sessions from this address; try again in "
-                          f"{math.ceil(wait_s)} s", retry_after_s=wait_s)
+        raise RateLimited(
+            f"too many new sessions from this address; try again in {math.ceil(wait_s)} s",
+            retry_after_s=wait_s,
+        )
 
 
 ManagerDep = Annotated[SessionManager, Depends(get_manager)]

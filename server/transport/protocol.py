@@ -439,7 +439,8 @@ def make_drone_state(
         "drone_state",
         timestamp=float(timestamp),
         T_world_drone=_floats(T_world_drone, 16, "T_world_drone"),
-        T_camera_drone=None if T_camera_drone is None
+        T_camera_drone=None
+        if T_camera_drone is None
         else _floats(T_camera_drone, 16, "T_camera_drone"),
         camera_seq=None if camera_seq is None else int(camera_seq),
         velocity=_floats(velocity, 3, "velocity"),

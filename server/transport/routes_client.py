@@ -132,8 +132,11 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files", query: st
     depth_stamps, depth_names = read_file_list(folder / "depth.txt")
     idx_rgb, idx_depth = associate(rgb_stamps, depth_stamps, 0.02)
     frames = [
-        {"timestamp": float(rgb_stamps[i]), "colour": f"{files_url}/{rgb_names[i]}{query}",
-         "depth": f"{files_url}/{depth_names[j]}{query}"}
+        {
+            "timestamp": float(rgb_stamps[i]),
+            "colour": f"{files_url}/{rgb_names[i]}{query}",
+            "depth": f"{files_url}/{depth_names[j]}{query}",
+        }
         for i, j in zip(idx_rgb, idx_depth, strict=True)
     ]
     span = frames[-1]["timestamp"] - frames[0]["timestamp"]

@@ -42,8 +42,9 @@ def session_status(session: SessionDep) -> dict:
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)
-async def delete_session(request: Request, session_id: str, session: SessionDep,
-                         manager: ManagerDep) -> Response:
+async def delete_session(
+    request: Request, session_id: str, session: SessionDep, manager: ManagerDep
+) -> Response:
     """Stop the session and delete its map and trajectory; its open WebSocket, if any, is told
     (``unauthorized``) and closed."""
     await asyncio.to_thread(manager.delete, session_id)
@@ -65,8 +66,11 @@ def _mesh_bytes(tsdf: TSDFMap) -> bytes:
 
 
 def _download(data: bytes, filename: str, media_type: str) -> Response:
-    return Response(data, media_type=media_type,
-                    headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+    return Response(
+        data,
+        media_type=media_type,
+        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
+    )
 
 
 @router.get("/{session_id}/map.ply")

@@ -94,8 +94,10 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
     # while the server still holds the old one (until idle_timeout_s), and the token proves it
     # is the owner. The old socket is told why, so that a second tab stops instead of fighting.
     while (previous := connections.get(session_id)) is not None:
-        previous.end("session_taken_over",
-                     "a newer connection with this session's token took the session over")
+        previous.end(
+            "session_taken_over",
+            "a newer connection with this session's token took the session over",
+        )
         try:
             await asyncio.wait_for(previous.released.wait(), _RELEASE_WAIT_S)
         except asyncio.TimeoutError:
@@ -113,8 +115,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         _send_updates(ws, outbox, settings.preview_points, connection, errors)
     )
     try:
-        await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection,
-                       errors)
+        await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection, errors)
     except WebSocketDisconnect:
         pass
     finally:
@@ -135,8 +136,11 @@ async def end_all_connections(app) -> None:
     connections: dict[str, _Connection] = app.state.connections
     waiting = list(connections.values())
     for connection in waiting:
-        connection.end("server_shutdown", "the server is stopping; this session is saved and "
-                       "closed, its map and trajectory stay downloadable with its token")
+        connection.end(
+            "server_shutdown",
+            "the server is stopping; this session is saved and "
+            "closed, its map and trajectory stay downloadable with its token",
+        )
     if waiting:
         released = [asyncio.ensure_future(c.released.wait()) for c in waiting]
         _, stuck = await asyncio.wait(released, timeout=_RELEASE_WAIT_S)
@@ -193,8 +197,9 @@ class _ErrorRun:
         return self.count >= self.limit
 
 
-async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
-                        connection: _Connection, errors: _ErrorRun) -> None:
+async def _send_updates(
+    ws: WebSocket, outbox: _Outbox, chunk_points: int, connection: _Connection, errors: _ErrorRun
+) -> None:
     chunk = 0
     try:
         while True:
@@ -227,8 +232,9 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
                 )
                 continue
             if isinstance(item, FrameRefused):  # answered like a bad message, and counted
-                error = proto.ProtocolError(_SESSION_CODES.get(item.code, item.code),
-                                            item.message, seq=item.seq)
+                error = proto.ProtocolError(
+                    _SESSION_CODES.get(item.code, item.code), item.message, seq=item.seq
+                )
                 if await _report(ws, error, errors):
                     return
                 continue
@@ -236,8 +242,11 @@ async def _send_updates(ws: WebSocket, outbox: _Outbox, chunk_points: int,
                 connection.end("session_taken_over", item.message)
                 return
             if isinstance(item, SessionFailed):
-                connection.end("session_failed", f"{item.message}; the session is closed and "
-                               "kept as of its last snapshot, downloadable with its token")
+                connection.end(
+                    "session_failed",
+                    f"{item.message}; the session is closed and "
+                    "kept as of its last snapshot, downloadable with its token",
+                )
                 return
             errors.reset()
             await _send(
@@ -285,8 +294,13 @@ def _drone_state(s: DroneUpdate) -> dict:
 
 
 async def _receive(
-    ws: WebSocket, session: LiveSession, deliver, max_bytes: int, outbox: _Outbox,
-    connection: _Connection, errors: _ErrorRun,
+    ws: WebSocket,
+    session: LiveSession,
+    deliver,
+    max_bytes: int,
+    outbox: _Outbox,
+    connection: _Connection,
+    errors: _ErrorRun,
 ) -> None:
     """Handle the client's messages until it leaves, is closed, or ``connection`` is ended."""
     order = proto.ClientOrder()
@@ -295,8 +309,9 @@ async def _receive(
     try:
         while True:
             receiving = asyncio.ensure_future(ws.receive())
-            done, _ = await asyncio.wait({receiving, ending}, timeout=idle_s,
-                                         return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(
+                {receiving, ending}, timeout=idle_s, return_when=asyncio.FIRST_COMPLETED
+            )
             if receiving not in done:
                 receiving.cancel()
                 if ending not in done:
@@ -322,7 +337,8 @@ async def _receive(
                 await _send(ws, error)
             except SessionError as exc:
                 error = proto.ProtocolError(
-                    _SESSION_CODES.get(exc.code, "internal_error"), str(exc),
+                    _SESSION_CODES.get(exc.code, "internal_error"),
+                    str(exc),
                     seq=message.get("seq"),  # decoded already: a session refused it
                 )
                 closed = await _report(ws, error, errors)
@@ -365,8 +381,7 @@ async def _report(ws: WebSocket, error: proto.ProtocolError, errors: _ErrorRun) 
     return False
 
 
-async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: bytes,
-                  deliver) -> None:
+async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: bytes, deliver) -> None:
     kind = message["type"]
     if kind == "hello":
         await asyncio.to_thread(session.configure, message)

@@ -20,7 +20,7 @@ import numpy as np
 
 from server.transport.protocol import encode, make_frame
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path("..") / "shared" / "data"  # beside the checkout, run from its root (above)
 SEQUENCES = {"synthetic_room0": 5000.0, "7scenes_a": 1000.0}  # folder -> depth scale of its PNGs
 FRAMES = 30
 # (colour size, depth size): both 640x480, both 320x240, and phone-like depth at half size.

@@ -18,7 +18,9 @@ from collections.abc import Mapping
 from contextlib import nullcontext
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
+# The folder that holds this ``server`` package: a checkout, or site-packages of an installed
+# wheel. The child starts there, so ``python -m server`` runs the very code the caller imported.
+IMPORT_ROOT = Path(__file__).resolve().parents[2]
 
 
 def free_port() -> int:
@@ -68,10 +70,10 @@ class ServerProcess:
                     "--port",
                     str(self.port),
                     "--data-dir",
-                    str(data_dir),
+                    str(Path(data_dir).resolve()),  # the child's working directory differs
                     "--no-demo",
                 ],
-                cwd=REPO,
+                cwd=IMPORT_ROOT,
                 env={**os.environ, **(env or {})},
                 stdout=out,
                 stderr=subprocess.STDOUT,

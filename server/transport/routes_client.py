@@ -11,7 +11,9 @@ and the bundled demo sequence that the page's replay mode streams.
 | ``/api/demo/files/{path}?preset=`` | one colour JPEG or depth PNG of that sequence |
 
 The page needs no internet: everything it loads comes from here. Files are looked up under a
-fixed root and a path that leaves it (``..``, absolute, links) is a 404.
+fixed root and a path that leaves it (``..``, absolute, links) is a 404. Both roots are package
+data (``importlib.resources``): the ``client_web`` and ``shared`` packages of a checkout, or of an
+installed wheel, which carries only the module files the page imports (pyproject.toml).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -27,23 +30,25 @@ from fastapi.responses import FileResponse
 
 from server.datasets.demo import DemoSpec, demo_sequence_path
 from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
-from server.transport.protocol import PROTOCOL_PATH  # the very file the server validates with
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["client"])
 
 
-def _client_dir() -> Path:
-    """client_web/ beside the server package (a checkout), else in the working directory (an
-    installed package run from the project folder, as the Docker image does)."""
-    for base in (Path(__file__).resolve().parents[2], Path.cwd()):
-        if (base / "client_web" / "index.html").is_file():
-            return base / "client_web"
-    return Path(__file__).resolve().parents[2] / "client_web"
+def package_folder(package: str) -> Path:
+    """The folder of a package's data on disk. FileResponse serves files of the file system; a
+    checkout, an editable install and an installed wheel all have them there (a wheel is never
+    imported from inside its zip)."""
+    folder = files(package)
+    if not isinstance(folder, Path):
+        raise RuntimeError(f"package {package!r} is not a folder on disk: {folder}")
+    return folder
 
 
-CLIENT_DIR = _client_dir()
+CLIENT_DIR = package_folder("client_web")
 VENDOR_DIR = CLIENT_DIR / "node_modules"
+# The very file the server's protocol validator reads (files("shared") / "protocol.json").
+PROTOCOL_FILE = package_folder("shared") / "protocol.json"
 VENDOR_PACKAGES = ("three", "@msgpack/msgpack")  # the only npm packages served
 APP_FOLDERS = ("js", "css", "assets")  # the page's own files; never package.json or node_modules
 DEMO_FOLDERS = ("rgb", "depth")
@@ -104,14 +109,18 @@ def vendor_file(path: str) -> FileResponse:
     if not any(path.startswith(f"{package}/") for package in VENDOR_PACKAGES):
         raise HTTPException(404, "no such package")
     if not VENDOR_DIR.is_dir():
-        raise HTTPException(503, "client_web/node_modules is missing: run scripts/setup.sh")
+        raise HTTPException(
+            503,
+            f"{VENDOR_DIR} is missing: run scripts/setup.sh (npm ci in client_web) in a checkout;"
+            " a wheel must be built after it",
+        )
     return _file(VENDOR_DIR, path, {"Cache-Control": "public, max-age=3600"})
 
 
 @router.get("/protocol.json", tags=["client"])
 def protocol_definition() -> FileResponse:
     """The wire protocol (``shared/protocol.json``): the definition the server itself uses."""
-    return _file(PROTOCOL_PATH.parent, PROTOCOL_PATH.name, NO_CACHE)
+    return _file(PROTOCOL_FILE.parent, PROTOCOL_FILE.name, NO_CACHE)
 
 
 def _gravity(folder: Path) -> list[float] | None:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
+from conftest import missing
 
 from server.datasets.base import Trajectory
 from server.errors import TrajectoryError
@@ -18,8 +21,16 @@ from server.evaluation.metrics import (
 from server.evaluation.trajectory import read_tum, write_tum
 from server.geometry import exp_se3
 
-evo_metrics = pytest.importorskip("evo.core.metrics")
-evo_trajectory = pytest.importorskip("evo.core.trajectory")
+
+@pytest.fixture(scope="module")
+def evo() -> SimpleNamespace:
+    """evo's metrics and trajectory modules, the reference the comparisons below check against.
+    Only those need it: without evo they are skipped here, and fail in CI."""
+    try:
+        from evo.core import metrics, trajectory
+    except ImportError:
+        missing("evo is not installed (dev extras: pip install -e '.[dev]')")
+    return SimpleNamespace(metrics=metrics, trajectory=trajectory)
 
 
 def random_pose(
@@ -51,8 +62,8 @@ def noisy_copy(traj: Trajectory, seed: int = 1, sigma: float = 0.01) -> Trajecto
     return Trajectory(traj.timestamps.copy(), poses)
 
 
-def to_evo(traj: Trajectory):
-    return evo_trajectory.PoseTrajectory3D(
+def to_evo(evo: SimpleNamespace, traj: Trajectory):
+    return evo.trajectory.PoseTrajectory3D(
         poses_se3=list(traj.poses), timestamps=traj.timestamps.copy()
     )
 
@@ -82,13 +93,13 @@ def test_umeyama_rejects_degenerate_points():
         align_umeyama(np.ones((5, 3)), np.ones((5, 3)))
 
 
-def test_ate_agrees_with_evo():
+def test_ate_agrees_with_evo(evo):
     gt = fake_trajectory()
     est = noisy_copy(gt)
     ours = ate(gt, est)
-    ref, est_evo = to_evo(gt), to_evo(est)
+    ref, est_evo = to_evo(evo, gt), to_evo(evo, est)
     est_evo.align(ref)
-    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape = evo.metrics.APE(evo.metrics.PoseRelation.translation_part)
     ape.process_data((ref, est_evo))
     stats = ape.get_all_statistics()
     for key in ("rmse", "mean", "median", "max"):
@@ -98,19 +109,19 @@ def test_ate_agrees_with_evo():
 @pytest.mark.parametrize(
     ("delta", "unit", "evo_frames"), [(1, "frames", 1), (5, "frames", 5), (1.0, "seconds", 30)]
 )
-def test_rpe_agrees_with_evo(delta, unit, evo_frames):
+def test_rpe_agrees_with_evo(evo, delta, unit, evo_frames):
     gt = fake_trajectory()  # 30 Hz: one second is 30 frames
     est = noisy_copy(gt)
     ours = rpe(gt, est, delta, unit)
     for relation, key in (("translation_part", "trans_rmse"), ("rotation_angle_deg", "rot_rmse")):
-        metric = evo_metrics.RPE(
-            evo_metrics.PoseRelation[relation],
+        metric = evo.metrics.RPE(
+            evo.metrics.PoseRelation[relation],
             delta=evo_frames,
-            delta_unit=evo_metrics.Unit.frames,
+            delta_unit=evo.metrics.Unit.frames,
             all_pairs=True,
         )
-        metric.process_data((to_evo(gt), to_evo(est)))
-        expected = metric.get_statistic(evo_metrics.StatisticsType.rmse)
+        metric.process_data((to_evo(evo, gt), to_evo(evo, est)))
+        expected = metric.get_statistic(evo.metrics.StatisticsType.rmse)
         assert ours[key] == pytest.approx(expected, rel=1e-6)
     assert ours["pairs"] == len(gt) - evo_frames
 

@@ -15,12 +15,38 @@ from server.transport import protocol as P
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+def in_ci() -> bool:
+    """CI=true (set by .ci/run): every test must run there."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
 def missing(reason: str) -> None:
     """Skip a test whose data or tool is absent here; in CI (CI=true) that is a failure, as CI
     must run everything."""
-    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+    if in_ci():
         pytest.fail(f"required in CI: {reason}")
     pytest.skip(reason, allow_module_level=True)  # also for a module's missing import
+
+
+def _fail_skip_in_ci(report) -> None:
+    """In CI a skip of any kind (a skipif marker, an importorskip, a skip that bypassed
+    ``missing``, a whole module's) is a failure too: a green CI run means every test ran."""
+    if in_ci() and report.skipped and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
+        report.outcome = "failed"
+        report.longrepr = f"skipped, and CI must run every test: {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    _fail_skip_in_ci(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    outcome = yield
+    _fail_skip_in_ci(outcome.get_result())
 
 
 def auth(token: str) -> dict:

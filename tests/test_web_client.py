@@ -416,14 +416,31 @@ def test_message_validation_matches_the_server(live_server, open_page):
 # ---- the page against a live server -----------------------------------------------------------
 
 SPAWNED = "window.dronesim.seen.events.some((e) => e.event === 'spawned')"
+# The server spawns the drone as soon as it has a map, which on an idle machine can be before the
+# first picture is on screen. To judge that picture without a drone every time, the page's
+# client holds its drone messages (drone_state, drone_event) back until released, then hands
+# them over in order: releaseDrone() -> how many were held.
+HOLD_DRONE_MESSAGES = """() => {
+  const c = window.dronesim.client, dispatch = c.dispatchEvent.bind(c), held = [];
+  c.dispatchEvent = (event) => {
+    if (String(event.detail?.type).startsWith('drone_')) { held.push(event); return true; }
+    return dispatch(event);
+  };
+  window.releaseDrone = () => {
+    c.dispatchEvent = dispatch;
+    held.forEach((event) => dispatch(event));
+    return held.length;
+  };
+}"""
 
 
 def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open_page):
     server = live_server()
     page = open_page(server, REPLAY_PATH, **PHONE)
+    page.page.evaluate(HOLD_DRONE_MESSAGES)
     page.page.tap("#btn-stream")
 
-    # Before the drone spawns: the first picture, no drone paint on it.
+    # Before the page hears of the drone: the first picture, no drone paint on it.
     page.page.evaluate("""() => new Promise((resolve) => {
       const c = window.dronesim.client;
       const done = () => {
@@ -439,11 +456,13 @@ def test_phone_replay_shows_the_drone_in_ar_and_a_tap_sends_it(live_server, open
     first = page.screenshot("phone-first-frame-overlay-only.png")
     page.page.evaluate("document.querySelector('.ar-image').style.visibility = ''")
     seen_first = page.snapshot()
-    if seen_first["droneStates"] == 0:  # the picture above was taken before any drone state
-        st = seen_first["ar"]["stage"]
-        rows = slice(int(st["top"]), int(st["top"] + st["height"]))
-        area = drone_mask(first)[rows, int(st["left"]) : int(st["left"] + st["width"])]
-        assert area.sum() < 10, f"{area.sum()} drone-coloured pixels before the drone exists"
+    assert seen_first["droneStates"] == 0 and seen_first["lastDrone"] is None
+    assert seen_first["ar"]["shownSeq"] is not None, "no picture on screen"
+    st = seen_first["ar"]["stage"]
+    rows = slice(int(st["top"]), int(st["top"] + st["height"]))
+    area = drone_mask(first)[rows, int(st["left"]) : int(st["left"] + st["width"])]
+    assert area.sum() < 10, f"{area.sum()} drone-coloured pixels before the drone exists"
+    page.page.evaluate("window.releaseDrone()")
 
     # Streaming: >= 30 frames, poses back, tracking ok in the HUD, never more than 2 in flight.
     page.wait("window.dronesim.seen.poses >= 30", 90, "30 poses")

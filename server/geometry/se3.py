@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from server.geometry.arrays import FloatArray
+from server.geometry.arrays import FloatArray, RealArray
 
 
 def hat(w: FloatArray) -> FloatArray:
@@ -15,7 +15,7 @@ def hat(w: FloatArray) -> FloatArray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def exp_se3(xi: FloatArray) -> FloatArray:
+def exp_se3(xi: RealArray) -> FloatArray:
     """Exponential map of a twist ``xi = (omega, t)`` (rad, m) to a 4x4 transform."""
     omega, t = np.asarray(xi[:3], dtype=np.float64), np.asarray(xi[3:], dtype=np.float64)
     theta = float(np.linalg.norm(omega))

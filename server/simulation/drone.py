@@ -10,7 +10,7 @@ the map when the distance field at its centre drops below the radius. The distan
 at its start needs no query per step; near obstacles a few steps are run and every one of them
 is checked in one query, rewinding to the step before a contact. A step moves at most
 max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
-between two checks (the swept segment is covered), and ``segment_is_free`` guards longer steps.
+between two checks (the swept segment is covered), and ``segments_free`` guards longer steps.
 On contact the drone goes back to its last collision-free position, level and at rest, hovers,
 and a ``collision`` event says where; while landing, contact is the touchdown instead.
 
@@ -480,7 +480,7 @@ class DroneSimulator:
         touching = (d[1:] < radius) & (d[1:] < d[:-1])
         long = np.linalg.norm(np.diff(track, axis=0), axis=1) > 0.5 * radius
         if long.any():  # never at the configured limits; sweep such steps explicitly
-            touching[long] |= ~self.flight_map.segment_is_free(
+            touching[long] |= ~self.flight_map.segments_free(
                 track[:-1][long], track[1:][long], radius
             )
         return int(np.argmax(touching)) if touching.any() else None

@@ -211,7 +211,7 @@ def _nodes_near(
     if len(ijk) == 0:
         return np.empty(0, np.int64), np.empty(0)
     positions = lattice.base + ijk * lattice.cell_m
-    ok = flight_map.segment_is_free(np.repeat(point[None], len(ijk), 0), positions, hard_m)
+    ok = flight_map.segments_free(np.repeat(point[None], len(ijk), 0), positions, hard_m)
     flat = np.ravel_multi_index(tuple(ijk[ok].T), lattice.shape)
     return flat, np.linalg.norm(positions[ok] - point, axis=1)
 
@@ -264,7 +264,7 @@ def _shortcut(
     ends = np.union1d(turns, [1, last])  # lattice runs are straight: jump only to their ends
     while i < last:
         js = ends[ends > i]
-        seg = flight_map.segment_clearance(np.repeat(raw[i][None], len(js), 0), raw[js])
+        seg = flight_map.segment_clearances(np.repeat(raw[i][None], len(js), 0), raw[js])
         had = np.minimum.accumulate(clear_raw[i + 1 :])[js - i - 1]
         need = np.maximum(
             np.minimum(required_m, np.minimum(clear_raw[i], clear_raw[js])),
@@ -300,7 +300,7 @@ def _smooth(
     """Dense samples of the polyline with each corner blended: (positions, tangents, curvature
     vectors, stop flags). A blend must keep min(floor_m, its segments' clearance); it is halved
     until it does, and after 6 halvings the drone stops at the corner instead."""
-    seg_clear = flight_map.segment_clearance(pts[:-1], pts[1:])
+    seg_clear = flight_map.segment_clearances(pts[:-1], pts[1:])
     lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     dirs = np.diff(pts, axis=0) / lengths[:, None]
     # Pieces of (positions, tangents, curvature vectors, stop flags).
@@ -585,4 +585,4 @@ def route_is_clear(
     rest = route.path[i:]
     if len(rest) == 1:
         return bool(flight_map.is_free(rest, radius_m)[0])
-    return bool(np.all(flight_map.segment_is_free(rest[:-1], rest[1:], radius_m)))
+    return bool(np.all(flight_map.segments_free(rest[:-1], rest[1:], radius_m)))

@@ -151,10 +151,16 @@ def test_segment_checks_see_a_wall_between_samples():
     m = scenes.room_with_door().flight_map
     a = np.array([[1.0, 0.6, 1.2], [1.0, 1.65, 1.2], [1.0, 0.6, 1.2]])
     b = np.array([[3.0, 0.6, 1.2], [3.0, 1.65, 1.2], [1.5, 0.6, 1.2]])
-    np.testing.assert_array_equal(m.segment_is_free(a, b, 0.15), [False, True, True])
+    np.testing.assert_array_equal(m.segments_free(a, b, 0.15), [False, True, True])
     assert m.segment_is_free(a[1], b[1], 0.15) is True
     assert m.segment_clearance(a[0], b[0]) < 0  # through the wall
     assert m.segment_clearance(a[1], b[1]) == pytest.approx(0.45, abs=0.03)  # door half-width
+    # The batch form is the single one, segment by segment.
+    many = m.segment_clearances(a, b)
+    assert many.shape == (3,)
+    assert many.tolist() == [m.segment_clearance(p, q) for p, q in zip(a, b, strict=True)]
+    assert type(m.segment_clearance(a[0], b[0])) is float
+    assert m.segment_clearances(np.empty((0, 3)), np.empty((0, 3))).shape == (0,)
 
 
 def test_nearest_free_and_random_free_points_have_the_clearance():

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from server.errors import ConfigError
+from server.geometry.arrays import FloatArray, RealArray
 
 
 @dataclass(frozen=True)
@@ -31,7 +32,7 @@ class Intrinsics:
             raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
 
     @property
-    def matrix(self) -> np.ndarray:
+    def matrix(self) -> FloatArray:
         """The 3x3 calibration matrix K."""
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
@@ -50,7 +51,7 @@ class Intrinsics:
         )
 
 
-def backproject_pixels(uv: np.ndarray, depth: np.ndarray, K: Intrinsics) -> np.ndarray:
+def backproject_pixels(uv: FloatArray, depth: RealArray, K: Intrinsics) -> FloatArray:
     """Eq. 1: pixels ``uv`` (N, 2) with depths ``depth`` (N,) in metres -> points (N, 3) in
     metres."""
     z = np.asarray(depth, dtype=np.float64)
@@ -59,7 +60,7 @@ def backproject_pixels(uv: np.ndarray, depth: np.ndarray, K: Intrinsics) -> np.n
     return np.stack([x, y, z], axis=1)
 
 
-def backproject(depth: np.ndarray, K: Intrinsics, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def backproject(depth: RealArray, K: Intrinsics, stride: int = 1) -> tuple[FloatArray, FloatArray]:
     """Back-project every ``stride``-th pixel of a depth image (H, W) in metres.
 
     Returns (points (N, 3) in the camera frame, pixel indices (N, 2) as (u, v)) for valid depth
@@ -71,7 +72,7 @@ def backproject(depth: np.ndarray, K: Intrinsics, stride: int = 1) -> tuple[np.n
     return backproject_pixels(uv, d[v, u], K), uv
 
 
-def project(points: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+def project(points: FloatArray, K: Intrinsics) -> tuple[FloatArray, FloatArray]:
     """Eq. 2: camera-frame points (N, 3) -> (pixels (N, 2), depths (N,)). Points behind the camera
     get NaN pixels."""
     z = points[:, 2]

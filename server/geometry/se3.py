@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from server.geometry.arrays import FloatArray, RealArray
 
-def hat(w: np.ndarray) -> np.ndarray:
+
+def hat(w: FloatArray) -> FloatArray:
     """Skew-symmetric matrix [w]_x with hat(w) @ v == cross(w, v)."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def exp_se3(xi: np.ndarray) -> np.ndarray:
+def exp_se3(xi: RealArray) -> FloatArray:
     """Exponential map of a twist ``xi = (omega, t)`` (rad, m) to a 4x4 transform."""
     omega, t = np.asarray(xi[:3], dtype=np.float64), np.asarray(xi[3:], dtype=np.float64)
     theta = float(np.linalg.norm(omega))
@@ -33,7 +35,7 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def invert(T: np.ndarray) -> np.ndarray:
+def invert(T: FloatArray) -> FloatArray:
     """Inverse of a rigid transform, without a general matrix inverse."""
     Ti = np.eye(4)
     R = T[:3, :3]
@@ -42,25 +44,25 @@ def invert(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def orthonormalize(T: np.ndarray) -> np.ndarray:
+def orthonormalize(T: FloatArray) -> FloatArray:
     """Project the rotation block back onto SO(3); repeated composition drifts off it."""
     U, _, Vt = np.linalg.svd(T[:3, :3])
     R = U @ Vt
     if np.linalg.det(R) < 0:
         U[:, -1] *= -1
         R = U @ Vt
-    out = T.copy()
+    out: FloatArray = T.copy()
     out[:3, :3] = R
     return out
 
 
-def rotation_angle_deg(T: np.ndarray) -> float:
+def rotation_angle_deg(T: FloatArray) -> float:
     """Rotation angle of a transform in degrees."""
     c = (np.trace(T[:3, :3]) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def pose_from_quaternion(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+def pose_from_quaternion(t: FloatArray, q_xyzw: FloatArray) -> FloatArray:
     """4x4 transform from a translation and a unit quaternion (x, y, z, w), TUM order."""
     x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
     R = np.array(
@@ -76,7 +78,7 @@ def pose_from_quaternion(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     return T
 
 
-def quaternion_from_pose(T: np.ndarray) -> np.ndarray:
+def quaternion_from_pose(T: FloatArray) -> FloatArray:
     """Unit quaternion (x, y, z, w) with w >= 0 of a transform's rotation."""
     R = T[:3, :3]
     tr = np.trace(R)

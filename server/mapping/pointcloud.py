@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import open3d as o3d
 
@@ -53,7 +55,8 @@ class PointCloudMap:
         self._downsample()
         return np.asarray(self.cloud.colors)
 
-    def write_ply(self, path) -> None:
+    def write_ply(self, path: str | os.PathLike[str]) -> None:
         """Binary PLY with per-point colours."""
         self._downsample()
-        o3d.io.write_point_cloud(str(path), self.cloud, write_ascii=False)
+        # open3d's stubs ask for a PathLike; the binding takes a str as well.
+        o3d.io.write_point_cloud(str(path), self.cloud, write_ascii=False)  # type: ignore[arg-type]

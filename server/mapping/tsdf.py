@@ -16,22 +16,37 @@ import os
 import tempfile
 import threading
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
+from numpy.typing import ArrayLike, NDArray
 
 from server.errors import ConfigError, DroneSimError
 from server.geometry import Intrinsics
+from server.geometry.arrays import (
+    BoolArray,
+    Float32Array,
+    FloatArray,
+    GreyImage,
+    IndexArray,
+    Int64Array,
+    RealArray,
+)
 
 log = logging.getLogger(__name__)
 
 _CARVE_STRIDE_PX = 16  # one free-space ray per 16 x 16 depth pixels
 _BYTES_PER_VOXEL = 4 * (1 + 1 + 3)  # float32 tsdf, weight, RGB
 _KEY_BIAS = 1 << 20  # integer keys packed in one int64: 21 bits per axis
+# The device numpy arrays become tensors on: Open3D's default, passed (with the dtype) because
+# open3d's stubs declare no defaults for Tensor(np_array, dtype, device).
+_HOST = o3c.Device("CPU:0")
 
 
 class MapError(DroneSimError):
@@ -76,18 +91,19 @@ class TSDFConfig:
         return self.block_resolution * self.voxel_m
 
 
-def _pack(ijk: np.ndarray) -> np.ndarray:
+def _pack(ijk: ArrayLike) -> Int64Array:
     """Integer 3D keys (N, 3) (each within +-2^20) -> one sortable int64 each."""
     k = np.asarray(ijk, dtype=np.int64) + _KEY_BIAS
     return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
-def _unpack(keys: np.ndarray) -> np.ndarray:
+def _unpack(keys: Int64Array) -> Int64Array:
+    """Inverse of ``_pack``: (N,) keys -> (N, 3) integer keys."""
     mask = (1 << 21) - 1
     return np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1) - _KEY_BIAS
 
 
-def _rotate(points: np.ndarray, R: np.ndarray | None) -> np.ndarray:
+def _rotate(points: ArrayLike, R: RealArray | None) -> FloatArray:
     """(N, 3) points (float64) rotated by R (3x3; None: unrotated). Written out per element, not
     as a matrix product, so that a point's result does not depend on how many points are rotated
     with it (a BLAS product may round differently by batch): occupancy_update then finds the
@@ -101,7 +117,7 @@ def _rotate(points: np.ndarray, R: np.ndarray | None) -> np.ndarray:
     )
 
 
-def _atomic_write(path: str | Path, suffix: str, write) -> None:
+def _atomic_write(path: str | Path, suffix: str, write: Callable[[str], bool | None]) -> None:
     """Call ``write(tmp)`` (False: it failed) on a temporary file beside ``path``, then rename
     the file over ``path``."""
     path = Path(path)
@@ -124,7 +140,12 @@ _ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight,
 class TSDFMap:
     """The fused map of one session. All methods may be called from different threads."""
 
-    def __init__(self, config: TSDFConfig | None = None, grid=None, camera_positions=None):
+    def __init__(
+        self,
+        config: TSDFConfig | None = None,
+        grid: o3d.t.geometry.VoxelBlockGrid | None = None,
+        camera_positions: ArrayLike | None = None,
+    ) -> None:
         """config: None for ``TSDFConfig()``. grid: an existing ``open3d.t.geometry.VoxelBlockGrid``
         and camera_positions (N, 3) (world, metres) of the frames fused in it (used by ``load``)."""
         self.config = config = config or TSDFConfig()
@@ -134,7 +155,7 @@ class TSDFMap:
             grid = o3d.t.geometry.VoxelBlockGrid(
                 list(_ATTRIBUTES),
                 [f32, f32, f32],
-                [[1], [1], [3]],
+                [o3c.SizeVector([1]), o3c.SizeVector([1]), o3c.SizeVector([3])],
                 config.voxel_m,
                 config.block_resolution,
                 config.block_count,
@@ -143,7 +164,7 @@ class TSDFMap:
         self._grid = grid
         self._lock = threading.Lock()
         # Where each fused frame's camera was: known free space, even just behind the camera.
-        self._cameras = list(
+        self._cameras: list[FloatArray] = list(
             np.reshape([] if camera_positions is None else camera_positions, (-1, 3))
         )
         self._dirty = np.sort(_pack(self._active_keys()))  # blocks touched since the last preview
@@ -158,10 +179,10 @@ class TSDFMap:
     # --- fusion ------------------------------------------------------------------------------
     def integrate(
         self,
-        colour_rgb_uint8: np.ndarray,
-        depth_m: np.ndarray,
+        colour_rgb_uint8: GreyImage,
+        depth_m: RealArray,
         K: Intrinsics,
-        T_world_camera: np.ndarray,
+        T_world_camera: RealArray,
     ) -> int:
         """Fuse one frame and return the number of newly allocated blocks.
 
@@ -185,13 +206,15 @@ class TSDFMap:
         h, w = depth.shape
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
         if colour.shape[:2] != (h, w):
-            colour = cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA)
+            # cv2.resize keeps the dtype; its stubs do not say so.
+            colour = cast(GreyImage, cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA))
         K = self._intrinsics_for(K, w, h)
-        intrinsic = o3c.Tensor(K.matrix, o3c.float64)
-        extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64)  # T_camera_world, as Open3D wants
-        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth)).to(self._device)
+        intrinsic = o3c.Tensor(K.matrix, o3c.float64, _HOST)
+        # T_camera_world, as Open3D wants.
+        extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64, _HOST)
+        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth, o3c.float32, _HOST)).to(self._device)
         colour_img = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0)
+            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0, o3c.float32, _HOST)
         ).to(self._device)
 
         with self._lock:
@@ -210,7 +233,7 @@ class TSDFMap:
                 return 0
             hashmap = self._grid.hashmap()
             before = hashmap.size()
-            coords = o3c.Tensor(_unpack(keys).astype(np.int32)).to(self._device)
+            coords = o3c.Tensor(_unpack(keys).astype(np.int32), o3c.int32, _HOST).to(self._device)
             self._grid.integrate(
                 coords,
                 depth_img,
@@ -233,7 +256,7 @@ class TSDFMap:
             raise MapError(f"depth {w}x{h} has not the aspect of intrinsics {K.width}x{K.height}")
         return K.scaled(factor)
 
-    def _free_space_keys(self, depth: np.ndarray, K: Intrinsics, T: np.ndarray) -> np.ndarray:
+    def _free_space_keys(self, depth: Float32Array, K: Intrinsics, T: FloatArray) -> Int64Array:
         """Packed keys of the blocks that sparse rays cross between the camera and the surface
         band (which compute_unique_block_coordinates already covers)."""
         cfg, s = self.config, _CARVE_STRIDE_PX
@@ -255,12 +278,14 @@ class TSDFMap:
         return np.unique(_pack(np.floor(world / cfg.block_m)))
 
     # --- extraction --------------------------------------------------------------------------
-    def _active_keys(self) -> np.ndarray:
+    def _active_keys(self) -> NDArray[np.int32]:
+        """(B, 3) integer keys of the allocated blocks (Open3D keeps them as int32)."""
         hashmap = self._grid.hashmap()
         idx = hashmap.active_buf_indices().to(o3c.int64)
-        return hashmap.key_tensor()[idx].cpu().numpy().reshape(-1, 3)
+        keys: NDArray[np.int32] = hashmap.key_tensor()[idx].cpu().numpy().reshape(-1, 3)
+        return keys
 
-    def _extract(self) -> tuple[np.ndarray, np.ndarray]:
+    def _extract(self) -> tuple[FloatArray, FloatArray]:
         empty = np.empty((0, 3)), np.empty((0, 3))
         if self._grid.hashmap().size() == 0:  # Open3D raises on an empty grid
             return empty
@@ -271,13 +296,13 @@ class TSDFMap:
         colours = np.clip(pcd.point.colors.numpy().astype(np.float64), 0.0, 1.0)
         return points, colours
 
-    def point_cloud(self) -> tuple[np.ndarray, np.ndarray]:
+    def point_cloud(self) -> tuple[FloatArray, FloatArray]:
         """Surface points of the TSDF: (points (N, 3) float64 metres in the world frame,
         colours (N, 3) float64 RGB in 0..1)."""
         with self._lock:
             return self._extract()
 
-    def take_preview(self, max_points: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    def take_preview(self, max_points: int = 4000) -> tuple[FloatArray, FloatArray]:
         """Surface points (as in ``point_cloud``, at most one per voxel) of the blocks touched
         since the last call and not returned before: at most ``max_points``, a random subset when
         there are more (the rest stays pending for the next call)."""
@@ -308,8 +333,8 @@ class TSDFMap:
 
     # --- occupancy for the drone ---------------------------------------------------------------
     def occupancy(
-        self, voxel_m: float = 0.05, R_grid_world: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, voxel_m: float = 0.05, R_grid_world: RealArray | None = None
+    ) -> tuple[FloatArray, BoolArray, BoolArray]:
         """A coarse occupancy grid derived from the TSDF, for the drone simulator.
 
         R_grid_world: rotation (3x3) from the world frame into the frame whose axes the grid
@@ -335,8 +360,8 @@ class TSDFMap:
         return self._grid_of(lo, observed_cells.max(axis=0) + 1, observed_cells, surface, voxel_m)
 
     def occupancy_update(
-        self, voxel_m: float = 0.05, R_grid_world: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        self, voxel_m: float = 0.05, R_grid_world: RealArray | None = None
+    ) -> tuple[FloatArray, BoolArray, BoolArray] | None:
         """The part of ``occupancy(voxel_m, R_grid_world)`` that what was fused since the last
         call can have changed, or None when nothing can have.
 
@@ -370,14 +395,15 @@ class TSDFMap:
             box_lo = np.min([lo.min(axis=0) for lo, _ in reach if len(lo)], axis=0)
             box_hi = np.max([hi.max(axis=0) for _, hi in reach if len(hi)], axis=0) + 1
 
-            def overlapping(keys):  # blocks with a voxel that can fall in the box
+            def overlapping(keys: Int64Array) -> BoolArray:  # blocks with a voxel in the box
                 lo, hi = self._block_cells(keys, voxel_m, R_grid_world)
-                return np.all((lo < box_hi) & (hi >= box_lo), axis=1)
+                hit: BoolArray = np.all((lo < box_hi) & (hi >= box_lo), axis=1)
+                return hit
 
             keys, tsdf, weight = self._read_blocks(overlapping)
         seen, surface, at_camera = self._cells(keys, tsdf, weight, cameras, voxel_m, R_grid_world)
 
-        def inside(cells):
+        def inside(cells: Int64Array) -> Int64Array:
             return cells[np.all((cells >= box_lo) & (cells < box_hi), axis=1)]
 
         seen, surface, at_camera = inside(seen), inside(surface), inside(at_camera)
@@ -393,7 +419,9 @@ class TSDFMap:
         if not voxel_m > 0:
             raise ConfigError(f"occupancy voxel size must be positive, got {voxel_m}")
 
-    def _read_blocks(self, select=None):
+    def _read_blocks(
+        self, select: Callable[[Int64Array], BoolArray] | None = None
+    ) -> tuple[Int64Array, Float32Array, Float32Array]:
         """Keys (B, 3) of the active blocks (those ``select(keys)`` -> (N,) bool keeps), and
         copies of their tsdf and weight (B, z, y, x). Call with the lock held."""
         hashmap = self._grid.hashmap()
@@ -404,11 +432,13 @@ class TSDFMap:
             idx, keys = idx[keep], keys[keep]
         # .numpy() views the grid's memory; fancy indexing copies it while the lock is held
         # (Open3D's own tensor indexing is ~20x slower here).
-        tsdf = self._grid.attribute("tsdf").numpy()[idx, ..., 0]
-        weight = self._grid.attribute("weight").numpy()[idx, ..., 0]
+        tsdf: Float32Array = self._grid.attribute("tsdf").numpy()[idx, ..., 0]
+        weight: Float32Array = self._grid.attribute("weight").numpy()[idx, ..., 0]
         return keys, tsdf, weight
 
-    def _block_cells(self, keys: np.ndarray, voxel_m: float, R_grid_world):
+    def _block_cells(
+        self, keys: Int64Array, voxel_m: float, R_grid_world: RealArray | None
+    ) -> tuple[Int64Array, Int64Array]:
         """(lo, hi), (B, 3) int64 each: the range of grid cells (inclusive) the voxels of each
         block (keys (B, 3)) can fall in, one cell wider each side than the blocks' corners
         say, for the float32 rounding of voxel positions in ``_cells``."""
@@ -418,7 +448,15 @@ class TSDFMap:
         cells = np.floor(_rotate(points, R_grid_world) / voxel_m).reshape(-1, 8, 3)
         return cells.min(axis=1).astype(np.int64) - 1, cells.max(axis=1).astype(np.int64) + 1
 
-    def _cells(self, keys, tsdf, weight, cameras, voxel_m: float, R_grid_world):
+    def _cells(
+        self,
+        keys: Int64Array,
+        tsdf: Float32Array,
+        weight: Float32Array,
+        cameras: FloatArray,
+        voxel_m: float,
+        R_grid_world: RealArray | None,
+    ) -> tuple[Int64Array, Int64Array, Int64Array]:
         """Grid cells (integer (N, 3) each, not unique) of the given blocks' seen voxels, of
         their surface voxels, and of the cameras (world (C, 3))."""
         cfg, res = self.config, self.config.block_resolution
@@ -431,24 +469,33 @@ class TSDFMap:
         while s < res and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
             s *= 2
 
-        def cells(b, zl, yl, xl, step=1):
+        def cells(voxels: tuple[IndexArray, ...], step: int = 1) -> Int64Array:
+            """Cells of the voxels at ``voxels`` = (block, z, y, x) indices, every step-th."""
+            b, zl, yl, xl = voxels
             local = np.stack([xl, yl, zl], axis=1) * step
             world = (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
             return np.floor(_rotate(world, R_grid_world) / voxel_m).astype(np.int64)
 
-        seen = cells(*np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
-        surface = cells(*np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
+        seen = cells(np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
+        surface = cells(np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
         at_camera = np.floor(_rotate(cameras, R_grid_world) / voxel_m).astype(np.int64)
         return seen, surface, at_camera
 
     @staticmethod
-    def _grid_of(lo, hi, observed_cells, surface_cells, voxel_m: float):
+    def _grid_of(
+        lo: Int64Array,
+        hi: Int64Array,
+        observed_cells: Int64Array,
+        surface_cells: Int64Array,
+        voxel_m: float,
+    ) -> tuple[FloatArray, BoolArray, BoolArray]:
         """(origin, occupied, observed) of the cells [lo, hi) (integer (3,) each)."""
-        observed = np.zeros(tuple(hi - lo), dtype=bool)
+        observed: BoolArray = np.zeros(tuple(hi - lo), dtype=bool)
         occupied = np.zeros_like(observed)
         observed[tuple((observed_cells - lo).T)] = True
         occupied[tuple((surface_cells - lo).T)] = True
-        return lo * voxel_m, occupied, observed
+        # np.float64: numpy's stubs type an int64 array times a float as of any float precision.
+        return lo * np.float64(voxel_m), occupied, observed
 
     # --- files -------------------------------------------------------------------------------
     def write_point_cloud_ply(self, path: str | Path) -> None:
@@ -458,14 +505,24 @@ class TSDFMap:
             raise MapError(f"the map has no surface to write to {path} yet")
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         cloud.colors = o3d.utility.Vector3dVector(colours)
-        _atomic_write(path, ".ply", lambda tmp: o3d.io.write_point_cloud(tmp, cloud))  # binary
+        # Binary. open3d's stubs ask for a PathLike; the binding takes a str as well.
+        _atomic_write(
+            path,
+            ".ply",
+            lambda tmp: o3d.io.write_point_cloud(tmp, cloud),  # type: ignore[arg-type]
+        )
 
     def write_mesh_ply(self, path: str | Path) -> None:
         """Binary PLY of ``mesh()`` with vertex colours, written atomically."""
         mesh = self.mesh()
         if not mesh.has_triangles():
             raise MapError(f"the map has no surface to write to {path} yet")
-        _atomic_write(path, ".ply", lambda tmp: o3d.io.write_triangle_mesh(tmp, mesh))  # binary
+        # Binary. open3d's stubs ask for a PathLike; the binding takes a str as well.
+        _atomic_write(
+            path,
+            ".ply",
+            lambda tmp: o3d.io.write_triangle_mesh(tmp, mesh),  # type: ignore[arg-type]
+        )
 
     def save(self, path: str | Path) -> None:
         """Persist the whole grid and the camera positions, written atomically, in the layout of
@@ -516,7 +573,7 @@ class TSDFMap:
             )
         return cls(config, grid=grid.to(o3c.Device(config.device)), camera_positions=cameras)
 
-    def stats(self) -> dict:
+    def stats(self) -> dict[str, int | float]:
         """frames_integrated, active_blocks, capacity_blocks, voxel_m, memory_bytes (approximate:
         the allocated block buffers, which Open3D sizes to the capacity)."""
         with self._lock:

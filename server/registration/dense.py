@@ -8,13 +8,16 @@ directions (a floor, one wall) cannot slide the pose along the others.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
 
 from server.config import DepthConfig, SolverConfig
 from server.geometry import Intrinsics, backproject, exp_se3, orthonormalize
+from server.geometry.arrays import Float32Array, FloatArray, GreyImage
 from server.registration.preprocess import axial_sigma
 from server.registration.sparse import NormalEquations
 
@@ -23,15 +26,15 @@ from server.registration.sparse import NormalEquations
 class DenseModel:
     """A keyframe's surface at half resolution: vertices and normals in its camera frame."""
 
-    vertices: np.ndarray  # (h, w, 3) metres, NaN where unknown
-    normals: np.ndarray  # (h, w, 3) unit, NaN where unknown
+    vertices: FloatArray  # (h, w, 3) metres, NaN where unknown
+    normals: FloatArray  # (h, w, 3) unit, NaN where unknown
     intrinsics: Intrinsics  # of the half-resolution maps
-    intensity: np.ndarray | None = None  # (h, w) float32 grey, 0-255, slightly blurred
-    gradient: np.ndarray | None = None  # (h, w, 2) d intensity / d (u, v), per half-res pixel
+    intensity: Float32Array | None = None  # (h, w) grey, 0-255, slightly blurred
+    gradient: Float32Array | None = None  # (h, w, 2) d intensity / d (u, v), per half-res pixel
 
 
 def build_dense_model(
-    depth: np.ndarray, K: Intrinsics, grey: np.ndarray | None = None, normal_step_px: int = 2
+    depth: Float32Array, K: Intrinsics, grey: GreyImage | None = None, normal_step_px: int = 2
 ) -> DenseModel:
     """Vertex and normal maps from a depth image (metres) at half resolution.
 
@@ -65,9 +68,13 @@ def build_dense_model(
     flip = np.sum(n * V[s:-s, s:-s], axis=-1) > 0
     n[flip] *= -1
     N[s:-s, s:-s] = n
-    intensity = gradient = None
+    intensity: Float32Array | None = None
+    gradient: Float32Array | None = None
     if grey is not None:
-        intensity = cv2.GaussianBlur(cv2.pyrDown(grey).astype(np.float32), (3, 3), 0)
+        # OpenCV keeps float32 through the blur and the CV_32F Sobel; its stubs do not say so.
+        intensity = cast(
+            Float32Array, cv2.GaussianBlur(cv2.pyrDown(grey).astype(np.float32), (3, 3), 0)
+        )
         gradient = np.stack(
             [
                 cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
@@ -79,8 +86,8 @@ def build_dense_model(
 
 
 def sample_dense_points(
-    depth: np.ndarray, K: Intrinsics, stride: int, grey: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray | None]:
+    depth: Float32Array, K: Intrinsics, stride: int, grey: GreyImage | None = None
+) -> tuple[FloatArray, FloatArray | None]:
     """Every ``stride``-th valid pixel of the current depth, back-projected: (N, 3) metres, and
     the (slightly blurred, like the keyframe's) intensity there (N,), when ``grey`` is given."""
     points, uv = backproject(depth, K, stride)
@@ -90,7 +97,7 @@ def sample_dense_points(
     return points, blurred[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(np.float64)
 
 
-def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _bilinear(image: Float32Array, u: FloatArray, v: FloatArray) -> FloatArray:
     """Image (h, w[, c]) sampled at float pixels; callers keep (u, v) inside [0, w-1) x [0, h-1)."""
     u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     a, b = u - u0, v - v0
@@ -105,19 +112,21 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def photometric_equations(
-    model: DenseModel,
-    Q: np.ndarray,
-    intensity: np.ndarray,
-    T: np.ndarray,
+    K: Intrinsics,
+    image: Float32Array,
+    gradient: Float32Array,
+    Q: FloatArray,
+    intensity: FloatArray,
+    T: FloatArray,
     weight: float,
     sigma: float,
     huber_k: float,
 ) -> NormalEquations:
     """Normal equations of e = I_keyframe(pi(T q)) - I_current(q) for current points Q (N, 3)
-    with intensities (N,), moved by T_keyframe_current into the keyframe image."""
+    with intensities (N,), moved by T_keyframe_current into the keyframe ``image`` (h, w) with
+    its ``gradient`` (h, w, 2); ``K``: the intrinsics of that image."""
     y = Q @ T[:3, :3].T + T[:3, 3]
-    K = model.intrinsics
-    h, w = model.intensity.shape
+    h, w = image.shape
     z = y[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = y[:, 0] * K.fx / z + K.cx
@@ -126,8 +135,8 @@ def photometric_equations(
     y, u, v, ref = y[inside], u[inside], v[inside], intensity[inside]
     if len(y) == 0:
         return NormalEquations(np.zeros((6, 6)), np.zeros(6))
-    e = _bilinear(model.intensity, u, v) - ref
-    g = _bilinear(model.gradient, u, v)
+    e = _bilinear(image, u, v) - ref
+    g = _bilinear(gradient, u, v)
     inv_z = 1.0 / y[:, 2]
     # d e / d y = g^T d pi / d y; then d y / d xi = [ -[y]_x , I ].
     de_dy = np.stack(
@@ -146,8 +155,8 @@ def photometric_equations(
 
 def dense_equations(
     model: DenseModel,
-    Q: np.ndarray,
-    T: np.ndarray,
+    Q: FloatArray,
+    T: FloatArray,
     max_distance: float,
     weight: float,
     depth_cfg: DepthConfig,
@@ -190,23 +199,22 @@ def dense_equations(
 
 
 def refine_dense(
-    T_init: np.ndarray,
+    T_init: FloatArray,
     model: DenseModel,
-    Q: np.ndarray,
-    sparse_terms,
+    Q: FloatArray,
+    sparse_terms: Callable[[FloatArray], NormalEquations],
     cfg: SolverConfig,
     depth_cfg: DepthConfig,
-    intensity: np.ndarray | None = None,
-) -> tuple[np.ndarray, int]:
+    intensity: FloatArray | None = None,
+) -> tuple[FloatArray, int]:
     """Refine T_keyframe_current with point-to-plane terms, the photometric term (when the model
     and ``intensity`` (N,) of the points Q have it) and the sparse term.
 
     ``sparse_terms(T) -> NormalEquations`` evaluates the sparse cost at a pose.
     Returns the refined pose and the number of dense matches in the last iteration.
     """
-    photometric = (
-        cfg.photometric_weight > 0 and intensity is not None and model.intensity is not None
-    )
+    image, gradient = model.intensity, model.gradient
+    photometric = cfg.photometric_weight > 0
     T = T_init.copy()
     matches = 0
     for _ in range(cfg.dense_iterations):
@@ -214,9 +222,17 @@ def refine_dense(
             model, Q, T, cfg.dense_max_distance_m, cfg.dense_weight, depth_cfg, cfg.huber_k
         )
         eq = dense_eq + sparse_terms(T)
-        if photometric:
+        if photometric and intensity is not None and image is not None and gradient is not None:
             eq = eq + photometric_equations(
-                model, Q, intensity, T, cfg.photometric_weight, cfg.photometric_sigma, cfg.huber_k
+                model.intrinsics,
+                image,
+                gradient,
+                Q,
+                intensity,
+                T,
+                cfg.photometric_weight,
+                cfg.photometric_sigma,
+                cfg.huber_k,
             )
         xi = np.linalg.lstsq(eq.H, -eq.g, rcond=None)[0]
         T = orthonormalize(exp_se3(xi) @ T)

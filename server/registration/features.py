@@ -6,19 +6,20 @@ import cv2
 import numpy as np
 
 from server.config import FeatureConfig
+from server.geometry.arrays import BoolArray, Float32Array, GreyImage
 
 
 def detect_features(
-    grey: np.ndarray, cfg: FeatureConfig, mask: np.ndarray | None = None
-) -> np.ndarray:
+    grey: GreyImage, cfg: FeatureConfig, mask: BoolArray | None = None
+) -> Float32Array:
     """Corner positions (N, 2) as float32 (u, v) in full-resolution pixels, strongest first.
 
     Level l of the pyramid is the image shrunk by 2^l; its corners are scaled back to level 0.
     ``mask`` (H, W) bool, where given, keeps only corners on True pixels.
     """
-    fast = cv2.FastFeatureDetector_create(threshold=cfg.fast_threshold, nonmaxSuppression=True)
+    fast = cv2.FastFeatureDetector.create(threshold=cfg.fast_threshold, nonmaxSuppression=True)
     uvs, scores = [], []
-    level = grey
+    level: cv2.typing.MatLike = grey  # each pyrDown halves it
     for lvl in range(cfg.pyramid_levels):
         keypoints = fast.detect(level, None)
         if keypoints:
@@ -40,8 +41,8 @@ def detect_features(
 
 
 def spread_over_grid(
-    uv: np.ndarray, score: np.ndarray, shape: tuple[int, int], cfg: FeatureConfig
-) -> np.ndarray:
+    uv: Float32Array, score: Float32Array, shape: tuple[int, ...], cfg: FeatureConfig
+) -> Float32Array:
     """Keep the strongest corners, at most an equal share per grid bucket and none closer than
     ``min_distance_px`` to a stronger one, so that the pose is constrained by the whole image."""
     h, w = shape[:2]

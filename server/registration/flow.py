@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
 
 from server.config import FlowConfig
+from server.geometry.arrays import BoolArray, Float32Array, GreyImage, RealArray
 
 
 def track_points(
-    grey_from: np.ndarray,
-    grey_to: np.ndarray,
-    uv_from: np.ndarray,
+    grey_from: GreyImage,
+    grey_to: GreyImage,
+    uv_from: Float32Array,
     cfg: FlowConfig,
-    uv_guess: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    uv_guess: RealArray | None = None,
+) -> tuple[Float32Array, BoolArray]:
     """Track pixels ``uv_from`` (N, 2) of ``grey_from`` into ``grey_to``.
 
     ``uv_guess`` (N, 2), e.g. from a motion prediction, starts the search there; under fast
@@ -29,15 +32,16 @@ def track_points(
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.max_iterations, cfg.epsilon)
     win = (cfg.window_px, cfg.window_px)
     flags = 0
-    p1 = None
+    # Without a guess, OpenCV allocates the output points itself.
+    start: Float32Array | None = None
     if uv_guess is not None:
-        p1 = np.ascontiguousarray(uv_guess, dtype=np.float32).reshape(-1, 1, 2).copy()
+        start = np.ascontiguousarray(uv_guess, dtype=np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
         grey_from,
         grey_to,
         p0,
-        p1,
+        start,  # type: ignore[arg-type]  # nextPts=None is valid; OpenCV's stubs omit None
         winSize=win,
         maxLevel=cfg.pyramid_levels,
         criteria=criteria,
@@ -55,7 +59,7 @@ def track_points(
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
-    uv_to = p1.reshape(-1, 2)
+    uv_to = cast(Float32Array, p1.reshape(-1, 2))  # float32 like p0, whatever the stubs say
     fb_error = np.linalg.norm(p0_back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     h, w = grey_to.shape[:2]
     inside = (

@@ -8,6 +8,7 @@ import numpy as np
 
 from server.config import RegistrationConfig
 from server.geometry import Intrinsics, backproject_pixels
+from server.geometry.arrays import Float32Array, FloatArray, GreyImage
 from server.registration.dense import DenseModel, build_dense_model
 from server.registration.features import detect_features
 from server.registration.preprocess import sample_stable_depth
@@ -24,20 +25,20 @@ class Keyframe:
 
     id: int
     frame_index: int
-    T_world_keyframe: np.ndarray
-    grey: np.ndarray
-    uv: np.ndarray  # (M, 2) corner pixels
-    points: np.ndarray
-    covariances: np.ndarray
+    T_world_keyframe: FloatArray
+    grey: GreyImage
+    uv: Float32Array  # (M, 2) corner pixels
+    points: FloatArray
+    covariances: FloatArray
     dense: DenseModel | None
 
 
 def make_keyframe(
     kf_id: int,
     frame_index: int,
-    T_world_camera: np.ndarray,
-    grey: np.ndarray,
-    depth: np.ndarray,
+    T_world_camera: FloatArray,
+    grey: GreyImage,
+    depth: Float32Array,
     K: Intrinsics,
     cfg: RegistrationConfig,
 ) -> Keyframe:

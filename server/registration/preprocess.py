@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
 
 from server.config import DepthConfig
+from server.geometry.arrays import Float32Array, FloatArray, GreyImage, RealArray
 
 
-def to_grey(colour: np.ndarray) -> np.ndarray:
+def to_grey(colour: GreyImage) -> GreyImage:
     """(H, W, 3) RGB uint8 -> (H, W) uint8 intensity; a grey image passes through."""
     if colour.ndim == 2:
         return colour
-    return cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY)
+    # OpenCV's stubs type every result as any numeric array; cvtColor keeps uint8.
+    return cast(GreyImage, cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY))
 
 
-def clean_depth(depth: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+def clean_depth(depth: RealArray, cfg: DepthConfig) -> Float32Array:
     """Depth in metres with NaN, inf and out-of-range values set to 0 (= no measurement)."""
     d = np.asarray(depth, dtype=np.float32)
     # NaN fails both comparisons and inf the second: no separate isfinite pass needed.
@@ -23,12 +27,12 @@ def clean_depth(depth: np.ndarray, cfg: DepthConfig) -> np.ndarray:
     return np.where(keep, d, np.float32(0.0))
 
 
-def axial_sigma(z: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+def axial_sigma(z: FloatArray, cfg: DepthConfig) -> FloatArray:
     """Standard deviation of a depth measurement along the optical axis, metres."""
     return cfg.axial_noise_a_m + cfg.axial_noise_b_per_m * (z - 0.4) ** 2
 
 
-def sample_stable_depth(depth: np.ndarray, uv: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+def sample_stable_depth(depth: Float32Array, uv: Float32Array, cfg: DepthConfig) -> Float32Array:
     """Depth (N,) in metres at pixels ``uv`` (N, 2), or 0 where it cannot be trusted.
 
     A depth is trusted when the whole 3x3 neighbourhood is measured and its spread is small:
@@ -48,9 +52,10 @@ def sample_stable_depth(depth: np.ndarray, uv: np.ndarray, cfg: DepthConfig) -> 
     return np.where(stable, np.median(patch, axis=1), 0.0)
 
 
-def resample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+def resample_depth(depth: Float32Array, width: int, height: int) -> Float32Array:
     """Depth (h, w) resized to (height, width) by nearest neighbour: phone depth is often much
     smaller than colour, and interpolating across an edge would invent surfaces in mid-air."""
     if depth.shape == (height, width):
         return depth
-    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    # cv2.resize keeps the dtype; its stubs do not say so.
+    return cast(Float32Array, cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST))

@@ -13,6 +13,7 @@ import numpy as np
 
 from server.config import DepthConfig, SolverConfig
 from server.geometry import Intrinsics, exp_se3, orthonormalize
+from server.geometry.arrays import BoolArray, FloatArray
 from server.registration.preprocess import axial_sigma
 
 
@@ -20,8 +21,8 @@ from server.registration.preprocess import axial_sigma
 class NormalEquations:
     """J^T W J and J^T W r of one cost term at the current pose, ``xi = (omega, t)``."""
 
-    H: np.ndarray  # (6, 6)
-    g: np.ndarray  # (6,)
+    H: FloatArray  # (6, 6)
+    g: FloatArray  # (6,)
 
     def __add__(self, other: NormalEquations) -> NormalEquations:
         return NormalEquations(self.H + other.H, self.g + other.g)
@@ -31,15 +32,15 @@ class NormalEquations:
 class SparseSolution:
     """Result of :func:`solve_sparse`."""
 
-    T: np.ndarray  # T_keyframe_current, 4x4, metres
-    inliers: np.ndarray  # (N,) bool
+    T: FloatArray  # T_keyframe_current, 4x4, metres
+    inliers: BoolArray  # (N,)
     rmse: float  # Mahalanobis RMSE of the inliers (1.0 = residuals as large as the noise)
     condition: float  # smallest / largest eigenvalue of the scaled J^T W J
     iterations: int
     equations: NormalEquations  # of the inliers at the solution, for joint refinement
 
 
-def point_information(points: np.ndarray, K: Intrinsics, cfg: DepthConfig) -> np.ndarray:
+def point_information(points: FloatArray, K: Intrinsics, cfg: DepthConfig) -> FloatArray:
     """Covariances (N, 3, 3) in m^2 of back-projected points in their camera frame.
 
     Depth noise acts along the viewing ray and grows with z^2; a pixel error acts across the
@@ -52,16 +53,18 @@ def point_information(points: np.ndarray, K: Intrinsics, cfg: DepthConfig) -> np
     s_lateral = z * cfg.lateral_noise_px / (0.5 * (K.fx + K.fy))
     outer = ray[:, :, None] * ray[:, None, :]
     eye = np.eye(3)[None]
-    return (s_lateral**2)[:, None, None] * (eye - outer) + (s_axial**2)[:, None, None] * outer
+    lateral: FloatArray = (s_lateral**2)[:, None, None] * (eye - outer)
+    axial: FloatArray = (s_axial**2)[:, None, None] * outer
+    return lateral + axial
 
 
-def information(cov_P: np.ndarray, cov_Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+def information(cov_P: FloatArray, cov_Q: FloatArray, R: FloatArray) -> FloatArray:
     """Information matrices (N, 3, 3) in 1/m^2 of r = p - T q: the inverse of cov_P + R cov_Q R^T,
     with cov_Q (current camera frame) rotated by R (of T_keyframe_current) into the keyframe."""
     return _inverse_3x3(cov_P + R @ cov_Q @ R.T)
 
 
-def _inverse_3x3(M: np.ndarray) -> np.ndarray:
+def _inverse_3x3(M: FloatArray) -> FloatArray:
     """Inverses of (N, 3, 3) matrices by their adjugate: np.linalg.inv calls LAPACK once per
     matrix, several times slower for hundreds of 3x3 covariances (which are well conditioned)."""
     a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
@@ -78,16 +81,17 @@ def _inverse_3x3(M: np.ndarray) -> np.ndarray:
     return adj / det[:, None, None]
 
 
-def mahalanobis(P: np.ndarray, Q: np.ndarray, W: np.ndarray, T: np.ndarray) -> np.ndarray:
+def mahalanobis(P: FloatArray, Q: FloatArray, W: FloatArray, T: FloatArray) -> FloatArray:
     """Mahalanobis distances (N,) of r = p - T q under information matrices W (N, 3, 3): all
     that robust weights need, without the normal equations."""
     r = P - (Q @ T[:3, :3].T + T[:3, 3])
-    return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
+    squared: FloatArray = np.einsum("ni,nij,nj->n", r, W, r)
+    return np.sqrt(np.maximum(squared, 0.0))
 
 
 def sparse_equations(
-    P: np.ndarray, Q: np.ndarray, W: np.ndarray, T: np.ndarray, weights: np.ndarray
-) -> tuple[NormalEquations, np.ndarray]:
+    P: FloatArray, Q: FloatArray, W: FloatArray, T: FloatArray, weights: FloatArray
+) -> tuple[NormalEquations, FloatArray]:
     """Normal equations of r = p - T q with information matrices W (N, 3, 3) and per-point
     robust ``weights`` (N,); also returns the residuals' Mahalanobis distances (N,)."""
     y = Q @ T[:3, :3].T + T[:3, 3]
@@ -109,7 +113,7 @@ def sparse_equations(
     return NormalEquations(H, g), mahalanobis
 
 
-def robust_weights(m: np.ndarray, cfg: SolverConfig, reject: bool) -> np.ndarray:
+def robust_weights(m: FloatArray, cfg: SolverConfig, reject: bool) -> FloatArray:
     """Huber weights on Mahalanobis distances; with ``reject``, outliers get weight 0."""
     w = np.where(m <= cfg.huber_k, 1.0, cfg.huber_k / np.maximum(m, 1e-12))
     if reject:
@@ -117,7 +121,7 @@ def robust_weights(m: np.ndarray, cfg: SolverConfig, reject: bool) -> np.ndarray
     return w
 
 
-def scaled_condition(H: np.ndarray, scene_depth: float) -> float:
+def scaled_condition(H: FloatArray, scene_depth: float) -> float:
     """Conditioning of J^T W J with rotation expressed as metres of motion at the scene depth,
     so that rotation and translation are comparable; near 0 means a direction is unconstrained."""
     s = np.array([1.0 / scene_depth] * 3 + [1.0] * 3)
@@ -126,11 +130,11 @@ def scaled_condition(H: np.ndarray, scene_depth: float) -> float:
 
 
 def solve_sparse(
-    P: np.ndarray,
-    Q: np.ndarray,
-    cov_P: np.ndarray,
-    cov_Q: np.ndarray,
-    T_init: np.ndarray,
+    P: FloatArray,
+    Q: FloatArray,
+    cov_P: FloatArray,
+    cov_Q: FloatArray,
+    T_init: FloatArray,
     cfg: SolverConfig,
 ) -> SparseSolution:
     """Minimise eq. 7 by Gauss-Newton from ``T_init`` (T_keyframe_current).

@@ -27,11 +27,13 @@ from server.geometry import (
     project,
     rotation_angle_deg,
 )
-from server.registration.dense import refine_dense, sample_dense_points
+from server.geometry.arrays import BoolArray, Float32Array, FloatArray, GreyImage, IndexArray
+from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
 from server.registration.preprocess import clean_depth, sample_stable_depth, to_grey
 from server.registration.sparse import (
+    NormalEquations,
     SparseSolution,
     information,
     mahalanobis,
@@ -57,7 +59,7 @@ class TrackResult:
     """The outcome of registering one frame."""
 
     index: int
-    T_world_camera: np.ndarray  # 4x4, metres; the last good pose when state is LOST
+    T_world_camera: FloatArray  # 4x4, metres; the last good pose when state is LOST
     state: TrackingState
     inliers: int
     rmse: float  # Mahalanobis RMSE of the sparse inliers
@@ -74,9 +76,9 @@ class _PendingKeyframe:
     """A keyframe change that ``track`` found due, for ``update_keyframe`` to carry out."""
 
     index: int
-    grey: np.ndarray
-    depth: np.ndarray  # cleaned, metres
-    T_world_camera: np.ndarray
+    grey: GreyImage
+    depth: Float32Array  # cleaned, metres
+    T_world_camera: FloatArray
     result: TrackResult  # updated in place when the change is made
 
 
@@ -84,8 +86,9 @@ class _PendingKeyframe:
 class _Tracks:
     """Corners of the current keyframe still followed, and where they were last seen."""
 
-    ids: np.ndarray  # indices into the keyframe's corners
-    uv: np.ndarray  # (N, 2) pixels in the previous frame
+    ids: IndexArray  # indices into the keyframe's corners
+    uv: Float32Array  # (N, 2) pixels in ``grey``
+    grey: GreyImage  # the frame they were last seen in
 
 
 @dataclass
@@ -97,13 +100,13 @@ class _Registration:
     """
 
     kf: Keyframe
-    ids: np.ndarray
-    uv: np.ndarray
-    with_depth: np.ndarray
-    points: np.ndarray
+    ids: IndexArray
+    uv: Float32Array
+    with_depth: BoolArray
+    points: FloatArray
     solution: SparseSolution
 
-    def surviving(self) -> np.ndarray:
+    def surviving(self) -> BoolArray:
         """Corners worth following on: tracked, and not an outlier where depth was available.
         A corner on a depth hole is kept, as the next frame may measure it."""
         keep = ~self.with_depth
@@ -124,24 +127,25 @@ class Tracker:
         self,
         intrinsics: Intrinsics,
         config: RegistrationConfig | None = None,
-        T_world_first: np.ndarray | None = None,
+        T_world_first: FloatArray | None = None,
     ) -> None:
         self.K = intrinsics
         self.cfg = config or RegistrationConfig()
-        self.T_world_first = np.eye(4) if T_world_first is None else T_world_first.copy()
+        self.T_world_first: FloatArray = (
+            np.eye(4) if T_world_first is None else T_world_first.copy()
+        )
         self.keyframe: Keyframe | None = None
         self.recent: deque[Keyframe] = deque(maxlen=self.cfg.keyframes.recent_keyframes)
         self.tracks: _Tracks | None = None
-        self.prev_grey: np.ndarray | None = None
-        self.T_world_last = self.T_world_first.copy()
-        self.velocity = np.eye(4)  # T_previous_last: motion over the last frame
+        self.T_world_last: FloatArray = self.T_world_first.copy()
+        self.velocity: FloatArray = np.eye(4)  # T_previous_last: motion over the last frame
         self.lost = False
         self.frame_count = 0
         self.keyframe_count = 0
         self.pending: _PendingKeyframe | None = None
 
     # ------------------------------------------------------------------ per frame
-    def track(self, colour: np.ndarray, depth: np.ndarray) -> TrackResult:
+    def track(self, colour: GreyImage, depth: Float32Array) -> TrackResult:
         """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none).
 
         Returns as soon as the pose T_world_camera is accepted; a keyframe change it calls for is
@@ -183,7 +187,7 @@ class Tracker:
         T_kf_cur = solution.T
         if self.cfg.solver.dense and kf.dense is not None:
             t = time.perf_counter()
-            T_kf_cur = self._refine(found, depth, grey)
+            T_kf_cur = self._refine(found, kf.dense, depth, grey)
             timings["dense"] = _ms(t)
 
         # 5. Accept the pose, keep the surviving tracks, and note whether a keyframe change is due.
@@ -193,8 +197,7 @@ class Tracker:
         self.lost = False
         self.keyframe = kf
         keep = found.surviving()
-        self.tracks = _Tracks(found.ids[keep], found.uv[keep])
-        self.prev_grey = grey
+        self.tracks = _Tracks(found.ids[keep], found.uv[keep], grey)
         due = self._needs_keyframe(kf, T_kf_cur, len(self.tracks.ids))
         timings["total"] = _ms(t0)
         result = TrackResult(
@@ -226,22 +229,24 @@ class Tracker:
         if p is None:
             return False
         t = time.perf_counter()
-        new_kf = not self._switch_keyframe(p.grey, p.depth, p.T_world_camera)
-        if new_kf:
-            self._new_keyframe(p.index, p.grey, p.depth, p.T_world_camera)
+        kf = self._switch_keyframe(p.grey, p.depth, p.T_world_camera)
+        new_kf = kf is None
+        if kf is None:
+            kf = self._new_keyframe(p.index, p.grey, p.depth, p.T_world_camera)
         ms = _ms(t)
         r = p.result
-        r.new_keyframe, r.keyframe_id, r.keyframe_due = new_kf, self.keyframe.id, False
+        r.new_keyframe, r.keyframe_id, r.keyframe_due = new_kf, kf.id, False
         r.timings_ms["keyframe"] = ms
         r.timings_ms["total"] = r.timings_ms.get("total", 0.0) + ms
         return new_kf
 
     # ------------------------------------------------------------------ stages
-    def _start(self, index: int, grey: np.ndarray, depth: np.ndarray, timings: dict) -> TrackResult:
+    def _start(
+        self, index: int, grey: GreyImage, depth: Float32Array, timings: dict[str, float]
+    ) -> TrackResult:
         t = time.perf_counter()
-        self._new_keyframe(index, grey, depth, self.T_world_first)
+        kf = self._new_keyframe(index, grey, depth, self.T_world_first)
         timings["keyframe"] = _ms(t)
-        kf = self.keyframe
         # A first frame without texture or depth cannot anchor tracking.
         state = (
             TrackingState.OK if len(kf.points) >= self.cfg.state.ok_inliers else TrackingState.LOST
@@ -261,14 +266,21 @@ class Tracker:
             timings,
         )
 
-    def _track_keyframe(self, kf: Keyframe, grey, depth, T_world_pred, chained: bool):
+    def _track_keyframe(
+        self,
+        kf: Keyframe,
+        grey: GreyImage,
+        depth: Float32Array,
+        T_world_pred: FloatArray,
+        chained: bool,
+    ) -> _Registration | None:
         """Track the keyframe's corners into this frame and solve T_keyframe_current.
 
         ``chained`` follows the corners from the previous frame (small steps); otherwise they are
         tracked straight from the keyframe image (after a loss)."""
         T_kf_pred = invert(kf.T_world_keyframe) @ T_world_pred
         if chained and self.tracks is not None and len(self.tracks.ids) > 0:
-            ids, uv_from, grey_from = self.tracks.ids, self.tracks.uv, self.prev_grey
+            ids, uv_from, grey_from = self.tracks.ids, self.tracks.uv, self.tracks.grey
         else:
             ids, uv_from, grey_from = np.arange(len(kf.uv)), kf.uv, kf.grey
         if len(ids) < self.cfg.state.lost_inliers:
@@ -295,7 +307,9 @@ class Tracker:
         )
         return _Registration(kf, ids, uv, with_depth, Q, solution)
 
-    def _relocalise(self, grey, depth, T_world_pred):
+    def _relocalise(
+        self, grey: GreyImage, depth: Float32Array, T_world_pred: FloatArray
+    ) -> _Registration | None:
         """After a loss: try the current keyframe, then recent ones, newest first."""
         for kf in reversed(self.recent):
             found = self._track_keyframe(kf, grey, depth, T_world_pred, chained=False)
@@ -304,7 +318,9 @@ class Tracker:
                 return found
         return None
 
-    def _refine(self, reg: _Registration, depth: np.ndarray, grey: np.ndarray) -> np.ndarray:
+    def _refine(
+        self, reg: _Registration, dense: DenseModel, depth: Float32Array, grey: GreyImage
+    ) -> FloatArray:
         """Dense refinement of T_keyframe_current, with the sparse inliers kept in the cost."""
         kf, solution = reg.kf, reg.solution
         inl = solution.inliers
@@ -313,7 +329,7 @@ class Tracker:
         cov_Q = point_information(Q_in, self.K, self.cfg.depth)
         W = information(kf.covariances[d_ids], cov_Q, solution.T[:3, :3])
 
-        def sparse_terms(T):
+        def sparse_terms(T: FloatArray) -> NormalEquations:
             weights = robust_weights(mahalanobis(P_in, Q_in, W, T), self.cfg.solver, True)
             return sparse_equations(P_in, Q_in, W, T, weights)[0]
 
@@ -322,7 +338,7 @@ class Tracker:
             depth, self.K, self.cfg.solver.dense_stride, grey if photometric else None
         )
         T, _ = refine_dense(
-            solution.T, kf.dense, points, sparse_terms, self.cfg.solver, self.cfg.depth, intensity
+            solution.T, dense, points, sparse_terms, self.cfg.solver, self.cfg.depth, intensity
         )
         return T
 
@@ -339,7 +355,15 @@ class Tracker:
             return TrackingState.WEAK
         return TrackingState.OK
 
-    def _lose(self, index, grey, timings, inliers, rmse, condition) -> TrackResult:
+    def _lose(
+        self,
+        index: int,
+        grey: GreyImage,
+        timings: dict[str, float],
+        inliers: int,
+        rmse: float,
+        condition: float,
+    ) -> TrackResult:
         """Hold the last good pose; keyframes and trajectory stay as they were."""
         if not self.lost:
             log.info("frame %d: tracking lost (%d inliers)", index, inliers)
@@ -360,17 +384,20 @@ class Tracker:
             timings,
         )
 
-    def _needs_keyframe(self, kf: Keyframe, T_kf_cur: np.ndarray, tracked: int) -> bool:
+    def _needs_keyframe(self, kf: Keyframe, T_kf_cur: FloatArray, tracked: int) -> bool:
         c = self.cfg.keyframes
         return (
             tracked < max(c.min_tracked, c.min_tracked_ratio * len(kf.points))
-            or np.linalg.norm(T_kf_cur[:3, 3]) > c.max_translation_m
+            or float(np.linalg.norm(T_kf_cur[:3, 3])) > c.max_translation_m
             or rotation_angle_deg(T_kf_cur) > c.max_rotation_deg
         )
 
-    def _switch_keyframe(self, grey, depth, T_world_cur) -> bool:
+    def _switch_keyframe(
+        self, grey: GreyImage, depth: Float32Array, T_world_cur: FloatArray
+    ) -> Keyframe | None:
         """Go back to an earlier keyframe that sees this view well, instead of making a new one:
-        every new keyframe adds its own error to the chain, an old one adds none."""
+        every new keyframe adds its own error to the chain, an old one adds none. Returns the
+        keyframe switched to, or None."""
         c = self.cfg.keyframes
         for kf in sorted(
             self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)
@@ -389,22 +416,24 @@ class Tracker:
             if keep.sum() < max(c.min_tracked, 1.5 * c.min_tracked_ratio * len(kf.points)):
                 continue
             self.keyframe = kf
-            self.tracks = _Tracks(reg.ids[keep], reg.uv[keep])
-            return True
-        return False
+            self.tracks = _Tracks(reg.ids[keep], reg.uv[keep], grey)
+            return kf
+        return None
 
-    def _new_keyframe(self, index, grey, depth, T_world_camera) -> None:
+    def _new_keyframe(
+        self, index: int, grey: GreyImage, depth: Float32Array, T_world_camera: FloatArray
+    ) -> Keyframe:
         kf = make_keyframe(
             self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg
         )
         self.keyframe_count += 1
         self.keyframe = kf
         self.recent.append(kf)
-        self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy())
-        self.prev_grey = grey
+        self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
+        return kf
 
 
-def _pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> float:
+def _pose_distance(T_a: FloatArray, T_b: FloatArray) -> float:
     """Translation between two poses in metres plus 0.1 m per 10 degrees of rotation."""
     T = invert(T_a) @ T_b
     return float(np.linalg.norm(T[:3, 3]) + 0.01 * rotation_angle_deg(T))

@@ -15,12 +15,18 @@ acceleration feed-forward, or only a velocity (manual flight). ``fly_sticks`` an
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from server.geometry.arrays import FloatArray
 from server.simulation.config import SimulationConfig
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
+
+if TYPE_CHECKING:  # the planner is heavier and needs nothing from here
+    from server.simulation.planner import Route
 
 MAX_TILT_RATE_RAD_S = 6.0  # body roll/pitch rate the attitude loop may ask for
 MIN_THRUST_G = 0.25  # never command less vertical thrust than this fraction of the weight
@@ -89,10 +95,10 @@ class Setpoint:
         "hold_z",
     )
 
-    def __init__(self, position=(0.0, 0.0, 0.0), yaw: float = 0.0) -> None:
+    def __init__(self, position: Iterable[float] = (0.0, 0.0, 0.0), yaw: float = 0.0) -> None:
         self.hold(position, yaw)
 
-    def hold(self, position, yaw: float) -> None:
+    def hold(self, position: Iterable[float], yaw: float) -> None:
         """Hover at ``position`` facing ``yaw``."""
         self.x, self.y, self.z = (float(c) for c in position)
         self.vx = self.vy = self.vz = 0.0
@@ -255,7 +261,9 @@ class RouteTracker:
     back never cuts corners to catch up.
     """
 
-    def __init__(self, route, dt: float, max_lag_m: float, max_yaw_rate_rad_s: float) -> None:
+    def __init__(
+        self, route: Route, dt: float, max_lag_m: float, max_yaw_rate_rad_s: float
+    ) -> None:
         self.route = route
         self.dt = dt
         self.t_s = 0.0
@@ -294,7 +302,7 @@ class RouteTracker:
         else:
             sp.yaw_rate = 0.0
 
-    def remaining(self, start: np.ndarray) -> np.ndarray:
+    def remaining(self, start: FloatArray) -> FloatArray:
         """``start`` (the setpoint) and the route's path samples still ahead: (N, 3)."""
         i = int(np.searchsorted(self.route.times, self.t_s, side="right"))
         return np.vstack([start, self.route.path[i:]])

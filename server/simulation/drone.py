@@ -10,7 +10,7 @@ the map when the distance field at its centre drops below the radius. The distan
 at its start needs no query per step; near obstacles a few steps are run and every one of them
 is checked in one query, rewinding to the step before a contact. A step moves at most
 max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
-between two checks (the swept segment is covered), and ``segment_is_free`` guards longer steps.
+between two checks (the swept segment is covered), and ``segments_free`` guards longer steps.
 On contact the drone goes back to its last collision-free position, level and at rest, hovers,
 and a ``collision`` event says where; while landing, contact is the touchdown instead.
 
@@ -22,13 +22,15 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from server.errors import DroneSimError
+from server.geometry.arrays import BoolArray, FloatArray, IndexArray
 from server.simulation.config import SimulationConfig
 from server.simulation.control import (
     CascadedController,
@@ -38,8 +40,8 @@ from server.simulation.control import (
     Setpoint,
     fly_sticks,
 )
-from server.simulation.flight_map import FlightMap, Region
-from server.simulation.planner import PlanningError, plan_path, route_is_clear
+from server.simulation.flight_map import Box, FlightMap, Region
+from server.simulation.planner import PlanningError, Route, plan_path, route_is_clear
 from server.simulation.polyline import simplify
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
 
@@ -89,7 +91,7 @@ class DroneEvent:
 
     kind: DroneEventKind
     time_s: float  # simulation time
-    position: np.ndarray  # (3,) flight frame, m
+    position: FloatArray  # (3,) flight frame, m
     message: str
     command_id: int | None = None
 
@@ -99,24 +101,38 @@ class DroneStatus:
     """The drone's state for drone_state, in the flight frame (the server maps it to world)."""
 
     time_s: float  # simulation time since spawn, s
-    T_flight_drone: np.ndarray  # (4, 4) body to flight frame, m
-    velocity: np.ndarray  # (3,) flight frame, m/s
+    T_flight_drone: FloatArray  # (4, 4) body to flight frame, m
+    velocity: FloatArray  # (3,) flight frame, m/s
     mode: DroneMode
     clearance: float  # distance field at the centre, m
-    target: np.ndarray | None  # (3,) goto target
+    target: FloatArray | None  # (3,) goto target
     # (N, 3) the remaining route's corners: the setpoint, then the vertices of the path ahead
     # (within ROUTE_TOLERANCE_M of it when drawn straight), N <= max_route_points; goto only
-    route: np.ndarray | None
+    route: FloatArray | None
     command_id: int | None
+
+
+@dataclass(frozen=True)
+class _Saved:
+    """What a physics step may change, for rewinding to before a contact."""
+
+    quad: tuple[float, ...]
+    setpoint: tuple[float | bool, ...]  # Setpoint's slots, in order
+    mode: DroneMode | None
+    tracker: RouteTracker | None
+    tracker_t_s: float
+    goal: FloatArray | None
+    time_s: float
+    n_events: int
 
 
 def plan_route(
     flight_map: FlightMap,
-    start: np.ndarray,
-    goal: np.ndarray,
+    start: FloatArray,
+    goal: FloatArray,
     config: SimulationConfig,
     speed_m_s: float,
-):
+) -> Route:
     """The route the drone flies from ``start`` to ``goal`` (flight frame, m) at up to
     ``speed_m_s``, with the drone's radius, margin and limits; raises PlanningError."""
     return plan_path(
@@ -152,28 +168,28 @@ class DroneSimulator:
         self._command_id: int | None = None
         # goto
         self._tracker: RouteTracker | None = None
-        self._corners = np.zeros(0, dtype=np.int64)  # indices into the route's path
-        self._goal: np.ndarray | None = None
+        self._corners: IndexArray = np.zeros(0, dtype=np.intp)  # indices into the route's path
+        self._goal: FloatArray | None = None
         self._speed = config.cruise_speed_m_s
         self._planned_at = 0.0
         # manual
-        self._sticks = (0.0, 0.0, 0.0, 0.0)
+        self._sticks: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self._sticks_at = -math.inf
-        self._last_collision = (-math.inf, np.zeros(3))  # time, position
+        self._last_collision: tuple[float, FloatArray] = (-math.inf, np.zeros(3))  # time, position
         self._a_max = 4 * params.max_motor_thrust_n / params.mass_kg + params.gravity_m_s2
 
     # Commands
 
-    def spawn(self, near: np.ndarray, yaw_rad: float = 0.0) -> np.ndarray:
+    def spawn(self, near: ArrayLike, yaw_rad: float = 0.0) -> FloatArray:
         """Appear hovering in observed free space as close to ``near`` as possible (within
         spawn_search_m); returns the position. Time restarts at 0; a ``spawned`` event follows."""
-        near = self._point(near, "spawn point")
+        point = self._point(near, "spawn point")
         with self._lock:
-            free = self._nearest_free(near, self.config.planning_radius_m)
-            if free is None or np.linalg.norm(free - near) > self.config.spawn_search_m:
+            free = self._nearest_free(point, self.config.planning_radius_m)
+            if free is None or np.linalg.norm(free - point) > self.config.spawn_search_m:
                 raise DroneCommandError(
                     f"no observed free space for the drone within {self.config.spawn_search_m} m "
-                    f"of {np.round(near, 2).tolist()}"
+                    f"of {np.round(point, 2).tolist()}"
                 )
             position = free
             self._quad.reset(position, yaw_rad, hovering=True)
@@ -182,17 +198,17 @@ class DroneSimulator:
             self._last_collision = (-math.inf, np.zeros(3))
             self._command_id = None
             self._emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
-            return position.copy()
+            return np.array(position)  # a copy
 
     def command_goto(
-        self, target: np.ndarray, speed: float | None = None, command_id: int | None = None
+        self, target: ArrayLike, speed: float | None = None, command_id: int | None = None
     ) -> None:
         """Fly a planned route to ``target`` at ``speed`` (m/s, cruise speed when None).
 
         Raises PlanningError (with ``reason`` and ``nearest``) when there is no route; the drone
         then holds where it is.
         """
-        target = self._point(target, "goto target")
+        goal = self._point(target, "goto target")
         with self._lock:
             self._require_flying("goto")
             speed = self.config.cruise_speed_m_s if speed is None else float(speed)
@@ -201,11 +217,11 @@ class DroneSimulator:
             speed = min(speed, self.config.max_speed_m_s)
             self._command_id = command_id
             try:
-                route = self._plan(target, speed)
+                route = self._plan(goal, speed)
             except PlanningError:
                 self._hold(self._quad.position)
                 raise
-            self._goal = target
+            self._goal = goal
             self._speed = speed
             self._start_route(route)
 
@@ -220,11 +236,14 @@ class DroneSimulator:
         Non-centred sticks take over from any flying mode; centred ones do not interrupt a goto
         or a landing. When landed, throttle above one half takes off into manual flight.
         """
-        values = np.asarray(sticks, dtype=float).reshape(-1)
-        if values.shape != (4,) or not np.all(np.isfinite(values)):
+        raw = np.asarray(sticks, dtype=float).reshape(-1)
+        if raw.shape != (4,) or not np.all(np.isfinite(raw)):
             raise DroneCommandError("sticks must be 4 finite numbers [throttle, yaw, pitch, roll]")
         dz = self.config.stick_deadband  # applied once here, not on every physics step
-        values = tuple(0.0 if abs(v) <= dz else float(v) for v in np.clip(values, -1.0, 1.0))
+        throttle, yaw, pitch, roll = (
+            0.0 if abs(v) <= dz else float(v) for v in np.clip(raw, -1.0, 1.0)
+        )
+        values = (throttle, yaw, pitch, roll)
         with self._lock:
             self._require_spawned()
             self._sticks = values
@@ -272,9 +291,9 @@ class DroneSimulator:
     def command_takeoff(self, command_id: int | None = None) -> None:
         """From landed: rise up to takeoff_height_m (less where the map is lower) and hover."""
         with self._lock:
-            self._require_spawned()
-            if self._mode != DroneMode.LANDED:
-                raise DroneCommandError(f"takeoff needs a landed drone; it is {self._mode.value}")
+            mode = self._require_spawned()
+            if mode != DroneMode.LANDED:
+                raise DroneCommandError(f"takeoff needs a landed drone; it is {mode.value}")
             start = self._quad.position
             step = self.config.voxel_m / 2
             heights = np.arange(step, self.config.takeoff_height_m + 1e-9, step)
@@ -291,7 +310,9 @@ class DroneSimulator:
 
     # Map changes
 
-    def update_map(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray):
+    def update_map(
+        self, origin: FloatArray, occupied: BoolArray, observed: BoolArray
+    ) -> Box | None:
         """``flight_map.update`` and ``on_map_update`` under the simulator's lock, so that no
         physics step reads a half-replaced map; returns the changed box (or None)."""
         with self._lock:
@@ -299,7 +320,7 @@ class DroneSimulator:
             self.on_map_update(changed)
             return changed
 
-    def update_map_region(self, region: Region):
+    def update_map_region(self, region: Region) -> Box | None:
         """``flight_map.update_region`` (a sub-box, flight_map.Region) and ``on_map_update``
         under the simulator's lock; returns the changed box (or None)."""
         with self._lock:
@@ -309,7 +330,7 @@ class DroneSimulator:
             self.on_map_update(changed)
             return changed
 
-    def on_map_update(self, changed_box) -> None:
+    def on_map_update(self, changed_box: Box | None) -> None:
         """The flight map changed inside ``changed_box`` (the flight_map.Box that
         ``FlightMap.update`` and ``update_region`` return; None: nothing changed).
 
@@ -326,21 +347,22 @@ class DroneSimulator:
             self._leave_obstacle()
             if self._mode != DroneMode.GOTO:
                 return
+            tracker, goal = self._route()
             # The path samples lie a few centimetres apart: testing them is testing the path.
-            remaining = self._tracker.remaining(self._setpoint())
+            remaining = tracker.remaining(self._setpoint())
             margin = self.config.replan_margin_m + self.config.planning_radius_m
             if not changed_box.contains(remaining, margin).any():
                 return
             blocked = not route_is_clear(
                 self.flight_map,
-                self._tracker.route,
+                tracker.route,
                 self.config.radius_m,
-                from_time_s=self._tracker.t_s,
+                from_time_s=tracker.t_s,
             )
             if not blocked and self._time_s - self._planned_at < self.config.replan_min_interval_s:
                 return
             try:
-                route = self._plan(self._goal, self._speed)
+                route = self._plan(goal, self._speed)
             except PlanningError as exc:
                 if blocked:
                     self._hold(self._quad.position)
@@ -377,18 +399,21 @@ class DroneSimulator:
     def status(self) -> DroneStatus:
         """The drone's state now; raises DroneCommandError before spawn."""
         with self._lock:
-            self._require_spawned()
+            mode = self._require_spawned()
             q = self._quad
             position = q.position
-            goto = self._mode == DroneMode.GOTO
+            target = route = None
+            if mode == DroneMode.GOTO:
+                tracker, goal = self._route()
+                target, route = goal.copy(), self._remaining_route(tracker)
             return DroneStatus(
                 time_s=self._time_s,
                 T_flight_drone=q.T_flight_body,
                 velocity=q.velocity,
-                mode=self._mode,
+                mode=mode,
                 clearance=float(self.flight_map.distance(position[None])[0]),
-                target=self._goal.copy() if goto else None,
-                route=self._remaining_route() if goto else None,
+                target=target,
+                route=route,
                 command_id=self._command_id,
             )
 
@@ -447,7 +472,7 @@ class DroneSimulator:
             self._contact(np.array(track[j]))
             n -= j + 1
 
-    def _first_contact(self, track: np.ndarray) -> int | None:
+    def _first_contact(self, track: FloatArray) -> int | None:
         """Index of the first step of ``track`` ((k + 1, 3) positions) that touches the map, or
         None. Inside an obstacle (the map grew into the drone) it may move out, never deeper."""
         radius = self.config.radius_m
@@ -455,16 +480,16 @@ class DroneSimulator:
         touching = (d[1:] < radius) & (d[1:] < d[:-1])
         long = np.linalg.norm(np.diff(track, axis=0), axis=1) > 0.5 * radius
         if long.any():  # never at the configured limits; sweep such steps explicitly
-            touching[long] |= ~self.flight_map.segment_is_free(
+            touching[long] |= ~self.flight_map.segments_free(
                 track[:-1][long], track[1:][long], radius
             )
         return int(np.argmax(touching)) if touching.any() else None
 
-    def _save(self) -> tuple:
+    def _save(self) -> _Saved:
         """What a physics step may change, for ``_restore``."""
         sp = self._sp
         tracker = self._tracker
-        return (
+        return _Saved(
             self._quad.state(),
             tuple(getattr(sp, name) for name in Setpoint.__slots__),
             self._mode,
@@ -475,31 +500,31 @@ class DroneSimulator:
             len(self._events),
         )
 
-    def _restore(self, saved: tuple) -> None:
-        quad_state, sp_state, self._mode, self._tracker, t_s, self._goal, self._time_s, n_events = (
-            saved
-        )
+    def _restore(self, saved: _Saved) -> None:
+        self._mode, self._tracker, self._goal = saved.mode, saved.tracker, saved.goal
+        self._time_s = saved.time_s
         if self._tracker is not None:
-            self._tracker.t_s = t_s
-        self._quad.set_state(quad_state)
-        for name, value in zip(Setpoint.__slots__, sp_state, strict=True):
+            self._tracker.t_s = saved.tracker_t_s
+        self._quad.set_state(saved.quad)
+        for name, value in zip(Setpoint.__slots__, saved.setpoint, strict=True):
             setattr(self._sp, name, value)
-        del self._events[n_events:]
+        del self._events[saved.n_events :]
 
     def _step(self) -> None:
         """Mode logic, controller and one physics step."""
         mode = self._mode
         q = self._quad
         if mode == DroneMode.GOTO:
-            self._tracker.update(q, self._sp)
-            if self._tracker.finished:
-                self._check_arrival()
+            tracker, goal = self._route()
+            tracker.update(q, self._sp)
+            if tracker.finished:
+                self._check_arrival(goal)
         elif mode == DroneMode.MANUAL:
             fly_sticks(q, self._sp, self._current_sticks(), self._limits, q.dt)
         q.step(*self._ctrl.update(q, self._sp))
         self._time_s += q.dt
 
-    def _contact(self, last_free: np.ndarray) -> None:
+    def _contact(self, last_free: FloatArray) -> None:
         q = self._quad
         yaw = q.yaw_rad
         if self._mode == DroneMode.LANDING:
@@ -537,7 +562,7 @@ class DroneSimulator:
 
     # Modes
 
-    def _hold(self, position) -> None:
+    def _hold(self, position: Iterable[float]) -> None:
         self._clear_route()
         self._mode = DroneMode.HOVER
         self._sp.hold(position, self._quad.yaw_rad)
@@ -546,19 +571,28 @@ class DroneSimulator:
         self._tracker = None
         self._goal = None
 
-    def _require_spawned(self) -> None:
+    def _require_spawned(self) -> DroneMode:
+        """The mode; raises DroneCommandError before spawn."""
         if self._mode is None:
             raise DroneCommandError("no drone yet: it spawns with the first map")
+        return self._mode
+
+    def _route(self) -> tuple[RouteTracker, FloatArray]:
+        """The tracker and goal of the goto in progress: both are set exactly while in GOTO
+        mode (``_start_route``, cleared by ``_clear_route``), so a miss is a bug here."""
+        if self._tracker is None or self._goal is None:
+            raise DroneSimError(f"no route to follow in mode {self._mode}")
+        return self._tracker, self._goal
 
     def _require_flying(self, what: str) -> None:
         self._require_spawned()
         if self._mode == DroneMode.LANDED:
             raise DroneCommandError(f"{what} needs a flying drone; it is landed (take off first)")
 
-    def _plan(self, goal: np.ndarray, speed: float):
+    def _plan(self, goal: FloatArray, speed: float) -> Route:
         return plan_route(self.flight_map, self._quad.position, goal, self.config, speed)
 
-    def _start_route(self, route) -> None:
+    def _start_route(self, route: Route) -> None:
         cfg = self.config
         self._tracker = RouteTracker(
             route, cfg.dt_s, cfg.max_tracking_lag_m, self._limits.max_yaw_rate_rad_s
@@ -567,8 +601,8 @@ class DroneSimulator:
         self._planned_at = self._time_s
         self._mode = DroneMode.GOTO
 
-    def _check_arrival(self) -> None:
-        q, cfg, goal = self._quad, self.config, self._goal
+    def _check_arrival(self, goal: FloatArray) -> None:
+        q, cfg = self._quad, self.config
         near = math.dist((q.px, q.py, q.pz), goal) <= cfg.arrival_tolerance_m
         slow = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz) <= cfg.arrival_speed_m_s
         if near and slow:
@@ -589,15 +623,15 @@ class DroneSimulator:
 
     # Helpers
 
-    def _setpoint(self) -> np.ndarray:
+    def _setpoint(self) -> FloatArray:
         return np.array([self._sp.x, self._sp.y, self._sp.z])
 
-    def _remaining_route(self) -> np.ndarray:
+    def _remaining_route(self, tracker: RouteTracker) -> FloatArray:
         """The route ahead for the status: the setpoint, then the corners of the path ahead
         (every path sample ahead lies within ROUTE_TOLERANCE_M of the segments between them);
         thinned evenly (ends kept) to max_route_points in the unlikely case of more."""
-        rest = self._tracker.remaining(self._setpoint())  # setpoint, then path[i:]
-        path = self._tracker.route.path
+        rest = tracker.remaining(self._setpoint())  # setpoint, then path[i:]
+        path = tracker.route.path
         i = len(path) - (len(rest) - 1)
         ahead = self._corners[self._corners >= i]
         if len(ahead):
@@ -610,11 +644,11 @@ class DroneSimulator:
             rest = rest[np.linspace(0, len(rest) - 1, limit).round().astype(int)]
         return rest
 
-    def _nearest_free(self, point: np.ndarray, radius_m: float) -> np.ndarray | None:
+    def _nearest_free(self, point: FloatArray, radius_m: float) -> FloatArray | None:
         """``point`` itself when its clearance is ``radius_m`` or more, else the nearest free
         cell centre (None when there is none)."""
         if float(self.flight_map.distance(point[None])[0]) >= radius_m:
-            return point.copy()
+            return np.array(point)  # a copy
         free = self.flight_map.nearest_free(point, radius_m)
         return None if free is None else np.asarray(free, dtype=float)
 
@@ -625,7 +659,7 @@ class DroneSimulator:
         self._events.append(event)
 
     @staticmethod
-    def _point(value, what: str) -> np.ndarray:
+    def _point(value: ArrayLike, what: str) -> FloatArray:
         try:
             point = np.asarray(value, dtype=float).reshape(-1)
         except (TypeError, ValueError):
@@ -635,5 +669,5 @@ class DroneSimulator:
         return point
 
 
-def _polyline_length(points: np.ndarray) -> float:
+def _polyline_length(points: FloatArray) -> float:
     return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())

@@ -22,12 +22,16 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Literal, TypeAlias, overload
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from server.errors import ConfigError, DroneSimError
+from server.geometry.arrays import BoolArray, Float32Array, FloatArray, Int64Array
 
 log = logging.getLogger(__name__)
 
@@ -43,13 +47,14 @@ class FlightMapError(DroneSimError):
 class Box:
     """Axis-aligned box in the flight frame: ``lo`` and ``hi`` (3,) corners, metres."""
 
-    lo: np.ndarray
-    hi: np.ndarray
+    lo: FloatArray
+    hi: FloatArray
 
-    def contains(self, points: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    def contains(self, points: ArrayLike, margin_m: float = 0.0) -> BoolArray:
         """(N,) bool: which points (N, 3) lie in the box grown by ``margin_m``."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        return np.all((p >= self.lo - margin_m) & (p <= self.hi + margin_m), axis=1)
+        inside: BoolArray = np.all((p >= self.lo - margin_m) & (p <= self.hi + margin_m), axis=1)
+        return inside
 
 
 @dataclass(frozen=True)
@@ -58,13 +63,13 @@ class Region:
     ``origin`` (3,) corner of cell (0, 0, 0), metres, on the map's lattice; ``occupied``,
     ``observed`` and ``written`` (the cells it sets), (X, Y, Z) bool each."""
 
-    origin: np.ndarray
-    occupied: np.ndarray
-    observed: np.ndarray
-    written: np.ndarray
+    origin: FloatArray
+    occupied: BoolArray
+    observed: BoolArray
+    written: BoolArray
 
     @classmethod
-    def whole(cls, origin, occupied: np.ndarray, observed: np.ndarray) -> Region:
+    def whole(cls, origin: ArrayLike, occupied: BoolArray, observed: BoolArray) -> Region:
         """A region that sets every cell of its box."""
         return cls(
             np.asarray(origin, dtype=np.float64),
@@ -88,16 +93,24 @@ class Region:
         return Region(self.origin + lo * voxel_m, *out)
 
 
-def _slices(lo, hi) -> tuple[slice, slice, slice]:
-    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+def _slices(lo: NDArray[np.integer], hi: NDArray[np.integer]) -> tuple[slice, slice, slice]:
+    """Index of the cells [lo, hi) ((3,) integer corners, hi exclusive) of a 3D array."""
+    return (
+        slice(int(lo[0]), int(hi[0])),
+        slice(int(lo[1]), int(hi[1])),
+        slice(int(lo[2]), int(hi[2])),
+    )
 
 
-# Integer boxes (lo, hi) of cells, hi exclusive.
-def _volume(box) -> int:
+CellBox: TypeAlias = tuple[Int64Array, Int64Array]
+"""An integer box of cells: (lo, hi), (3,) each, hi exclusive."""
+
+
+def _volume(box: CellBox) -> int:
     return int(np.prod(np.maximum(box[1] - box[0], 0)))
 
 
-def _bbox(mask: np.ndarray):
+def _bbox(mask: BoolArray) -> CellBox | None:
     """The integer box (lo, hi) of a mask's True cells, or None."""
     spans = []
     for axis in range(3):
@@ -105,14 +118,16 @@ def _bbox(mask: np.ndarray):
         if hit.size == 0:
             return None
         spans.append((hit[0], hit[-1] + 1))
-    return np.array([a for a, _ in spans]), np.array([b for _, b in spans])
+    lo = np.array([a for a, _ in spans], dtype=np.int64)
+    hi = np.array([b for _, b in spans], dtype=np.int64)
+    return lo, hi
 
 
-def _intersect(a, b):
+def _intersect(a: CellBox, b: CellBox) -> CellBox:
     return np.maximum(a[0], b[0]), np.minimum(a[1], b[1])
 
 
-def _subtract(a, b) -> list:
+def _subtract(a: CellBox, b: CellBox) -> list[CellBox]:
     """Disjoint boxes covering box a minus box b (at most six slabs)."""
     lo, hi = np.array(a[0]), np.array(a[1])
     pieces = []
@@ -135,7 +150,7 @@ class FlightMap:
 
     def __init__(
         self, voxel_m: float = 0.05, unknown_is_free: bool = False, max_distance_m: float = 1.0
-    ):
+    ) -> None:
         """voxel_m: cell edge (m). unknown_is_free: treat unobserved cells (and the outside of
         the grid) as free instead of blocked. max_distance_m: the field is clipped to +- this
         (m); it also bounds how far an incremental update recomputes around a change, so it is
@@ -148,20 +163,21 @@ class FlightMap:
         self.unknown_is_free = bool(unknown_is_free)
         self.max_distance_m = float(max_distance_m)
         self.version = 0
-        self.origin = np.zeros(3)
-        self._blocked = np.zeros((0, 0, 0), dtype=bool)
-        self._field = np.full((2, 2, 2), self._far, dtype=np.float32)  # padded by one cell
-        self._anchor: np.ndarray | None = None  # first origin: the lattice every grid sits on
-        self._lo = np.zeros(3, dtype=np.int64)  # lattice index of cell (0, 0, 0)
+        self.origin: FloatArray = np.zeros(3)
+        self._blocked: BoolArray = np.zeros((0, 0, 0), dtype=bool)
+        # Padded by one cell.
+        self._field: Float32Array = np.full((2, 2, 2), self._far, dtype=np.float32)
+        self._anchor: FloatArray | None = None  # first origin: the lattice every grid sits on
+        self._lo: Int64Array = np.zeros(3, dtype=np.int64)  # lattice index of cell (0, 0, 0)
         self._reach = math.ceil(self.max_distance_m / self.voxel_m) + 1  # cells a change reaches
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
     def from_boxes(
         cls,
-        bounds_min,
-        bounds_max,
-        boxes,
+        bounds_min: ArrayLike,
+        bounds_max: ArrayLike,
+        boxes: Iterable[tuple[ArrayLike, ArrayLike]],
         voxel_m: float = 0.05,
         unknown_is_free: bool = False,
         max_distance_m: float = 1.0,
@@ -169,8 +185,8 @@ class FlightMap:
         """A map where everything inside ``bounds`` (metres) is observed and every cell that
         overlaps one of ``boxes`` (pairs of (3,) corners) is occupied. For tests and scenes."""
         lo = np.asarray(bounds_min, dtype=np.float64)
-        shape = np.ceil((np.asarray(bounds_max, dtype=np.float64) - lo) / voxel_m - 1e-9)
-        shape = tuple(int(n) for n in np.maximum(shape, 1))
+        cells = np.ceil((np.asarray(bounds_max, dtype=np.float64) - lo) / voxel_m - 1e-9)
+        shape = tuple(int(n) for n in np.maximum(cells, 1))
         occupied = np.zeros(shape, dtype=bool)
         for box_lo, box_hi in boxes:
             # Cells whose open span overlaps the box's open interior.
@@ -188,18 +204,19 @@ class FlightMap:
         return self.max_distance_m if self.unknown_is_free else -self.max_distance_m
 
     @property
-    def shape(self) -> tuple[int, int, int]:
+    def shape(self) -> tuple[int, ...]:
+        """(X, Y, Z) cells."""
         return self._blocked.shape
 
     @property
-    def blocked(self) -> np.ndarray:
+    def blocked(self) -> BoolArray:
         """(X, Y, Z) bool, read-only view."""
-        view = self._blocked.view()
+        view: BoolArray = self._blocked.view()
         view.flags.writeable = False
         return view
 
     @property
-    def esdf(self) -> np.ndarray:
+    def esdf(self) -> Float32Array:
         """(X, Y, Z) float32 signed distance at cell centres (metres), read-only view."""
         view = self._field[1:-1, 1:-1, 1:-1]
         view.flags.writeable = False
@@ -210,12 +227,12 @@ class FlightMap:
         """The grid's extent in the flight frame."""
         return Box(self.origin.copy(), self.origin + np.array(self.shape) * self.voxel_m)
 
-    def cell_centres(self, ijk: np.ndarray) -> np.ndarray:
+    def cell_centres(self, ijk: ArrayLike) -> FloatArray:
         """(N, 3) integer cell indices -> (N, 3) centres, metres."""
         return self.origin + (np.asarray(ijk, dtype=np.float64) + 0.5) * self.voxel_m
 
     # --- updates -----------------------------------------------------------------------------
-    def update(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray) -> Box | None:
+    def update(self, origin: ArrayLike, occupied: ArrayLike, observed: ArrayLike) -> Box | None:
         """Replace the map with this grid and bring the distance field up to date.
 
         origin: (3,) corner of cell (0, 0, 0), metres; every grid after the first must sit on
@@ -235,16 +252,17 @@ class FlightMap:
         blocked = occupied if self.unknown_is_free else occupied | ~observed
 
         lo_new = self._lattice_index(origin)
-        if lo_new is None:
-            return self._rebuild(origin, blocked, first=True)
-        return self._update_incremental(origin, lo_new, blocked)
+        if self._anchor is None or lo_new is None:  # the first grid, or one off the lattice
+            self._anchor = origin.copy()  # sets the lattice
+            return self._rebuild(origin, np.zeros(3, dtype=np.int64), blocked)
+        return self._update_incremental(self._anchor, origin, lo_new, blocked)
 
     def update_region(
         self,
-        origin: np.ndarray,
-        occupied: np.ndarray,
-        observed: np.ndarray,
-        written: np.ndarray | None = None,
+        origin: ArrayLike,
+        occupied: ArrayLike,
+        observed: ArrayLike,
+        written: ArrayLike | None = None,
     ) -> Box | None:
         """Overwrite a sub-box of the map and bring the distance field up to date around it.
 
@@ -282,31 +300,34 @@ class FlightMap:
         target = merged[_slices(box_lo - lo, box_hi - lo)]
         blocked = occupied if self.unknown_is_free else occupied | ~observed
         target[written] = blocked[written]
-        return self._update_incremental(self._anchor + lo * self.voxel_m, lo, merged)
+        anchor = self._anchor
+        return self._update_incremental(anchor, anchor + lo * self.voxel_m, lo, merged)
 
-    def _lattice_index(self, origin: np.ndarray) -> np.ndarray | None:
+    def _lattice_index(self, origin: FloatArray) -> Int64Array | None:
+        """The lattice index of the cell whose corner is ``origin`` (metres), or None when
+        there is no lattice yet or ``origin`` is off it."""
         if self._anchor is None:
             return None
         steps = (origin - self._anchor) / self.voxel_m
-        lo = np.round(steps).astype(np.int64)
+        lo: Int64Array = np.round(steps).astype(np.int64)
         if np.any(np.abs(steps - lo) > _LATTICE_TOL):
             log.warning("grid origin %s is off the flight map's lattice: full rebuild", origin)
             return None
         return lo
 
-    def _rebuild(self, origin, blocked, first=False, lo=None) -> Box:
-        if first:
-            self._anchor, lo = origin.copy(), np.zeros(3, dtype=np.int64)
+    def _rebuild(self, origin: FloatArray, lo: Int64Array, blocked: BoolArray) -> Box:
+        """Replace the grid by ``blocked`` (cell (0, 0, 0) at ``origin``, metres, and at
+        lattice index ``lo``) and compute its whole field."""
         self.origin, self._lo, self._blocked = origin.copy(), lo, blocked.copy()
         self._field = self._signed_distance(self._padded(blocked))
         self.version += 1
         return self.bounds
 
-    def _padded(self, blocked: np.ndarray) -> np.ndarray:
+    def _padded(self, blocked: BoolArray) -> BoolArray:
         outside = not self.unknown_is_free
         return np.pad(blocked, 1, constant_values=outside)
 
-    def _signed_distance(self, blocked: np.ndarray) -> np.ndarray:
+    def _signed_distance(self, blocked: BoolArray) -> Float32Array:
         """Clipped signed distance at cell centres of a whole (padded) block, float32."""
         v, d = self.voxel_m, self.max_distance_m
         field = np.full(blocked.shape, d, dtype=np.float32)
@@ -318,7 +339,12 @@ class FlightMap:
             field[...] = -d
         return np.clip(field, -d, d).astype(np.float32)
 
-    def _update_incremental(self, origin, lo_new, blocked) -> Box | None:
+    def _update_incremental(
+        self, anchor: FloatArray, origin: FloatArray, lo_new: Int64Array, blocked: BoolArray
+    ) -> Box | None:
+        """Replace the grid by ``blocked`` (cell (0, 0, 0) at ``origin``, metres, and at index
+        ``lo_new`` of the lattice through ``anchor``), recomputing the field only near what
+        changed; returns the changed box as ``update`` does."""
         k = self._reach
         old_lo, new_lo = self._lo, lo_new
         old_hi, new_hi = old_lo + self.shape, new_lo + blocked.shape
@@ -339,21 +365,21 @@ class FlightMap:
         # changed cells, and the cells of the new padded grid the old one did not store but
         # close enough to the old grid that their field is not simply the far value.
         p_lo, p_hi = new_lo - 1 - u_lo, new_hi + 1 - u_lo
-        regions = []
+        regions: list[CellBox] = []
         changed_box = None
         if changed is not None:
             c_lo, c_hi = changed
             regions.append((c_lo - k, c_hi + k))
             changed_box = Box(
-                self._anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
-                self._anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m,
+                anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
+                anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m,
             )
         near_old = (old_lo - k - u_lo, old_hi + k - u_lo)
         for box in _subtract((p_lo, p_hi), (old_lo - 1 - u_lo, old_hi + 1 - u_lo)):
             regions.append(_intersect(box, near_old))
         regions = [b for b in (_intersect(r, (p_lo, p_hi)) for r in regions) if _volume(b)]
         if sum(_volume(b) for b in regions) > _REBUILD_FRACTION * _volume((p_lo, p_hi)):
-            self._rebuild(origin, blocked, lo=new_lo)
+            self._rebuild(origin, new_lo, blocked)
             return changed_box
 
         # Old field carried into the new padded frame, far value where it was not stored.
@@ -379,7 +405,17 @@ class FlightMap:
         return changed_box
 
     # --- queries -----------------------------------------------------------------------------
-    def _interpolate(self, points: np.ndarray, want_gradient: bool):
+    @overload
+    def _interpolate(self, points: ArrayLike, want_gradient: Literal[False]) -> FloatArray: ...
+    @overload
+    def _interpolate(
+        self, points: ArrayLike, want_gradient: Literal[True]
+    ) -> tuple[FloatArray, FloatArray]: ...
+    def _interpolate(
+        self, points: ArrayLike, want_gradient: bool
+    ) -> FloatArray | tuple[FloatArray, FloatArray]:
+        """The trilinearly interpolated field at points (..., 3) (metres), shape (...), and
+        with ``want_gradient`` its (..., 3) gradient too."""
         p = np.asarray(points, dtype=np.float64)
         flat = p.reshape(-1, 3)
         # Continuous index into the padded field: its cell 0 is the ring at -1.
@@ -398,7 +434,7 @@ class FlightMap:
         c00, c01 = c[0] + (c[1] - c[0]) * fz, c[2] + (c[3] - c[2]) * fz
         c10, c11 = c[4] + (c[5] - c[4]) * fz, c[6] + (c[7] - c[6]) * fz
         c0, c1 = c00 + (c01 - c00) * fy, c10 + (c11 - c10) * fy
-        value = (c0 + (c1 - c0) * fx).reshape(p.shape[:-1])
+        value: FloatArray = (c0 + (c1 - c0) * fx).reshape(p.shape[:-1])
         if not want_gradient:
             return value
         gx = c1 - c0
@@ -408,25 +444,28 @@ class FlightMap:
         grad = np.stack([gx, gy, gz], axis=1) / self.voxel_m
         return value, grad.reshape(p.shape)
 
-    def distance(self, points: np.ndarray) -> np.ndarray:
+    def distance(self, points: ArrayLike) -> FloatArray:
         """Signed distance (metres) from points (..., 3) to the nearest blocked space: negative
         inside it, clipped to +-max_distance_m; points beyond the grid read as its outside."""
         return self._interpolate(points, want_gradient=False)
 
-    def gradient(self, points: np.ndarray) -> np.ndarray:
+    def gradient(self, points: ArrayLike) -> FloatArray:
         """(..., 3) gradient of ``distance`` (analytic, of the trilinear interpolation); it
         points away from the nearest obstacle, length about 1 (0 where the field is clipped)."""
         return self._interpolate(points, want_gradient=True)[1]
 
-    def is_free(self, points: np.ndarray, radius_m: float = 0.0) -> np.ndarray:
+    def is_free(self, points: ArrayLike, radius_m: float = 0.0) -> BoolArray:
         """(...,) bool: a sphere of ``radius_m`` at each point clears every blocked cell."""
         return self.distance(points) >= radius_m
 
-    def segment_clearance(self, a: np.ndarray, b: np.ndarray):
-        """Least ``distance`` along the segment a-b, sampled every half voxel or closer (ends
-        included). a, b: (3,) for one segment (returns a float) or (M, 3) for M (returns (M,))."""
+    def segment_clearance(self, a: ArrayLike, b: ArrayLike) -> float:
+        """Least ``distance`` along the segment a-b ((3,) each, metres), sampled every half
+        voxel or closer (ends included); ``segment_clearances`` checks many segments at once."""
+        return float(self.segment_clearances(np.reshape(a, (1, 3)), np.reshape(b, (1, 3)))[0])
+
+    def segment_clearances(self, a: ArrayLike, b: ArrayLike) -> FloatArray:
+        """(M,) ``segment_clearance`` of each segment a[m]-b[m]; a, b: (M, 3), metres."""
         a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-        single = a.ndim == 1
         a, b = a.reshape(-1, 3), b.reshape(-1, 3)
         if len(a) == 0:
             return np.empty(0)
@@ -435,16 +474,21 @@ class FlightMap:
         seg = np.repeat(np.arange(len(a)), counts)
         starts = np.cumsum(counts) - counts
         t = (np.arange(counts.sum()) - starts[seg]) / np.maximum(counts[seg] - 1, 1)
-        least = np.minimum.reduceat(self.distance(a[seg] + (b - a)[seg] * t[:, None]), starts)
-        return float(least[0]) if single else least
+        least: FloatArray = np.minimum.reduceat(
+            self.distance(a[seg] + (b - a)[seg] * t[:, None]), starts
+        )
+        return least
 
-    def segment_is_free(self, a: np.ndarray, b: np.ndarray, radius_m: float = 0.0):
-        """Whether a sphere of ``radius_m`` swept from a to b stays free (``segment_clearance``
-        >= radius_m). a, b: (3,) (returns bool) or (M, 3) (returns (M,) bool)."""
-        clearance = self.segment_clearance(a, b)
-        return bool(clearance >= radius_m) if np.ndim(clearance) == 0 else clearance >= radius_m
+    def segment_is_free(self, a: ArrayLike, b: ArrayLike, radius_m: float = 0.0) -> bool:
+        """Whether a sphere of ``radius_m`` swept from a to b ((3,) each, metres) stays free
+        (``segment_clearance`` >= radius_m); ``segments_free`` checks many segments at once."""
+        return self.segment_clearance(a, b) >= radius_m
 
-    def nearest_free(self, point: np.ndarray, radius_m: float = 0.0) -> np.ndarray | None:
+    def segments_free(self, a: ArrayLike, b: ArrayLike, radius_m: float = 0.0) -> BoolArray:
+        """(M,) bool ``segment_is_free`` of each segment a[m]-b[m]; a, b: (M, 3), metres."""
+        return self.segment_clearances(a, b) >= radius_m
+
+    def nearest_free(self, point: ArrayLike, radius_m: float = 0.0) -> FloatArray | None:
         """The cell centre nearest to ``point`` whose clearance is at least ``radius_m``, or None
         when there is none in the grid."""
         p = np.asarray(point, dtype=np.float64).reshape(3)
@@ -465,12 +509,13 @@ class FlightMap:
                 # Anything outside the window is farther than the window's inner half-width.
                 inner = (half - 0.5) * self.voxel_m - np.max(np.abs(p - self.cell_centres(centre)))
                 if whole or d[best] <= inner:
-                    return centres[best]
+                    nearest: FloatArray = centres[best]
+                    return nearest
             elif whole:
                 return None
             half *= 2
 
-    def random_free_points(self, n: int, radius_m: float, rng: np.random.Generator) -> np.ndarray:
+    def random_free_points(self, n: int, radius_m: float, rng: np.random.Generator) -> FloatArray:
         """(n, 3) cell centres drawn uniformly among those with clearance >= ``radius_m``;
         (0, 3) when there are none."""
         cells = np.argwhere(self.esdf >= radius_m)

@@ -27,15 +27,18 @@ from __future__ import annotations
 import logging
 import math
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from itertools import product
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from server.errors import ConfigError, DroneSimError
+from server.geometry.arrays import BoolArray, FloatArray, IndexArray, RealArray
 from server.simulation.flight_map import FlightMap
 
 log = logging.getLogger(__name__)
@@ -69,16 +72,16 @@ class Route:
     ``speeds`` (M,) m/s at each sample. Every path sample and ``points`` segment was checked
     against the map at the planning clearance."""
 
-    points: np.ndarray
-    path: np.ndarray
-    times: np.ndarray
-    speeds: np.ndarray
+    points: FloatArray
+    path: FloatArray
+    times: FloatArray
+    speeds: FloatArray
     length_m: float
     duration_s: float
-    _tangents: np.ndarray = field(repr=False)
-    _curvatures: np.ndarray = field(repr=False)  # curvature vectors kappa * normal, 1/m
+    _tangents: FloatArray = field(repr=False)
+    _curvatures: FloatArray = field(repr=False)  # curvature vectors kappa * normal, 1/m
 
-    def sample(self, t_s):
+    def sample(self, t_s: float | RealArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(position, velocity, acceleration) at time ``t_s`` (clamped to the route): (3,) each
         for a scalar time, (K, 3) each for K times. Speed along the path changes with constant
         acceleration between samples."""
@@ -87,8 +90,8 @@ class Route:
         t = t.reshape(-1)
         if len(self.path) == 1:
             zeros = np.zeros((len(t), 3))
-            out = (np.repeat(self.path, len(t), axis=0), zeros, zeros.copy())
-            return tuple(o[0] for o in out) if scalar else out
+            position: FloatArray = np.repeat(self.path, len(t), axis=0)
+            return _first_if(scalar, position, zeros, zeros.copy())
         i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.path) - 2)
         ds = np.linalg.norm(self.path[i + 1] - self.path[i], axis=1)
         v0, v1 = self.speeds[i], self.speeds[i + 1]
@@ -103,8 +106,16 @@ class Route:
         curvature = (1 - f) * self._curvatures[i] + f * self._curvatures[i + 1]
         velocity = speed[:, None] * tangent
         acceleration = accel[:, None] * tangent + (speed**2)[:, None] * curvature
-        out = (position, velocity, acceleration)
-        return tuple(o[0] for o in out) if scalar else out
+        return _first_if(scalar, position, velocity, acceleration)
+
+
+def _first_if(
+    scalar: bool, position: FloatArray, velocity: FloatArray, acceleration: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Route.sample's result: the (K, 3) arrays, or their first rows for a scalar time."""
+    if scalar:
+        return position[0], velocity[0], acceleration[0]
+    return position, velocity, acceleration
 
 
 @dataclass
@@ -112,27 +123,31 @@ class _Lattice:
     """The planning graph of one map version and clearance. Node n (flat index into ``shape``)
     sits at ``base + unravel(n) * cell_m``; ``graph`` joins free nodes by allowed moves."""
 
-    base: np.ndarray
+    base: FloatArray
     cell_m: float
     required_m: float  # clearance of a free node
-    shape: tuple[int, int, int]
-    free: np.ndarray  # (shape) bool
-    penalty: np.ndarray  # flat, per node
+    shape: tuple[int, ...]  # 3 axes
+    free: BoolArray  # (shape)
+    penalty: FloatArray  # flat, per node
     graph: csr_matrix  # move costs (symmetric), metres
-    labels: np.ndarray  # flat connected-component label per node
+    labels: NDArray[np.int32]  # flat connected-component label per node
 
-    def positions(self, flat: np.ndarray) -> np.ndarray:
+    def positions(self, flat: IndexArray) -> FloatArray:
         return self.base + np.stack(np.unravel_index(flat, self.shape), axis=-1) * self.cell_m
 
 
-_LATTICES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# (map version, required clearance, cell, clearance weight, preferred clearance)
+_LatticeKey = tuple[int, float, float, float, float]
+_LATTICES: weakref.WeakKeyDictionary[FlightMap, dict[_LatticeKey, _Lattice]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def _lattice(
     flight_map: FlightMap, required_m: float, cell_m: float, weight: float, preferred_m: float
 ) -> _Lattice:
     """The lattice for these settings, built once per map version."""
-    key = (flight_map.version, required_m, cell_m, weight, preferred_m)
+    key: _LatticeKey = (flight_map.version, required_m, cell_m, weight, preferred_m)
     cached = _LATTICES.setdefault(flight_map, {})
     if key in cached:
         return cached[key]
@@ -146,7 +161,9 @@ def _lattice(
     # Moves to the 13 "forward" neighbours of every free node (the graph is undirected).
     ijk = np.argwhere(free)
     flat_clear, flat_pen = clearance.ravel(), penalty.ravel()
-    rows, cols, costs = [], [], []
+    rows: list[IndexArray] = []
+    cols: list[IndexArray] = []
+    costs: list[FloatArray] = []
     for d in product((-1, 0, 1), repeat=3):
         if d <= (0, 0, 0):
             continue
@@ -161,12 +178,12 @@ def _lattice(
         cols.append(b)
         costs.append(length * (1.0 + 0.5 * (flat_pen[a] + flat_pen[b])))
     n = int(np.prod(shape))
-    rows, cols, costs = np.concatenate(rows), np.concatenate(cols), np.concatenate(costs)
+    row, col, cost = np.concatenate(rows), np.concatenate(cols), np.concatenate(costs)
     # Both directions stored: scipy would otherwise transpose the graph on every search.
     graph = coo_matrix(
         (
-            np.concatenate([costs, costs]),
-            (np.concatenate([rows, cols]), np.concatenate([cols, rows])),
+            np.concatenate([cost, cost]),
+            (np.concatenate([row, col]), np.concatenate([col, row])),
         ),
         shape=(n, n),
     ).tocsr()
@@ -181,7 +198,9 @@ def _lattice(
     return lattice
 
 
-def _nodes_near(flight_map, lattice, point, hard_m, reach=2):
+def _nodes_near(
+    flight_map: FlightMap, lattice: _Lattice, point: FloatArray, hard_m: float, reach: int = 2
+) -> tuple[IndexArray, FloatArray]:
     """Free nodes within ``reach`` lattice steps of ``point`` joined to it by a segment that
     keeps ``hard_m``: (flat indices, segment lengths)."""
     u = np.floor((point - lattice.base) / lattice.cell_m).astype(np.int64)
@@ -192,12 +211,18 @@ def _nodes_near(flight_map, lattice, point, hard_m, reach=2):
     if len(ijk) == 0:
         return np.empty(0, np.int64), np.empty(0)
     positions = lattice.base + ijk * lattice.cell_m
-    ok = flight_map.segment_is_free(np.repeat(point[None], len(ijk), 0), positions, hard_m)
+    ok = flight_map.segments_free(np.repeat(point[None], len(ijk), 0), positions, hard_m)
     flat = np.ravel_multi_index(tuple(ijk[ok].T), lattice.shape)
     return flat, np.linalg.norm(positions[ok] - point, axis=1)
 
 
-def _search(lattice: _Lattice, sources, targets, target_costs, limit_m: float):
+def _search(
+    lattice: _Lattice,
+    sources: IndexArray,
+    targets: IndexArray,
+    target_costs: FloatArray,
+    limit_m: float,
+) -> list[int] | None:
     """Dijkstra (scipy, in C) from every source at once, explored up to a cost of ``limit_m``;
     returns the node path to the target with the least cost plus connection cost, or None."""
     cost, pred, _ = dijkstra(
@@ -212,7 +237,8 @@ def _search(lattice: _Lattice, sources, targets, target_costs, limit_m: float):
     best = int(np.argmin(total))
     if not np.isfinite(total[best]):
         return None
-    path, n = [], int(targets[best])
+    path: list[int] = []
+    n = int(targets[best])
     while n >= 0:
         path.append(n)
         n = int(pred[n])
@@ -220,7 +246,14 @@ def _search(lattice: _Lattice, sources, targets, target_costs, limit_m: float):
 
 
 # --- shortcut, smoothing, timing ---------------------------------------------------------------
-def _shortcut(flight_map, raw, clear_raw, required_m, wanted_m, slack_m) -> np.ndarray:
+def _shortcut(
+    flight_map: FlightMap,
+    raw: FloatArray,
+    clear_raw: FloatArray,
+    required_m: float,
+    wanted_m: float,
+    slack_m: float,
+) -> FloatArray:
     """Greedy line-of-sight shortcut of the raw path (K, 3) whose vertices have clearances
     clear_raw (K,): a jump i -> j must keep the clearance the raw path had between them (less
     ``slack_m`` for its edges, at most ``wanted_m``) and at least ``required_m`` (or what its
@@ -231,7 +264,7 @@ def _shortcut(flight_map, raw, clear_raw, required_m, wanted_m, slack_m) -> np.n
     ends = np.union1d(turns, [1, last])  # lattice runs are straight: jump only to their ends
     while i < last:
         js = ends[ends > i]
-        seg = flight_map.segment_clearance(np.repeat(raw[i][None], len(js), 0), raw[js])
+        seg = flight_map.segment_clearances(np.repeat(raw[i][None], len(js), 0), raw[js])
         had = np.minimum.accumulate(clear_raw[i + 1 :])[js - i - 1]
         need = np.maximum(
             np.minimum(required_m, np.minimum(clear_raw[i], clear_raw[js])),
@@ -245,7 +278,9 @@ def _shortcut(flight_map, raw, clear_raw, required_m, wanted_m, slack_m) -> np.n
     return raw[keep]
 
 
-def _bezier(p, u1, u2, d, step_m):
+def _bezier(
+    p: FloatArray, u1: FloatArray, u2: FloatArray, d: float, step_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Samples of the quadratic Bezier corner blend at p with arms d along -u1 and u2:
     positions, unit tangents, curvature vectors."""
     a, b = p - d * u1, p + d * u2
@@ -259,27 +294,32 @@ def _bezier(p, u1, u2, d, step_m):
     return pos, tangent, kvec
 
 
-def _smooth(flight_map, pts, floor_m, step_m, max_arm_m=1.0):
+def _smooth(
+    flight_map: FlightMap, pts: FloatArray, floor_m: float, step_m: float, max_arm_m: float = 1.0
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
     """Dense samples of the polyline with each corner blended: (positions, tangents, curvature
     vectors, stop flags). A blend must keep min(floor_m, its segments' clearance); it is halved
     until it does, and after 6 halvings the drone stops at the corner instead."""
-    seg_clear = flight_map.segment_clearance(pts[:-1], pts[1:])
+    seg_clear = flight_map.segment_clearances(pts[:-1], pts[1:])
     lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     dirs = np.diff(pts, axis=0) / lengths[:, None]
-    out = [[pts[:1], dirs[:1], np.zeros((1, 3)), np.array([False])]]
+    # Pieces of (positions, tangents, curvature vectors, stop flags).
+    out: list[tuple[FloatArray, FloatArray, FloatArray, BoolArray]] = [
+        (pts[:1], dirs[:1], np.zeros((1, 3)), np.array([False]))
+    ]
     current = pts[0]
 
-    def line_to(q, direction):
+    def line_to(q: FloatArray, direction: FloatArray) -> None:
         n = math.ceil(np.linalg.norm(q - current) / step_m)
         if n:
             t = np.linspace(0.0, 1.0, n + 1)[1:, None]
             out.append(
-                [
+                (
                     current + t * (q - current),
                     np.repeat(direction[None], n, 0),
                     np.zeros((n, 3)),
                     np.zeros(n, bool),
-                ]
+                )
             )
 
     for k in range(1, len(pts) - 1):
@@ -288,6 +328,7 @@ def _smooth(flight_map, pts, floor_m, step_m, max_arm_m=1.0):
         avail_out = lengths[k] * (1.0 if k == len(pts) - 2 else 0.5)
         d = min(avail_in, avail_out, max_arm_m)
         keep = min(floor_m, seg_clear[k - 1], seg_clear[k]) - 1e-9
+        blend: tuple[FloatArray, FloatArray, FloatArray] | None = None
         for _ in range(6 if np.dot(u1, u2) > -0.999 else 0):  # a U-turn has no blend
             blend = _bezier(pts[k], u1, u2, d, step_m)
             if flight_map.distance(blend[0]).min() >= keep:
@@ -298,17 +339,31 @@ def _smooth(flight_map, pts, floor_m, step_m, max_arm_m=1.0):
         if blend is None:  # stop at the corner: arrive along u1, leave along u2
             line_to(pts[k], u1)
             out[-1][3][-1] = True
-            out.append([pts[k][None], u2[None], np.zeros((1, 3)), np.array([True])])
+            out.append((pts[k][None], u2[None], np.zeros((1, 3)), np.array([True])))
         else:
             line_to(blend[0][0], u1)
             n = len(blend[0]) - 1
-            out.append([blend[0][1:], blend[1][1:], blend[2][1:], np.zeros(n, bool)])
+            out.append((blend[0][1:], blend[1][1:], blend[2][1:], np.zeros(n, bool)))
         current = out[-1][0][-1]
     line_to(pts[-1], dirs[-1])
-    return tuple(np.concatenate([piece[i] for piece in out]) for i in range(4))
+    positions, tangents, kvecs, stops = zip(*out, strict=True)
+    return (
+        np.concatenate(positions),
+        np.concatenate(tangents),
+        np.concatenate(kvecs),
+        np.concatenate(stops),
+    )
 
 
-def _time(path, tangents, kvecs, stops, max_speed, max_accel, max_climb):
+def _time(
+    path: FloatArray,
+    tangents: FloatArray,
+    kvecs: FloatArray,
+    stops: BoolArray,
+    max_speed: float,
+    max_accel: float,
+    max_climb: float | None,
+) -> tuple[FloatArray, FloatArray]:
     """Speeds at the samples: curvature, climb and speed limits, then forward-backward passes
     with half the acceleration budget (each of tangential and lateral gets a_max / sqrt 2)."""
     ds = np.linalg.norm(np.diff(path, axis=0), axis=1)
@@ -334,19 +389,24 @@ def _time(path, tangents, kvecs, stops, max_speed, max_accel, max_climb):
 
 
 # --- the public calls ------------------------------------------------------------------------
-def _fmt(p) -> str:
+def _fmt(p: FloatArray) -> str:
     return "(" + ", ".join(f"{x:.2f}" for x in np.asarray(p).reshape(-1)) + ")"
 
 
-def _nearest_reachable(lattice: _Lattice, sources: np.ndarray, goal: np.ndarray):
+def _nearest_reachable(
+    lattice: _Lattice, sources: IndexArray, goal: FloatArray
+) -> FloatArray | None:
     """The lattice node nearest to ``goal`` in the components of ``sources``, or None."""
     if len(sources) == 0:
         return None
     nodes = lattice.positions(np.flatnonzero(np.isin(lattice.labels, lattice.labels[sources])))
-    return nodes[np.argmin(np.linalg.norm(nodes - goal, axis=1))]
+    nearest: FloatArray = nodes[np.argmin(np.linalg.norm(nodes - goal, axis=1))]
+    return nearest
 
 
-def _endpoint_nodes(flight_map, lattice, point, radius_m):
+def _endpoint_nodes(
+    flight_map: FlightMap, lattice: _Lattice, point: FloatArray, radius_m: float
+) -> tuple[IndexArray, FloatArray]:
     for reach in (2, 4):
         flat, lengths = _nodes_near(flight_map, lattice, point, radius_m, reach)
         if len(flat):
@@ -356,8 +416,8 @@ def _endpoint_nodes(flight_map, lattice, point, radius_m):
 
 def plan_path(
     flight_map: FlightMap,
-    start,
-    goal,
+    start: Sequence[float] | FloatArray,
+    goal: Sequence[float] | FloatArray,
     radius_m: float,
     *,
     margin_m: float | None = None,
@@ -462,8 +522,15 @@ def plan_path(
 
 
 def _search_lattices(
-    flight_map, start, goal, radius_m, lattice, sources, settings, detour
-) -> np.ndarray:
+    flight_map: FlightMap,
+    start: FloatArray,
+    goal: FloatArray,
+    radius_m: float,
+    lattice: _Lattice,
+    sources: IndexArray,
+    settings: tuple[float, float, float],
+    detour: float,
+) -> FloatArray:
     """The raw path through the coarse lattice, or, where that finds none, through the lattice
     of the map's own cells (built on demand: narrow passages the coarse one cannot see)."""
     try:
@@ -477,7 +544,15 @@ def _search_lattices(
     return _search_route(flight_map, fine, start, goal, radius_m, sources, detour)
 
 
-def _search_route(flight_map, lattice, start, goal, radius_m, sources, detour: float) -> np.ndarray:
+def _search_route(
+    flight_map: FlightMap,
+    lattice: _Lattice,
+    start: FloatArray,
+    goal: FloatArray,
+    radius_m: float,
+    sources: IndexArray,
+    detour: float,
+) -> FloatArray:
     """The raw path (K, 3) from start through the lattice to goal, or PlanningError."""
     if len(sources) == 0:
         raise PlanningError(
@@ -494,7 +569,7 @@ def _search_route(flight_map, lattice, start, goal, radius_m, sources, detour: f
         )
     target_costs = target_lengths * (1 + lattice.penalty[targets])
     # Most routes stay within a small detour: explore that far first, then everything.
-    limit = detour * np.linalg.norm(goal - start) + 1.0
+    limit = detour * float(np.linalg.norm(goal - start)) + 1.0
     nodes = _search(lattice, sources, targets, target_costs, limit)
     if nodes is None:
         nodes = _search(lattice, sources, targets, target_costs, np.inf)
@@ -510,4 +585,4 @@ def route_is_clear(
     rest = route.path[i:]
     if len(rest) == 1:
         return bool(flight_map.is_free(rest, radius_m)[0])
-    return bool(np.all(flight_map.segment_is_free(rest[:-1], rest[1:], radius_m)))
+    return bool(np.all(flight_map.segments_free(rest[:-1], rest[1:], radius_m)))

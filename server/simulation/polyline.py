@@ -7,16 +7,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from server.geometry.arrays import FloatArray, IndexArray
 
-def distances_to_segment(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+
+def distances_to_segment(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
     """(N,) distance (m) from each of ``points`` (N, 3) to the segment a-b ((3,) each)."""
     ab = b - a
     length2 = float(ab @ ab)
     t = np.zeros(len(points)) if length2 == 0 else np.clip((points - a) @ ab / length2, 0, 1)
-    return np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
+    distances: FloatArray = np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
+    return distances
 
 
-def simplify(points: np.ndarray, tolerance_m: float) -> np.ndarray:
+def simplify(points: FloatArray, tolerance_m: float) -> IndexArray:
     """Indices (ascending, first and last included) of the vertices Douglas-Peucker keeps:
     every point lies within ``tolerance_m`` of the segment between the kept vertices around
     it, so straight segments drawn between the kept vertices stay that close to the polyline."""

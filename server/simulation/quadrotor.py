@@ -15,10 +15,12 @@ numpy on 3-vectors costs microseconds per call, this step costs a few.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, fields
 
 import numpy as np
 
+from server.geometry.arrays import FloatArray
 from server.simulation.config import SimulationConfig
 
 
@@ -136,7 +138,7 @@ class Quadrotor:
         self._ixx, self._iyy, self._izz = (float(i) for i in params.inertia_kg_m2)
         self.reset((0.0, 0.0, 0.0))
 
-    def reset(self, position, yaw_rad: float = 0.0, hovering: bool = True) -> None:
+    def reset(self, position: Iterable[float], yaw_rad: float = 0.0, hovering: bool = True) -> None:
         """Level at ``position`` facing ``yaw_rad``, at rest; motors at hover thrust or off."""
         self.px, self.py, self.pz = (float(c) for c in position)
         self.vx = self.vy = self.vz = 0.0
@@ -268,19 +270,19 @@ class Quadrotor:
         )
 
     @property
-    def position(self) -> np.ndarray:
+    def position(self) -> FloatArray:
         return np.array([self.px, self.py, self.pz])
 
     @property
-    def velocity(self) -> np.ndarray:
+    def velocity(self) -> FloatArray:
         return np.array([self.vx, self.vy, self.vz])
 
     @property
-    def R_flight_body(self) -> np.ndarray:
+    def R_flight_body(self) -> FloatArray:
         return np.array(self.rotation()).reshape(3, 3)
 
     @property
-    def T_flight_body(self) -> np.ndarray:
+    def T_flight_body(self) -> FloatArray:
         """4x4 body-to-flight transform, metres."""
         T = np.eye(4)
         T[:3, :3] = self.R_flight_body

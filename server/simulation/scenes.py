@@ -8,10 +8,13 @@ measures against the boxes themselves, not the grid.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from server.geometry.arrays import FloatArray
 from server.simulation.flight_map import FlightMap
 
 WALL_M = 0.1  # thickness of the enclosing walls, floor and ceiling
@@ -23,11 +26,11 @@ class Scene:
 
     name: str
     flight_map: FlightMap
-    boxes: list[tuple[np.ndarray, np.ndarray]]
-    start: np.ndarray
-    goal: np.ndarray
+    boxes: list[tuple[FloatArray, FloatArray]]
+    start: FloatArray
+    goal: FloatArray
 
-    def true_distance(self, points: np.ndarray) -> np.ndarray:
+    def true_distance(self, points: FloatArray) -> FloatArray:
         """(N,) exact distance from points (N, 3) to the nearest box (0 inside one)."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         best = np.full(len(p), np.inf)
@@ -37,7 +40,7 @@ class Scene:
         return best
 
 
-def _enclosure(size) -> list[tuple[np.ndarray, np.ndarray]]:
+def _enclosure(size: Sequence[float]) -> list[tuple[FloatArray, FloatArray]]:
     """Walls, floor and ceiling around the interior [0, size]."""
     sx, sy, sz = size
     t = WALL_M
@@ -51,7 +54,15 @@ def _enclosure(size) -> list[tuple[np.ndarray, np.ndarray]]:
     ]
 
 
-def _scene(name, size, inner, start, goal, voxel_m, unknown_is_free) -> Scene:
+def _scene(
+    name: str,
+    size: Sequence[float],
+    inner: Sequence[tuple[ArrayLike, ArrayLike]],
+    start: ArrayLike,
+    goal: ArrayLike,
+    voxel_m: float,
+    unknown_is_free: bool,
+) -> Scene:
     boxes = _enclosure(size) + [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in inner]
     lo, hi = -WALL_M * np.ones(3), np.asarray(size, float) + WALL_M
     flight_map = FlightMap.from_boxes(lo, hi, boxes, voxel_m, unknown_is_free)

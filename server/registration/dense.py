@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from server.config import DepthConfig, SolverConfig
 from server.geometry import Intrinsics, backproject, exp_se3, orthonormalize
+from server.registration.config import DepthConfig, SolverConfig
 from server.registration.preprocess import axial_sigma
 from server.registration.sparse import NormalEquations
 

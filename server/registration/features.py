@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from server.config import FeatureConfig
+from server.registration.config import FeatureConfig
 
 
 def detect_features(

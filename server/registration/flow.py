@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from server.config import FlowConfig
+from server.registration.config import FlowConfig
 
 
 def track_points(

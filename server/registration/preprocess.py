@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from server.config import DepthConfig
+from server.registration.config import DepthConfig
 
 
 def to_grey(colour: np.ndarray) -> np.ndarray:

@@ -18,7 +18,6 @@ from enum import Enum
 
 import numpy as np
 
-from server.config import RegistrationConfig
 from server.geometry import (
     Intrinsics,
     backproject_pixels,
@@ -27,6 +26,7 @@ from server.geometry import (
     project,
     rotation_angle_deg,
 )
+from server.registration.config import RegistrationConfig
 from server.registration.dense import refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe

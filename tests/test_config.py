@@ -265,3 +265,20 @@ def test_a_session_gets_the_configurations_sections_and_they_pickle():
     copy = pickle.loads(pickle.dumps(session))  # crosses to a worker process or a Ray actor
     assert copy == session
     assert SessionConfig.from_config() == SessionConfig.from_config(Config.defaults())
+
+
+# ---- the README ---------------------------------------------------------------------------------
+
+
+def test_the_readme_documents_every_flat_variable_and_its_examples_load(tmp_path):
+    readme = (REPO / "README.md").read_text()
+    for name in FLAT_ENV:
+        assert f"`{name.upper()}`" in readme, f"DRONESIM_{name.upper()} is not in the README"
+    section = readme[readme.index("## Configuration") :]
+    for suffix in ("yaml", "toml"):
+        block = section.split(f"```{suffix}\n", 1)[1].split("```", 1)[0]
+        path = tmp_path / f"example.{suffix}"
+        path.write_text(block)
+        config = load_config(path)
+        assert config.registration.keyframes.max_rotation_deg == 10.0
+        assert config.server.port == 8080

@@ -68,8 +68,8 @@ from rich.table import Table  # noqa: E402
 
 from server.client.loadtest import EncodedSequence, LoadTestConfig, live_line, run_loadtest  # noqa: E402
 from server.client.server_process import ServerProcess  # noqa: E402
+from server.config import Config  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
-from server.settings import Settings  # noqa: E402
 
 TARGET = {"sessions": 4, "fps": 15.0, "p95_ms": 100.0, "drop_rate": 0.05}
 # A row counts as CPU-saturated when the machine's cores were at least this busy (all
@@ -822,7 +822,7 @@ def main() -> None:
         "size": list(seq.size),
         "frames": len(seq.frames),
         "mean_frame_kb": seq.mean_bytes / 1e3,
-        "fuse_every": Settings().fuse_every,
+        "fuse_every": Config().mapping.fuse_every,
         "commit": commit,
         "drone": f"on ({drone_states} drone_state messages)"
         if drone_states

@@ -1,4 +1,4 @@
-"""Command line: ``python -m server track|evaluate``."""
+"""Command line: ``python -m server track|evaluate|serve|loadtest|config``."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from server.errors import DroneSimError
@@ -16,6 +17,39 @@ from server.errors import DroneSimError
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
+
+
+# Every command that runs the pipeline or the server takes the configuration the same way.
+ConfigFile = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        metavar="FILE",
+        help="configuration file (YAML or TOML; `python -m server config` prints one)",
+    ),
+]
+ConfigSets = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        metavar="KEY=VALUE",
+        help="override one key, e.g. registration.keyframes.max_rotation_deg=10 (repeatable)",
+    ),
+]
+
+
+def _load_config(config_file: Path | None, sets: list[str] | None, flags: dict | None = None):
+    """The effective configuration (defaults < file < DRONESIM_* environment < --set < flags);
+    a bad value stops the command here with a ConfigError naming the key."""
+    from server.config import load_config
+
+    return load_config(config_file, sets or (), flags)
+
+
+def _print_config(config, title: str) -> None:
+    console.rule(title)
+    console.print(config.to_yaml().rstrip(), markup=False, highlight=False)
+    console.rule()
 
 
 def _open(dataset: str, fx, fy, cx, cy, depth_scale):
@@ -56,22 +90,34 @@ def track(
     ],
     out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
     frames: Annotated[int | None, typer.Option(help="only the first N frames")] = None,
-    dense: Annotated[bool, typer.Option(help="dense point-to-plane refinement")] = True,
+    dense: Annotated[
+        bool | None,
+        typer.Option(
+            "--dense/--no-dense",
+            help="dense point-to-plane refinement (registration.solver.dense; default: on)",
+        ),
+    ] = None,
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
     cy: float | None = None,
     depth_scale: Annotated[float | None, typer.Option(help="depth units per metre")] = None,
+    config_file: ConfigFile = None,
+    sets: ConfigSets = None,
 ) -> None:
-    """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture and metrics."""
-    from server.config import RegistrationConfig
+    """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture, metrics and
+    the configuration used (config.yaml: `--config OUT/config.yaml` runs it again)."""
+    from server.config import write_config
     from server.evaluation.metrics import format_table
     from server.pipeline import run_odometry, write_outputs
 
+    flags = {} if dense is None else {"registration": {"solver": {"dense": dense}}}
+    config = _load_config(config_file, sets, flags)
     ds = _open(dataset, fx, fy, cx, cy, depth_scale)
-    config = RegistrationConfig().with_overrides(solver={"dense": dense})
-    run = run_odometry(ds, config, max_frames=frames)
-    paths = write_outputs(run, out, ds, config)
+    _print_config(config, "configuration")
+    run = run_odometry(ds, config.registration, max_frames=frames)
+    paths = write_outputs(run, out, ds, config.registration)
+    paths["config"] = write_config(config, out / "config.yaml")
     s = run.summary
     stats = Table(title=f"{ds.name}: registration")
     for col in ("frames", "keyframes", "ok", "weak", "lost", "median ms", "p90 ms"):
@@ -128,24 +174,22 @@ def serve(
             help="run sessions as Ray actors: auto, ray://host:10001, or local",
         ),
     ] = None,
+    config_file: ConfigFile = None,
+    sets: ConfigSets = None,
 ) -> None:
-    """Run the server (settings from DRONESIM_* environment variables, overridden by flags)."""
-    from pydantic import ValidationError
-
-    from server.settings import Settings
-
+    """Run the server. Configuration: defaults < --config FILE < DRONESIM_* environment
+    variables < --set KEY=VALUE < the flags above (each the server.* key of its name)."""
     flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo, "ray": ray}
-    try:
-        settings = Settings(**{k: v for k, v in flags.items() if v is not None})
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise DroneSimError(f"invalid settings: {problems}") from exc
+    given = {k: v for k, v in flags.items() if v is not None}
+    config = _load_config(config_file, sets, {"server": given})
+    settings = config.server
     if settings.allocator == "jemalloc":
         from server.memory import restart_on_jemalloc
 
         restart_on_jemalloc()  # before the heavy imports below; returns only when it cannot
     from server.transport.app import make_server
 
+    _print_config(config, "configuration")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ssl = {}
     if settings.tls:
@@ -159,7 +203,7 @@ def serve(
             f"{', '.join(local_addresses())}) and accept the certificate once."
         )
     logging.getLogger().setLevel(logging.INFO)
-    make_server(settings, log_level="info", **ssl).run()
+    make_server(config, log_level="info", **ssl).run()
 
 
 @app.command()
@@ -235,12 +279,20 @@ def loadtest(
         raise typer.Exit(2)
 
 
+@app.command("config")
+def config_cmd(config_file: ConfigFile = None, sets: ConfigSets = None) -> None:
+    """Print the effective configuration as YAML (defaults < --config FILE < DRONESIM_*
+    environment < --set), to edit and pass back with --config."""
+    config = _load_config(config_file, sets)
+    sys.stdout.write(config.to_yaml())
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         app()
     except DroneSimError as exc:
-        err_console.print(f"[red]error:[/red] {exc}")
+        err_console.print(f"[red]error:[/red] {escape(str(exc))}")
         sys.exit(1)
 
 

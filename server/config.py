@@ -1,137 +1,309 @@
-"""Every registration parameter in one place, with defaults and units."""
+"""The one configuration: four sections, each the object its stage takes, with every default in
+the section's own class.
+
+- ``registration`` (server/registration/config.py): the tracker's parameters;
+- ``mapping`` (server/mapping/config.py): a session's TSDF, fusion rate, map preview;
+- ``simulation`` (server/simulation/config.py): the drone's physics, controller, behaviour;
+- ``server`` (``ServerConfig`` below): the web server and its sessions.
+
+The numerical sections are plain frozen dataclasses, so the core never imports pydantic; here
+pydantic validates them (types, unknown keys) and their own checks run as they are built.
+
+Where values come from, the later over the earlier (``load_config``):
+
+1. the defaults;
+2. a YAML or TOML file (``--config FILE``);
+3. the environment: ``DRONESIM_`` + the key, sections nested with ``__``
+   (``DRONESIM_REGISTRATION__SOLVER__DENSE=false``), and the documented flat server variables
+   (``DRONESIM_PORT``, ``DRONESIM_VOXEL_M``, ... as listed in ``FLAT_ENV``), which the nested
+   form overrides;
+4. the command line: ``--set registration.keyframes.max_rotation_deg=10`` (repeatable), and the
+   flags of ``serve``.
+
+A bad value or an unknown key raises ``ConfigError`` naming the key, before anything starts.
+"""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, replace
+import json
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic_settings import (
+    BaseSettings,
+    EnvSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
 
 from server.errors import ConfigError
+from server.mapping.config import MappingConfig
+from server.registration.config import RegistrationConfig
+from server.simulation.config import SimulationConfig
+
+ENV_PREFIX = "DRONESIM_"
 
 
-@dataclass(frozen=True)
-class FeatureConfig:
-    """FAST corners on a scale pyramid (paper, section III-A)."""
+class ServerConfig(BaseModel):
+    """The web server and its sessions."""
 
-    pyramid_levels: int = 3  # levels, each half the size of the previous one
-    fast_threshold: int = 12  # intensity difference, 0-255
-    max_features: int = 600  # cap over all levels
-    grid_cols: int = 16  # buckets spread the corners over the image
-    grid_rows: int = 12
-    min_distance_px: float = 8.0  # at full resolution; corners closer than this are dropped
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    data_dir: Path = Path("data")  # sessions' maps and trajectories live here
+    tls: bool = False  # serve HTTPS with a self-signed certificate kept in data_dir/tls
+    max_sessions: int = Field(16, ge=1)  # live sessions at once; more get 503
+    # Refused before decoding; at most uvicorn's ws_max_size (16 MiB), which refuses larger first.
+    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
+    session_ttl_s: float = Field(300.0, gt=0)  # a disconnected session is closed after this
+    snapshot_interval_s: float = Field(10.0, gt=0)  # periodic atomic snapshot of map + trajectory
+    drone_state_hz: float = Field(20.0, gt=0, le=60)  # drone_state messages per second
+    # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
+    # cores among the live sessions, rebalanced as they come and go.
+    worker_threads: int = Field(0, ge=0, le=256)
+    demo: bool = False  # start a session that replays the bundled demo sequence
+    demo_fps: float = Field(15.0, gt=0, le=60)
+    cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
+    create_rate_per_min: float = Field(30.0, ge=0)  # sessions one client IP may create; 0: no limit
+    create_burst: int = Field(20, ge=1)  # ...of which this many at once
+    # Reverse proxies whose X-Forwarded-For / -Proto are believed (uvicorn's forwarded_allow_ips:
+    # comma-separated addresses or networks, "*" for any); the rate limit then counts the phone's
+    # address, not the proxy's. Others' forwarding headers are ignored, so they cannot forge one.
+    forwarded_allow_ips: str = "127.0.0.1"
+    # "jemalloc": serve restarts itself on jemalloc when installed (see server/memory.py);
+    # "system": keep the C library's malloc.
+    allocator: Literal["jemalloc", "system"] = "jemalloc"
+    # Run each session as a Ray actor on this cluster instead of a local worker process:
+    # "auto" (the cluster this machine is part of), "ray://head:10001" (Ray Client), "host:6379",
+    # or "local" (start a local instance). None: local processes, Ray not imported. Needs the
+    # [ray] extra; see server/sessions/ray_workers.py and the README.
+    ray: str | None = None
 
-@dataclass(frozen=True)
-class FlowConfig:
-    """Pyramidal Lucas-Kanade tracking with a forward-backward check."""
+    @field_validator("data_dir")
+    @classmethod
+    def _data_dir_usable(cls, v: Path) -> Path:
+        if v.exists() and not v.is_dir():
+            raise ValueError(f"data_dir {v} exists and is not a folder")
+        return v
 
-    # 17 px rather than 21: a third less work per iteration, and a smaller window straddles
-    # fewer depth edges (synthetic_room0 ATE 0.39 -> 0.26 cm, 7-Scenes unchanged within noise).
-    window_px: int = 17
-    pyramid_levels: int = 3  # LK pyramid levels above the full image
-    # The backward (checking) pass starts where a correct track must land, so it needs no
-    # coarse levels to find it; one level above the full image leaves slack for small errors.
-    fb_pyramid_levels: int = 1
-    max_iterations: int = 30
-    epsilon: float = 0.01  # px, LK convergence
-    max_fb_error_px: float = 1.0  # forward-backward round-trip error
-
-
-@dataclass(frozen=True)
-class DepthConfig:
-    """Which depths are trusted, and how noisy they are (Kinect-like model)."""
-
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
-    # A keypoint's depth must be stable over its 3x3 neighbourhood: max - min below this
-    # fraction of the depth (rejects depth edges, where colour and depth disagree most).
-    max_local_depth_spread: float = 0.03
-    # Axial noise sigma(z) = a + b * (z - 0.4)^2 in metres (Nguyen et al., 2012).
-    axial_noise_a_m: float = 0.0012
-    axial_noise_b_per_m: float = 0.0019
-    lateral_noise_px: float = 0.8  # pixel error of a tracked corner
-
-
-@dataclass(frozen=True)
-class SolverConfig:
-    """Gauss-Newton on SE(3) with fixed correspondences (eqs. 7-9) and dense refinement."""
-
-    max_iterations: int = 15
-    convergence_step: float = 1e-6  # stop when |xi| (rad and m mixed) falls below this
-    huber_k: float = 2.0  # Mahalanobis distance where Huber weighting starts
-    outlier_chi: float = 4.0  # correspondences beyond this Mahalanobis distance are outliers
-    # Dense refinement: projective point-to-plane ICP against the keyframe's smoothed depth.
-    dense: bool = True
-    dense_stride: int = 8  # sample every n-th pixel of the current depth
-    dense_iterations: int = 6
-    # Stop refining when |xi| falls below this (rad and m mixed): steps shrink about tenfold per
-    # iteration, and one of 3e-5 (0.03 mm at 1 m) is far below the per-frame error.
-    dense_convergence_step: float = 3e-5
-    dense_max_distance_m: float = 0.05
-    dense_weight: float = 0.05  # weight of one dense residual relative to one sparse one
-    # Photometric term: intensity of current pixels against the keyframe image (0 = off).
-    photometric_weight: float = 0.0
-    photometric_sigma: float = 4.0  # intensity noise, grey levels 0-255
+    @field_validator("cors_origins")
+    @classmethod
+    def _exact_origins(cls, v: list[str]) -> list[str]:
+        for origin in v:
+            parts = urlsplit(origin)
+            if (
+                "*" in origin
+                or parts.scheme not in ("http", "https")
+                or not parts.netloc
+                or (parts.path or parts.query or parts.fragment)
+            ):
+                raise ValueError(
+                    f"cors origin {origin!r} must be exactly scheme://host[:port] "
+                    "(no wildcard, no path): a wildcard lets any page call the API"
+                )
+        return v
 
 
-@dataclass(frozen=True)
-class KeyframeConfig:
-    """When to start a new keyframe."""
-
-    min_tracked_ratio: float = 0.5  # of the keyframe's features still tracked
-    min_tracked: int = 80
-    max_translation_m: float = 0.25
-    max_rotation_deg: float = 15.0
-    recent_keyframes: int = 8  # kept for relocalisation after a lost frame
-
-
-@dataclass(frozen=True)
-class StateConfig:
-    """How a frame is judged ok, weak or lost."""
-
-    ok_inliers: int = 40
-    lost_inliers: int = 12
-    # Mahalanobis RMSE of the inliers above which the frame is weak; a 3D residual that fits
-    # its noise model has an RMSE of sqrt(3) = 1.73.
-    ok_rmse: float = 3.0
-    min_condition: float = 1e-4  # smallest / largest eigenvalue of the scaled J^T J
+# The flat variables the README documented before the sections existed: DRONESIM_<NAME> sets
+# the key at this path. Every server key keeps its flat name; three map keys were server
+# settings too.
+FLAT_ENV: dict[str, tuple[str, ...]] = {
+    **{name: ("server", name) for name in ServerConfig.model_fields},
+    "voxel_m": ("mapping", "tsdf", "voxel_m"),
+    "fuse_every": ("mapping", "fuse_every"),
+    "preview_points": ("mapping", "preview_points"),
+}
+_JSON_VALUED = {"cors_origins"}  # flat variables that hold a JSON list
 
 
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """All parameters of the registration pipeline."""
+class Config(BaseSettings):
+    """The whole configuration. ``Config()`` reads the environment over the defaults;
+    ``load_config`` adds a file and command-line overrides; ``Config.defaults()`` reads nothing."""
 
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    flow: FlowConfig = field(default_factory=FlowConfig)
-    depth: DepthConfig = field(default_factory=DepthConfig)
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
-    state: StateConfig = field(default_factory=StateConfig)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX, env_nested_delimiter="__", extra="forbid", frozen=True
+    )
 
-    def __post_init__(self) -> None:
-        if (
-            self.features.pyramid_levels < 1
-            or self.flow.pyramid_levels < 0
-            or self.flow.fb_pyramid_levels < 0
-        ):
-            raise ConfigError("pyramid levels must be >= 1 (FAST) and >= 0 (LK)")
-        if not 0 < self.depth.min_depth_m < self.depth.max_depth_m:
-            raise ConfigError("need 0 < min_depth_m < max_depth_m")
-        if self.state.lost_inliers >= self.state.ok_inliers:
-            raise ConfigError("state.lost_inliers must be below state.ok_inliers")
-        if self.solver.dense_stride < 1:
-            raise ConfigError("solver.dense_stride must be >= 1")
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
+    server: ServerConfig = Field(default_factory=ServerConfig)
+
+    @field_validator("registration", "mapping", "simulation", mode="wrap")
+    @classmethod
+    def _section_checks(cls, value: Any, handler: Any) -> Any:
+        # The sections' own consistency checks raise ConfigError (the core knows no pydantic);
+        # as a ValueError it is reported with the section's name like any other bad value.
+        try:
+            return handler(value)
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from exc
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # Keyword arguments, then nested variables, then flat ones; no .env or secrets files.
+        return init_settings, env_settings, FlatEnvSource(settings_cls)
+
+    @classmethod
+    def defaults(cls) -> Config:
+        """Every default, whatever the environment holds. (Validation would read the
+        environment: pydantic calls BaseSettings' __init__; the defaults are valid as built.)"""
+        return cls.model_construct()
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """Plain values (lists, strings, numbers), as written to a file and read back."""
+        return self.model_dump(mode="json")
 
-    def with_overrides(self, **sections: dict) -> RegistrationConfig:
-        """A copy with some fields changed, e.g. ``with_overrides(solver={"dense": False})``."""
-        names = {f.name for f in fields(self)}
-        changed = {}
-        for section, values in sections.items():
-            if section not in names:
-                raise ConfigError(f"unknown config section {section!r}; known: {sorted(names)}")
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+class FlatEnvSource(PydanticBaseSettingsSource):
+    """The documented flat ``DRONESIM_<NAME>`` variables, each put where its key lives."""
+
+    def get_field_value(self, field, field_name):  # the whole lookup happens in __call__
+        return None, field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        upper = {k.upper(): v for k, v in os.environ.items() if k.upper().startswith(ENV_PREFIX)}
+        values: dict[str, Any] = {}
+        for name, path in FLAT_ENV.items():
+            key = ENV_PREFIX + name.upper()
+            if key not in upper:
+                continue
+            raw = upper[key]
+            if name in _JSON_VALUED:
+                try:
+                    raw = json.loads(raw)
+                except json.JSONDecodeError as exc:
+                    raise ConfigError(f"{key} must be a JSON list: {exc}") from exc
+            _set_path(values, path, raw, key)
+        return values
+
+
+# ---- loading ------------------------------------------------------------------------------------
+
+
+def load_config(
+    path: Path | str | None = None,
+    overrides: Iterable[str] = (),
+    flags: Mapping[str, Any] | None = None,
+) -> Config:
+    """The effective configuration: defaults < ``path`` (YAML or TOML) < environment (flat
+    variables < nested ones) < ``overrides`` (``"section.key=value"``, the value in YAML
+    syntax) < ``flags`` (nested values, from a command's own options). Raises ConfigError
+    naming every bad or unknown key."""
+    values = read_config_file(Path(path)) if path is not None else {}
+    values = _merge(values, FlatEnvSource(Config)())
+    values = _merge(values, EnvSettingsSource(Config)())
+    values = _merge(values, parse_overrides(overrides))
+    values = _merge(values, flags or {})
+    return validate_config(values)
+
+
+def validate_config(values: Mapping[str, Any]) -> Config:
+    """``values`` (nested sections, as in a file) over the defaults, validated."""
+    try:
+        return Config.model_validate(values)
+    except ValidationError as exc:
+        raise ConfigError(describe_errors(exc)) from exc
+
+
+def describe_errors(exc: ValidationError) -> str:
+    """One line per problem, each naming its key as ``section.key``."""
+    lines = []
+    for error in exc.errors():
+        key = ".".join(str(part) for part in error["loc"]) or "(top level)"
+        message = error["msg"].removeprefix("Value error, ")
+        if error["type"] in ("unexpected_keyword_argument", "extra_forbidden"):
+            lines.append(f"{key}: unknown key")
+        elif isinstance(error["input"], (dict, list)):  # a section's own check names its keys
+            lines.append(message if message.startswith(key) else f"{key}: {message}")
+        else:
+            lines.append(f"{key}: {message} (got {error['input']!r})")
+    return "invalid configuration:\n  " + "\n  ".join(lines)
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """A configuration file: YAML (.yaml, .yml) or TOML (.toml), sections at the top level."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read configuration file {path}: {exc.strerror}") from exc
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".yaml", ".yml"):
+            values = yaml.safe_load(text)
+        elif suffix == ".toml":
             try:
-                changed[section] = replace(getattr(self, section), **values)
-            except TypeError as exc:
-                raise ConfigError(f"bad field in section {section!r}: {exc}") from exc
-        return replace(self, **changed)
+                import tomllib
+            except ImportError:  # Python 3.10
+                import tomli as tomllib
+
+            values = tomllib.loads(text)
+        else:
+            raise ConfigError(f"configuration file {path}: expected .yaml, .yml or .toml")
+    except (yaml.YAMLError, ValueError) as exc:
+        raise ConfigError(f"configuration file {path} is not valid {suffix[1:]}: {exc}") from exc
+    if values is None:  # an empty file: the defaults
+        return {}
+    if not isinstance(values, dict):
+        raise ConfigError(f"configuration file {path} must hold a mapping of sections")
+    return values
+
+
+def parse_overrides(overrides: Iterable[str]) -> dict[str, Any]:
+    """``["registration.solver.dense=false", ...]`` as nested values; each value is read as
+    YAML (``10``, ``false``, ``[1, 2, 3]``, or a string)."""
+    values: dict[str, Any] = {}
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. server.port=8080")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {key}: cannot read the value {raw!r}: {exc}") from exc
+        _set_path(values, tuple(key.split(".")), value, f"--set {key}")
+    return values
+
+
+def write_config(config: Config, path: Path) -> Path:
+    """Write ``config`` as YAML, to be read back with ``--config``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(config.to_yaml())
+    return path
+
+
+def _set_path(values: dict[str, Any], path: tuple[str, ...], value: Any, origin: str) -> None:
+    node = values
+    for part in path[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"{origin}: {'.'.join(path)} is below a key that holds a value")
+    node[path[-1]] = value
+
+
+def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``, section by section, key by key."""
+    merged = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged

@@ -121,16 +121,18 @@ class LiveServer:
         import socket
         import threading
 
-        from server.settings import Settings
+        from server.config import Config, ServerConfig
         from server.transport.app import create_app, make_server
 
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
-        self.settings = Settings(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
-        self.app = create_app(self.settings)
+        server = ServerConfig(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
+        self.config = Config(server=server)
+        self.settings = self.config.server
+        self.app = create_app(self.config)
         self.server = make_server(
-            self.settings, self.app, log_level="warning", ws_max_size=64 * 2**20
+            self.config, self.app, log_level="warning", ws_max_size=64 * 2**20
         )
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()

@@ -21,11 +21,11 @@ import websockets
 from conftest import auth
 from pydantic import ValidationError
 
+from server.config import Config, ServerConfig
 from server.sessions import manager as manager_module
 from server.sessions.manager import SessionManager
 from server.sessions.session import SessionError, hash_token
 from server.sessions.store import SessionStore, StoreError
-from server.settings import Settings
 from server.transport import protocol as P
 from server.transport.app import RedactTokens
 from server.transport.deps import RateLimiter
@@ -401,10 +401,10 @@ def test_configured_origins_are_allowed_exactly_and_others_refused(live_server):
 )
 def test_a_wildcard_or_malformed_origin_stops_the_server_at_start(origins, monkeypatch):
     with pytest.raises(ValidationError, match="scheme://host"):
-        Settings(cors_origins=origins)
+        ServerConfig(cors_origins=origins)
     monkeypatch.setenv("DRONESIM_CORS_ORIGINS", json.dumps(origins))
     with pytest.raises(ValidationError):
-        Settings()
+        Config()
 
 
 # ---- logs --------------------------------------------------------------------------------------
@@ -414,7 +414,7 @@ def test_tokens_never_reach_the_logs(tmp_path):
     """uvicorn logs each WebSocket's path with its query string, which carries the token."""
     from server.transport.app import create_app
 
-    create_app(Settings(data_dir=tmp_path))
+    create_app(Config(server=ServerConfig(data_dir=tmp_path)))
     logger = logging.getLogger("uvicorn.error")  # uvicorn's config stops it propagating
     assert any(isinstance(f, RedactTokens) for f in logger.filters)
     lines: list[str] = []

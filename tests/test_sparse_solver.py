@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from conftest import random_pose
 
-from server.config import RegistrationConfig, SolverConfig
 from server.geometry import Intrinsics, invert, rotation_angle_deg
+from server.registration.config import RegistrationConfig, SolverConfig
 from server.registration.sparse import point_information, scaled_condition, solve_sparse
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.config import RegistrationConfig
 from server.datasets import open_dataset
 from server.datasets.base import Trajectory
 from server.evaluation.metrics import evaluate
 from server.geometry import invert, rotation_angle_deg
 from server.pipeline import ground_truth_pose_at
 from server.registration import Tracker, TrackingState
+from server.registration.config import RegistrationConfig
 
 
 def relative_error(T_est, T_true):

@@ -17,7 +17,6 @@ import tempfile
 import threading
 import zipfile
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
@@ -38,6 +37,7 @@ from server.geometry.arrays import (
     Int64Array,
     RealArray,
 )
+from server.mapping.config import TSDFConfig
 
 log = logging.getLogger(__name__)
 
@@ -51,44 +51,6 @@ _HOST = o3c.Device("CPU:0")
 
 class MapError(DroneSimError):
     """A frame or a file given to the TSDF map is malformed."""
-
-
-@dataclass(frozen=True)
-class TSDFConfig:
-    """voxel_m: voxel edge (m). block_resolution: voxels per block edge. block_count: blocks
-    allocated up front (the hash map doubles when full; each block costs block_resolution^3 * 20
-    bytes, 80 KiB at 16). trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond
-    this is ignored. min_weight: observations a voxel needs before it shows in extracted surfaces.
-    carve_free_space: also allocate the blocks a ray crosses before the surface (see module
-    doc). carve_every: carve on every n-th integration only (the first included): the space a
-    moving camera sees empty changes slowly, while carving costs ~40 % of an integration
-    (7scenes_a, 2 cm voxels: 46 ms with, 28 without, one thread)."""
-
-    voxel_m: float = 0.02
-    block_resolution: int = 16
-    block_count: int = 256  # 20 MiB up front (idle sessions stay cheap); a room doubles it to 2-4k
-    trunc_voxels: float = 4.0
-    depth_max_m: float = 4.0
-    min_weight: float = 3.0
-    carve_free_space: bool = True
-    carve_every: int = 3
-    device: str = "CPU:0"
-
-    def __post_init__(self) -> None:
-        if not (self.voxel_m > 0 and self.trunc_voxels > 0 and self.depth_max_m > 0):
-            raise ConfigError(f"TSDF voxel, truncation and depth range must be positive: {self}")
-        if self.carve_every < 1:
-            raise ConfigError(f"TSDF carve_every must be at least 1: {self}")
-        if self.block_resolution < 2 or self.block_count < 1:
-            raise ConfigError(f"TSDF block resolution < 2 or block count < 1: {self}")
-
-    @property
-    def trunc_m(self) -> float:
-        return self.trunc_voxels * self.voxel_m
-
-    @property
-    def block_m(self) -> float:
-        return self.block_resolution * self.voxel_m
 
 
 def _pack(ijk: ArrayLike) -> Int64Array:

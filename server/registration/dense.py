@@ -15,9 +15,9 @@ from typing import cast
 import cv2
 import numpy as np
 
-from server.config import DepthConfig, SolverConfig
 from server.geometry import Intrinsics, backproject, exp_se3, orthonormalize
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage
+from server.registration.config import DepthConfig, SolverConfig
 from server.registration.preprocess import axial_sigma
 from server.registration.sparse import NormalEquations
 

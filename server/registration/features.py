@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from server.config import FeatureConfig
 from server.geometry.arrays import BoolArray, Float32Array, GreyImage
+from server.registration.config import FeatureConfig
 
 
 def detect_features(

@@ -7,8 +7,8 @@ from typing import cast
 import cv2
 import numpy as np
 
-from server.config import FlowConfig
 from server.geometry.arrays import BoolArray, Float32Array, GreyImage, RealArray
+from server.registration.config import FlowConfig
 
 
 def track_points(

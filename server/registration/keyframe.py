@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from server.config import RegistrationConfig
 from server.geometry import Intrinsics, backproject_pixels
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage
+from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, build_dense_model
 from server.registration.features import detect_features
 from server.registration.preprocess import sample_stable_depth

@@ -7,8 +7,8 @@ from typing import cast
 import cv2
 import numpy as np
 
-from server.config import DepthConfig
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage, RealArray
+from server.registration.config import DepthConfig
 
 
 def to_grey(colour: GreyImage) -> GreyImage:

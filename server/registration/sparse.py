@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from server.config import DepthConfig, SolverConfig
 from server.geometry import Intrinsics, exp_se3, orthonormalize
 from server.geometry.arrays import BoolArray, FloatArray
+from server.registration.config import DepthConfig, SolverConfig
 from server.registration.preprocess import axial_sigma
 
 

@@ -18,7 +18,6 @@ from enum import Enum
 
 import numpy as np
 
-from server.config import RegistrationConfig
 from server.geometry import (
     Intrinsics,
     backproject_pixels,
@@ -28,6 +27,7 @@ from server.geometry import (
     rotation_angle_deg,
 )
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, GreyImage, IndexArray
+from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe

@@ -71,7 +71,7 @@ class SessionManager:
         threads: int = 0,
     ) -> None:
         self.store = store
-        self.config = config or SessionConfig()
+        self.config = config or SessionConfig.from_config()
         self.max_sessions = max_sessions
         self.workers = workers or ProcessWorkers()
         self.threads = threads

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from server.geometry import Intrinsics
+from server.mapping.config import MappingConfig
 from server.mapping.preview import MapPreview
-from server.mapping.tsdf import MapError, TSDFConfig, TSDFMap
+from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions.errors import SessionError
 
 log = logging.getLogger(__name__)
@@ -57,10 +58,10 @@ class Mapper:
     """The map of one session, used by one caller at a time (the session's mapping thread; the
     status and downloads come from other threads, hence the lock)."""
 
-    def __init__(self, voxel_m: float, preview_points: int) -> None:
-        self.map = TSDFMap(TSDFConfig(voxel_m=voxel_m))
+    def __init__(self, config: MappingConfig) -> None:
+        self.map = TSDFMap(config.tsdf)
         self.preview = MapPreview()
-        self.preview_points = preview_points
+        self.preview_points = config.preview_points
         self._lock = threading.Lock()
 
     def fuse(
@@ -125,7 +126,7 @@ class MapperLost(SessionError):
         super().__init__("session_failed", message)
 
 
-def mapper_main(conn, voxel_m: float, preview_points: int, threads: int) -> None:
+def mapper_main(conn, config: MappingConfig, threads: int) -> None:
     """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
     closes (its session stopped, or died)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session's worker decides when it ends
@@ -136,7 +137,7 @@ def mapper_main(conn, voxel_m: float, preview_points: int, threads: int) -> None
     lower_this_threads_priority(MAPPING_NICE)
     from server.sessions.host import as_remote
 
-    mapper = Mapper(voxel_m, preview_points)
+    mapper = Mapper(config)
     while True:
         try:
             method, args = conn.recv()

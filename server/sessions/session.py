@@ -16,12 +16,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.config import RegistrationConfig
+from server.config import Config
 from server.datasets.base import Trajectory
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
+from server.mapping.config import MappingConfig
 from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState
+from server.registration.config import RegistrationConfig
 from server.registration.preprocess import resample_depth
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
@@ -42,21 +44,29 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
-@dataclass
+@dataclass(frozen=True)
 class SessionConfig:
-    """Per-session processing settings."""
+    """What one session needs of the one configuration (server/config.py): its sections as
+    they are, with no defaults of their own. Plain dataclasses, pickled to the session's worker
+    process or Ray actor."""
 
-    fuse_every: int = 3  # integrate every n-th tracked frame, and every keyframe
-    voxel_m: float = 0.02
-    preview_points: int = 4000  # most new points sent per fused frame
-    snapshot_interval_s: float = 10.0
-    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    simulation: SimulationConfig | None = field(default_factory=SimulationConfig)  # None: no drone
-    drone_state_hz: float = 20.0  # drone_state messages per second
-    # The drone's occupancy grid and distance field are rebuilt at most this often: a rebuild
-    # costs ~0.3 s of CPU on a room (extraction + distance transform), so 1 s would take a third
-    # of a core per session.
-    flight_map_interval_s: float = 3.0
+    registration: RegistrationConfig
+    mapping: MappingConfig
+    simulation: SimulationConfig | None  # None: no drone
+    snapshot_interval_s: float  # periodic atomic snapshot of map + trajectory
+    drone_state_hz: float  # drone_state messages per second
+
+    @classmethod
+    def from_config(cls, config: Config | None = None) -> SessionConfig:
+        """The session's part of ``config``; of the defaults (environment unread) when None."""
+        config = config or Config.defaults()
+        return cls(
+            registration=config.registration,
+            mapping=config.mapping,
+            simulation=config.simulation,
+            snapshot_interval_s=config.server.snapshot_interval_s,
+            drone_state_hz=config.server.drone_state_hz,
+        )
 
 
 @dataclass
@@ -141,14 +151,14 @@ class Session:
         self.id = session_id
         self.token_hash = token_hash
         self.store = store
-        self.config = config or SessionConfig()
+        self.config = config or SessionConfig.from_config()
         self.created_at = created_at or time.time()
         self.closed = False
         self.client_name = ""
         self.intrinsics: Intrinsics | None = None
         self.tracker: Tracker | None = None
         # The map, in a process of its own when given one (server/sessions/mapping.py says why).
-        self.mapper = mapper or Mapper(self.config.voxel_m, self.config.preview_points)
+        self.mapper = mapper or Mapper(self.config.mapping)
         self._map_stats: dict = {}
         self._map_closed = False
         self.on_update: Callable[[Update], None] | None = None
@@ -348,7 +358,7 @@ class Session:
         new_keyframe = result.new_keyframe
         if result.keyframe_due:
             new_keyframe = self.tracker.update_keyframe()
-        if tracked and (new_keyframe or (processed - 1) % self.config.fuse_every == 0):
+        if tracked and (new_keyframe or (processed - 1) % self.config.mapping.fuse_every == 0):
             self._queue_fusion(
                 _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, new_keyframe)
             )
@@ -405,7 +415,7 @@ class Session:
         so feeding every frame would cost more than this, measured in
         benchmarks/flight_map_update.py."""
         if self.flight is None or (
-            time.monotonic() - self._flight_map_at < self.config.flight_map_interval_s
+            time.monotonic() - self._flight_map_at < self.config.mapping.flight_map_interval_s
         ):
             return None
         self._flight_map_at = time.monotonic()
@@ -471,7 +481,7 @@ class Session:
             "token_sha256": self.token_hash,
             "created_at": self.created_at,
             "closed": self.closed,
-            "voxel_m": self.config.voxel_m,
+            "voxel_m": self.config.mapping.tsdf.voxel_m,
             "status": self.status(),
         }
 

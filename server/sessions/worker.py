@@ -150,7 +150,7 @@ class ProcessWorker:
             target=mapper_main,
             daemon=True,
             name=f"session-{args.session_id}-map",
-            args=(mapper_end, args.config.voxel_m, args.config.preview_points, 1),
+            args=(mapper_end, args.config.mapping, 1),
         )
         self.process = ctx.Process(
             target=_worker_main,

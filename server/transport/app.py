@@ -1,4 +1,5 @@
-"""The FastAPI application: wires settings, the session manager, the REST API and the WebSocket."""
+"""The FastAPI application: wires the configuration, the session manager, the REST API and the
+WebSocket."""
 
 from __future__ import annotations
 
@@ -13,13 +14,13 @@ from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
+from server.config import Config
 from server.mapping.tsdf import MapError
 from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
 from server.sessions.session import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import warm_up
-from server.settings import Settings
 from server.transport import routes_client, routes_sessions, websocket
 from server.transport.deps import RateLimiter
 
@@ -40,14 +41,10 @@ class RedactTokens(logging.Filter):
         return True
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or Settings()
-    config = SessionConfig(
-        fuse_every=settings.fuse_every,
-        voxel_m=settings.voxel_m,
-        preview_points=settings.preview_points,
-        snapshot_interval_s=settings.snapshot_interval_s,
-    )
+def create_app(config: Config | None = None) -> FastAPI:
+    """The app for ``config`` (the environment over the defaults when None)."""
+    config = config or Config()
+    settings = config.server
     workers = None
     if settings.ray:  # sessions as Ray actors on a cluster (the optional extra [ray])
         from server.sessions.ray_workers import RayWorkers
@@ -55,7 +52,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         workers = RayWorkers(settings.ray)
     manager = SessionManager(
         SessionStore(settings.data_dir),
-        config,
+        SessionConfig.from_config(config),
         settings.max_sessions,
         workers=workers,
         threads=settings.worker_threads,
@@ -93,7 +90,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 )
 
     app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
-    app.state.settings = settings
+    app.state.config = config
+    app.state.settings = settings  # the server section, read by the routes and the socket
     app.state.manager = manager
     app.state.connections = {}  # session id -> its open WebSocket (websocket._Connection)
     app.state.demo = None
@@ -160,17 +158,18 @@ async def _reap(app: FastAPI) -> None:
             log.exception("reaping idle sessions failed; trying again")
 
 
-def make_server(settings: Settings, app: FastAPI | None = None, **uvicorn_options) -> Server:
-    """The uvicorn server for ``settings`` (the app made from them unless given)."""
-    config = uvicorn.Config(
-        app or create_app(settings),
+def make_server(config: Config, app: FastAPI | None = None, **uvicorn_options) -> Server:
+    """The uvicorn server for ``config`` (the app made from it unless given)."""
+    settings = config.server
+    server_config = uvicorn.Config(
+        app or create_app(config),
         host=settings.host,
         port=settings.port,
         proxy_headers=True,
         forwarded_allow_ips=settings.forwarded_allow_ips,
         **uvicorn_options,
     )
-    return Server(config)
+    return Server(server_config)
 
 
 class Server(uvicorn.Server):

@@ -10,8 +10,8 @@ from typing import Annotated
 
 from fastapi import Depends, Header, Request
 
+from server.config import Config, ServerConfig
 from server.sessions import LiveSession, SessionError, SessionManager
-from server.settings import Settings
 
 
 class RateLimited(SessionError):
@@ -61,7 +61,12 @@ def get_manager(request: Request) -> SessionManager:
     return request.app.state.manager
 
 
-def get_settings(request: Request) -> Settings:
+def get_config(request: Request) -> Config:
+    return request.app.state.config
+
+
+def get_settings(request: Request) -> ServerConfig:
+    """The configuration's server section."""
     return request.app.state.settings
 
 
@@ -94,5 +99,6 @@ def creation_allowed(request: Request) -> None:
 
 
 ManagerDep = Annotated[SessionManager, Depends(get_manager)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+ConfigDep = Annotated[Config, Depends(get_config)]
+SettingsDep = Annotated[ServerConfig, Depends(get_settings)]
 SessionDep = Annotated[LiveSession | dict, Depends(authorized_session)]

@@ -112,7 +112,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
 
     errors = _ErrorRun(proto.LIMITS["max_consecutive_errors"])
     sender = asyncio.create_task(
-        _send_updates(ws, outbox, settings.preview_points, connection, errors)
+        _send_updates(ws, outbox, app.state.config.mapping.preview_points, connection, errors)
     )
     try:
         await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection, errors)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import websockets
 
-from server.transport import protocol as P
+from server import protocol as P
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -46,8 +46,8 @@ def process_running(pid: int) -> bool:
 
 def offline_track(ds, n: int) -> np.ndarray:
     """Poses from the tracker run in-process on the first n frames as the wire carries them."""
+    from server import protocol as proto
     from server.registration import Tracker
-    from server.transport import protocol as proto
 
     tracker = Tracker(ds.intrinsics)
     poses = []

@@ -25,8 +25,8 @@ from conftest import LiveServer, auth
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from server import protocol as P
 from server.datasets import open_dataset
-from server.transport import protocol as P
 
 MAX_BYTES = 2 * 2**20  # the module server's max_message_bytes
 SIZE = (64, 48)  # (width, height) of the hand-made frames: cheap to decode and track

@@ -22,11 +22,11 @@ import pytest
 import websockets
 from conftest import Stream, auth, offline_track, session_status
 
+from server import protocol as P
 from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
-from server.transport import protocol as P
 
 
 @pytest.fixture

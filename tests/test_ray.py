@@ -32,8 +32,8 @@ except ImportError:
     missing("ray is not installed (pip install -e '.[ray]'; it is in [dev])")
 
 
+from server import protocol as P  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
-from server.transport import protocol as P  # noqa: E402
 
 NAMESPACE = "dronesim"
 

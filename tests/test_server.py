@@ -11,10 +11,10 @@ import pytest
 import websockets
 from conftest import auth, offline_track, session_status
 
+from server import protocol as proto
 from server.client.replay import replay
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
-from server.transport import protocol as proto
 
 FRAMES = 60
 

@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import websockets
 
+from server import protocol as proto
 from server.client.replay import await_answers
 from server.datasets import RGBDDataset
 from server.errors import DroneSimError
-from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
 

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import websockets
 
+from server import protocol as proto
 from server.datasets import RGBDDataset
-from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
 

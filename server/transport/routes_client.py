@@ -27,7 +27,7 @@ from fastapi.responses import FileResponse
 
 from server.datasets.demo import DemoSpec, demo_sequence_path
 from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
-from server.transport.protocol import PROTOCOL_PATH  # the very file the server validates with
+from server.protocol import PROTOCOL_PATH  # the very file the server validates with
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["client"])

@@ -15,10 +15,10 @@ import numpy as np
 from tqdm import tqdm
 
 from server.config import RegistrationConfig
-from server.datasets import RGBDDataset, Trajectory
+from server.datasets import RGBDDataset
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
-from server.evaluation.trajectory import write_tum
+from server.evaluation.trajectory import Trajectory, write_tum
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
 

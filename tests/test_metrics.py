@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.datasets.base import Trajectory
 from server.errors import TrajectoryError
 from server.evaluation.metrics import (
     align_umeyama,
@@ -15,7 +14,7 @@ from server.evaluation.metrics import (
     format_table,
     rpe,
 )
-from server.evaluation.trajectory import read_tum, write_tum
+from server.evaluation.trajectory import Trajectory, read_tum, write_tum
 from server.geometry import exp_se3
 
 evo_metrics = pytest.importorskip("evo.core.metrics")

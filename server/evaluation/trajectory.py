@@ -8,13 +8,12 @@ quaternion), ``#`` starts a comment line. Poses are T_world_camera.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from server.atomic import atomic_write
 from server.errors import TrajectoryError
 from server.geometry import pose_from_quaternion, quaternion_from_pose
 from server.textfile import data_lines
@@ -126,13 +125,6 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     for stamp, T in zip(timestamps, poses, strict=True):
         numbers = [*T[:3, 3], *quaternion_from_pose(T)]
         lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in numbers))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    text = "\n".join(lines) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
     logger.debug("wrote %d poses to %s", len(timestamps), path)

@@ -57,11 +57,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from server.datasets import RGBDFrame, Trajectory, open_dataset  # noqa: E402
-from server.datasets.tum import associate  # noqa: E402
+from server.datasets import RGBDFrame, open_dataset  # noqa: E402
 from server.errors import DroneSimError  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
-from server.evaluation.trajectory import write_tum  # noqa: E402
+from server.evaluation.trajectory import (  # noqa: E402
+    Trajectory,
+    associate,
+    write_tum,  # noqa: E402
+)
 from server.geometry import Intrinsics, rotation_angle_deg  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.tracker import Tracker, TrackingState  # noqa: E402

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from server.datasets import RGBDDataset, Trajectory
+from server.datasets import RGBDDataset
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
-from server.evaluation.trajectory import write_tum
+from server.evaluation.trajectory import Trajectory, write_tum
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
 from server.registration.config import RegistrationConfig

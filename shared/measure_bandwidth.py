@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from server.transport.protocol import encode, make_frame
+from server.protocol import encode, make_frame
 
 DATA = Path("..") / "shared" / "data"  # beside the checkout, run from its root (above)
 SEQUENCES = {"synthetic_room0": 5000.0, "7scenes_a": 1000.0}  # folder -> depth scale of its PNGs

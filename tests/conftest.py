@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import asyncio
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-import websockets
 
-from server.transport import protocol as P
+from server import protocol as P
+from server.client.connection import Connection
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -72,8 +71,8 @@ def process_running(pid: int) -> bool:
 
 def offline_track(ds, n: int) -> np.ndarray:
     """Poses from the tracker run in-process on the first n frames as the wire carries them."""
+    from server import protocol as proto
     from server.registration import Tracker
-    from server.transport import protocol as proto
 
     tracker = Tracker(ds.intrinsics)
     poses = []
@@ -177,29 +176,27 @@ UNASKED = {"map_chunk", "drone_state", "drone_event"}  # what the server sends u
 
 
 class Stream:
-    """One WebSocket of a session: hello, then frames one at a time (each waits for its pose)."""
+    """One session's conversation for tests (on the protocol client ``conn``): hello, then frames
+    one at a time, each waiting for its pose."""
 
     def __init__(self, ws_url: str, sid: str, token: str, dataset) -> None:
-        self.url = f"{ws_url}/ws/sessions/{sid}?token={token}"
+        self.url, self.token = f"{ws_url}/ws/sessions/{sid}", token
         self.dataset = dataset
         self.poses: list[dict] = []
         self.map_points = 0  # total_points of the last map chunk
-        self.ws = None
+        self.conn: Connection | None = None
 
     async def open(self) -> Stream:
         """Connect and say hello (a socket of ours that the server still holds is taken over)."""
         K = self.dataset.intrinsics
-        self.ws = await websockets.connect(self.url, max_size=None)
-        await self.ws.send(
-            P.encode(P.make_hello("test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height)))
-        )
-        welcome = await self.answer()
-        assert welcome["type"] == "welcome", welcome
+        hello = P.make_hello("test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        self.conn = await Connection.open(self.url, self.token, hello, timeout=60)
         return self
 
     async def answer(self) -> dict:
         while True:
-            msg = P.decode(await asyncio.wait_for(self.ws.recv(), 60))
+            msg = await self.conn.receive(60)
+            self.conn.acknowledge(msg)
             if msg["type"] == "map_chunk":
                 self.map_points = msg["total_points"]
             if msg["type"] not in UNASKED:
@@ -211,7 +208,7 @@ class Stream:
         f = self.dataset[(seq if index is None else index) % len(self.dataset)]
         colour = f.colour if colour is None else colour
         depth = f.depth if depth is None else depth
-        await self.ws.send(P.encode(P.make_frame(seq, f.timestamp, colour, depth)))
+        await self.conn.send_frame(P.make_frame(seq, f.timestamp, colour, depth))
         pose = await self.answer()
         assert pose["type"] == "pose" and pose["seq"] == seq, pose
         self.poses.append(pose)
@@ -223,11 +220,11 @@ class Stream:
             await self.send(seq, index=None if first_index is None else first_index + k)
 
     async def close(self) -> None:
-        await self.ws.close()
+        await self.conn.close()
 
     def abort(self) -> None:
         """Drop the connection like a phone leaving the Wi-Fi: no close frame, no bye."""
-        self.ws.transport.abort()
+        self.conn.abort()
 
     def matrices(self) -> np.ndarray:
         return np.array([P.pose_matrix(p) for p in self.poses])

@@ -25,8 +25,9 @@ from conftest import LiveServer, auth
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from server import protocol as P
+from server.client.connection import Connection, Socket
 from server.datasets import open_dataset
-from server.transport import protocol as P
 
 MAX_BYTES = 2 * 2**20  # the module server's max_message_bytes
 SIZE = (64, 48)  # (width, height) of the hand-made frames: cheap to decode and track
@@ -71,14 +72,12 @@ def assert_documented(error: dict, name: str, seq: int | None = None) -> None:
 # ---- a bare client and a healthy neighbour --------------------------------------------------
 
 
-class Client:
-    """A raw protocol client: sends anything, reads answers, sees how the socket ends."""
-
-    def __init__(self, ws) -> None:
-        self.ws = ws
+class Client(Socket):
+    """The protocol client's lower layer, unchecked: sends anything, reads answers, sees how the
+    socket ends."""
 
     async def send(self, message: dict | bytes | str) -> None:
-        await self.ws.send(raw(message) if isinstance(message, dict) else message)
+        await self.send_raw(raw(message) if isinstance(message, dict) else message)
 
     async def answer(self, timeout: float = 15.0) -> dict:
         """The next welcome, pose or error (skipping map chunks and drone messages)."""
@@ -89,9 +88,7 @@ class Client:
 
     async def next(self, timeout: float = 15.0) -> dict:
         """The next message of any type."""
-        return P.decode(
-            await asyncio.wait_for(self.ws.recv(), timeout), direction=P.SERVER_TO_CLIENT
-        )
+        return await self.receive(timeout)
 
     async def close_code(self, timeout: float = 15.0) -> int:
         """Wait for the server to close; fails on any answer before the close."""
@@ -114,10 +111,8 @@ async def fresh_session(server: LiveServer):
     holds its TSDF buffers, tens of MB)."""
     sid, token = server.create_session()
     try:
-        async with websockets.connect(
-            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-        ) as ws:
-            yield Client(ws)
+        async with await Client.connect(f"{server.ws_url}/ws/sessions/{sid}", token) as client:
+            yield client
     finally:
         httpx.delete(f"{server.url}/api/sessions/{sid}", headers=auth(token))
 
@@ -179,36 +174,26 @@ class HealthyStream:
     async def _run(self) -> None:
         sid, token = self.server.create_session()
         order = [*range(len(self.frames)), *range(len(self.frames) - 2, 0, -1)]  # ping-pong
-        acked = -1
-        async with websockets.connect(
-            f"{self.server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-        ) as ws:
-            await ws.send(P.encode(self.hello("healthy")))
-            assert P.decode(await ws.recv())["type"] == "welcome"
+        url = f"{self.server.ws_url}/ws/sessions/{sid}"
+        async with await Connection.open(url, token, self.hello("healthy")) as conn:
 
-            async def receive() -> None:
-                nonlocal acked
-                try:
-                    async for data in ws:
-                        msg = P.decode(data)
-                        if msg["type"] == "pose":
-                            self.pose_times.append(time.monotonic())
-                            acked = msg["seq"]
-                        elif msg["type"] == "error":
-                            self.errors.append(msg)
-                            acked = max(acked, msg.get("seq", acked))
-                except websockets.ConnectionClosed as closed:
-                    self.close_code = closed.rcvd.code if closed.rcvd else 1006
+            def on_message(msg: dict, latency_ms: float | None) -> None:
+                if msg["type"] == "pose":
+                    self.pose_times.append(time.monotonic())
+                elif msg["type"] == "error":
+                    self.errors.append(msg)
 
-            receiver = asyncio.create_task(receive())
+            conn.start(on_message)
             seq = 0
-            while not self._stop.is_set() and not receiver.done():
-                if seq - acked <= P.LIMITS["max_in_flight"]:
-                    await ws.send(raw(self.frame(order[seq % len(order)], seq)))
+            while not self._stop.is_set() and conn.receiving:
+                if len(conn.in_flight) < P.LIMITS["max_in_flight"]:
+                    await conn.send_frame(self.frame(order[seq % len(order)], seq))
                     seq += 1
                 await asyncio.sleep(1 / self.fps)
-            await ws.send(P.encode(P.make_bye("done")))
-            await asyncio.wait_for(receiver, 15)
+            try:
+                await conn.bye("done", 15)
+            finally:
+                self.close_code = conn.close_code or 1006
 
 
 @pytest.fixture(scope="module")

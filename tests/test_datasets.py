@@ -14,8 +14,9 @@ import pytest
 
 from server.datasets import RedwoodDataset, TUMDataset, open_dataset
 from server.datasets.redwood import PRIMESENSE_DEFAULT
-from server.datasets.tum import TUM_DEFAULT_INTRINSICS, associate
+from server.datasets.tum import TUM_DEFAULT_INTRINSICS
 from server.errors import DatasetError
+from server.evaluation.trajectory import associate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"shared data not found at {DATA}")

@@ -9,9 +9,9 @@ import numpy as np
 import websockets
 from conftest import session_status
 
+from server import protocol as proto
 from server.datasets import open_dataset
 from server.simulation.config import SimulationConfig
-from server.transport import protocol as proto
 
 FRAMES = 40
 

@@ -22,11 +22,12 @@ import pytest
 import websockets
 from conftest import Stream, auth, offline_track, session_status
 
+from server import protocol as P
+from server.client.connection import Socket
 from server.client.server_process import ServerProcess
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
-from server.transport import protocol as P
 
 
 @pytest.fixture
@@ -83,7 +84,7 @@ def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
             seq += 1
         await stream.send_range(range(seq, seq + 10))
         f = room[seq + 10]  # one more in flight as the server dies
-        await stream.ws.send(P.encode(P.make_frame(seq + 10, f.timestamp, f.colour, f.depth)))
+        await stream.conn.send_frame(P.make_frame(seq + 10, f.timestamp, f.colour, f.depth))
         assert server.signal(signal.SIGKILL) == -signal.SIGKILL
 
     asyncio.run(stream_then_kill())
@@ -188,10 +189,10 @@ def test_a_crashed_worker_is_reported_and_its_session_kept_as_its_last_snapshot(
     assert ply.status_code == 200 and ply.content == (folder / "map.ply").read_bytes()
 
     async def come_back():  # the session is closed: a new socket is refused, not hung
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}") as ws:
-            msg = P.decode(await asyncio.wait_for(ws.recv(), 30))
+        async with await Socket.connect(f"{server.ws_url}/ws/sessions/{sid}", token) as socket:
+            msg = await socket.receive(30)
             with pytest.raises(websockets.ConnectionClosed) as closed:
-                await asyncio.wait_for(ws.recv(), 30)
+                await socket.receive(30)
             return msg, closed.value.rcvd.code
 
     msg, code = asyncio.run(come_back())
@@ -220,8 +221,7 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
         before = status()
         await stream.open()  # same token, same camera
         await stream.send_range(range(15, 30))
-        await stream.ws.send(P.encode(P.make_bye("done")))
-        await stream.ws.wait_closed()
+        await stream.conn.bye("done")
         return before, points_before
 
     before, points_before = asyncio.run(drop_and_return())
@@ -249,18 +249,16 @@ def test_a_phone_back_from_a_silent_wifi_drop_takes_its_session_over_at_once(liv
     async def drop_silently_and_return():
         await phone.open()
         await phone.send_range(range(10))
-        stale = phone.ws  # left open and unread: what the server sees of a phone off the Wi-Fi
+        stale = phone.conn  # left open and unread: what the server sees of a phone off the Wi-Fi
         wrong = ("y" if token[0] == "x" else "x") + token[1:]
-        url = f"{server.ws_url}/ws/sessions/{sid}?token={wrong}"
-        async with websockets.connect(url) as stranger:
-            refused = P.decode(await stranger.recv())
+        async with await Socket.connect(f"{server.ws_url}/ws/sessions/{sid}", wrong) as stranger:
+            refused = await stranger.receive(10)
         t0 = time.monotonic()
         await phone.open()
         took_over_s = time.monotonic() - t0
         await phone.send_range(range(10, 20))  # numbered on, as a page that kept its state
-        told = [P.decode(m) async for m in _until_closed(stale)]
-        await phone.ws.send(P.encode(P.make_bye("done")))
-        await phone.ws.wait_closed()
+        told = await stale.until_closed(10)
+        await phone.conn.bye("done")
         return refused, took_over_s, told, stale.close_code
 
     refused, took_over_s, told, old_code = asyncio.run(drop_silently_and_return())
@@ -287,8 +285,8 @@ def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server
         deleted = await asyncio.to_thread(
             httpx.delete, f"{server.url}/api/sessions/{sid}", headers=auth(token), timeout=60
         )
-        told = [P.decode(m) async for m in _until_closed(phone.ws)]
-        return deleted.status_code, told, phone.ws.close_code
+        told = await phone.conn.until_closed(10)
+        return deleted.status_code, told, phone.conn.close_code
 
     code, told, close_code = asyncio.run(stream_then_delete())
     assert code == 204
@@ -299,15 +297,6 @@ def test_deleting_a_connected_session_tells_its_socket_and_closes_it(live_server
     assert close_code == P.CLOSE_CODES["unauthorized"]
     assert httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token)).status_code == 404
     assert not (server.settings.data_dir / "sessions" / sid).exists()
-
-
-async def _until_closed(ws):
-    """What the server still sent on a socket, up to its close."""
-    try:
-        while True:
-            yield await asyncio.wait_for(ws.recv(), 10)
-    except websockets.ConnectionClosed:
-        return
 
 
 def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_server, room):
@@ -335,10 +324,10 @@ def test_a_client_that_never_returns_is_closed_and_saved_after_the_ttl(live_serv
     assert len(saved["trajectory"]) == 12 and saved["meta"]["closed"] is True
 
     async def come_back_too_late():
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={token}") as ws:
-            msg = P.decode(await ws.recv())
+        async with await Socket.connect(f"{server.ws_url}/ws/sessions/{sid}", token) as socket:
+            msg = await socket.receive(30)
             with pytest.raises(websockets.ConnectionClosed) as closed:
-                await ws.recv()
+                await socket.receive(30)
             return msg, closed.value.rcvd.code
 
     msg, code = asyncio.run(come_back_too_late())

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from conftest import missing
 
-from server.datasets.base import Trajectory
 from server.errors import TrajectoryError
 from server.evaluation.metrics import (
     align_umeyama,
@@ -18,7 +17,7 @@ from server.evaluation.metrics import (
     format_table,
     rpe,
 )
-from server.evaluation.trajectory import read_tum, write_tum
+from server.evaluation.trajectory import Trajectory, read_tum, write_tum
 from server.geometry import exp_se3
 
 

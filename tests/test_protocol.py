@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from conftest import missing
 
+from server import protocol as P
 from server.errors import DroneSimError
-from server.transport import protocol as P
-from server.transport.protocol import ProtocolError
+from server.protocol import ProtocolError
+from server.protocol.schema import _PY_TYPES
 
 ROOM = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic_room0"
 SHARED = Path(__file__).resolve().parents[1] / "shared"
@@ -332,7 +333,7 @@ def test_oversized_payload_is_rejected_before_unpacking(monkeypatch):
     def unpack_must_not_run(*args, **kwargs):
         raise AssertionError("unpacked an oversized message")
 
-    monkeypatch.setattr(P.msgpack, "unpackb", unpack_must_not_run)
+    monkeypatch.setattr(msgpack, "unpackb", unpack_must_not_run)
     data = bytes(P.LIMITS["max_message_bytes"] + 1)
     error = expect("message_too_big", P.decode, data)
     assert error.close_code == P.CLOSE_CODES["message_too_big"]
@@ -397,7 +398,7 @@ def test_definition_is_well_formed():
     for kind, message in spec["messages"].items():
         assert message["direction"] in (P.CLIENT_TO_SERVER, P.SERVER_TO_CLIENT), kind
         for field in message["fields"]:
-            assert set(field) <= known and field["type"] in P._PY_TYPES, (kind, field)
+            assert set(field) <= known and field["type"] in _PY_TYPES, (kind, field)
     codes = [e["code"] for e in spec["errors"]]
     closes = {c["code"] for c in spec["close_codes"]}
     assert len(set(codes)) == len(codes)

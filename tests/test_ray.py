@@ -32,8 +32,8 @@ except ImportError:
     missing("ray is not installed (pip install -e '.[ray]'; it is in [dev])")
 
 
+from server import protocol as P  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
-from server.transport import protocol as P  # noqa: E402
 
 NAMESPACE = "dronesim"
 
@@ -194,7 +194,7 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
             ended = await a1.answer()  # front1's socket: taken over
             assert ended["type"] == "error" and ended["name"] == "session_taken_over", ended
             await a2.send_range(range(4), first_index=8)
-            await a1.ws.close()
+            await a1.close()
             return a2
 
         a2 = asyncio.run(take_over())

@@ -21,12 +21,12 @@ import websockets
 from conftest import auth
 from pydantic import ValidationError
 
+from server import protocol as P
 from server.config import Config, ServerConfig
 from server.sessions import manager as manager_module
 from server.sessions.manager import SessionManager
 from server.sessions.session import SessionError, hash_token
 from server.sessions.store import SessionStore, StoreError
-from server.transport import protocol as P
 from server.transport.app import RedactTokens
 from server.transport.deps import RateLimiter
 

@@ -11,10 +11,11 @@ import pytest
 import websockets
 from conftest import auth, offline_track, session_status
 
+from server import protocol as proto
+from server.client.connection import Connection, Socket
 from server.client.replay import replay
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
-from server.transport import protocol as proto
 
 FRAMES = 60
 
@@ -40,7 +41,8 @@ def test_streamed_poses_match_offline_tracking_and_the_map_downloads(
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()
     stats = stream(server, sid, token, ds)
-    assert not stats.errors
+    assert stats.completed, stats.failure
+    assert not stats.errors and stats.answered == stats.sent == FRAMES and stats.missing == 0
     assert len(stats.poses) == FRAMES  # one frame in flight at a time: nothing dropped
     assert [p["seq"] for p in stats.poses] == list(range(FRAMES))
     assert stats.map_points > 1000  # preview chunks streamed while mapping
@@ -84,10 +86,10 @@ def test_requests_without_or_with_a_wrong_token_are_refused(live_server):
     assert httpx.get(f"{base}/{sid}", headers=auth(token)).status_code == 200
 
     async def ws_with(tok):
-        async with websockets.connect(f"{server.ws_url}/ws/sessions/{sid}?token={tok}") as ws:
-            msg = proto.decode(await ws.recv())
+        async with await Socket.connect(f"{server.ws_url}/ws/sessions/{sid}", tok) as socket:
+            msg = await socket.receive(30)
             with pytest.raises(websockets.ConnectionClosed) as closed:
-                await ws.recv()
+                await socket.receive(30)
             return msg, closed.value.rcvd.code
 
     msg, code = asyncio.run(ws_with("wrong"))
@@ -185,31 +187,16 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
 
     async def flood():
         K = ds.intrinsics
-        async with websockets.connect(
-            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-        ) as ws:
-            await ws.send(
-                proto.encode(
-                    proto.make_hello("flood", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
-                )
-            )
-            assert proto.decode(await ws.recv())["type"] == "welcome"
+        hello = proto.make_hello("flood", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        url = f"{server.ws_url}/ws/sessions/{sid}"
+        async with await Connection.open(url, token, hello) as conn:
             rss_start = None
-            for i in range(300):
-                data = proto.decode(frames[i % 10])
-                data["seq"] = i
-                await ws.send(proto.encode(data))
+            for i in range(300):  # never waiting for an answer
+                await conn.send_frame({**proto.decode(frames[i % 10]), "seq": i})
                 if i == 50:
                     rss_start = rss_mb()
-            await ws.send(proto.encode(proto.make_bye()))
-            poses = []
-            try:
-                async for raw in ws:
-                    msg = proto.decode(raw)
-                    if msg["type"] == "pose":
-                        poses.append(msg)
-            except websockets.ConnectionClosed:
-                pass
+            await conn.send(proto.make_bye())
+            poses = [m for m in await conn.until_closed(60) if m["type"] == "pose"]
             return poses, rss_start, rss_mb()
 
     poses, rss_start, rss_end = asyncio.run(flood())
@@ -228,19 +215,15 @@ def test_a_bye_still_gets_answers_for_the_frames_in_flight(live_server, shared_d
     K = ds.intrinsics
 
     async def send_two_and_leave() -> tuple[list[dict], int]:
-        async with websockets.connect(
-            f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-        ) as ws:
-            await ws.send(
-                proto.encode(proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height)))
-            )
-            assert proto.decode(await ws.recv())["type"] == "welcome"
+        hello = proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        url = f"{server.ws_url}/ws/sessions/{sid}"
+        async with await Connection.open(url, token, hello) as conn:
             for i in range(2):
                 f = ds[i]
-                await ws.send(proto.encode(proto.make_frame(i, f.timestamp, f.colour, f.depth)))
-            await ws.send(proto.encode(proto.make_bye("done")))
-            received = [proto.decode(data) async for data in ws]
-            return received, ws.close_code
+                await conn.send_frame(proto.make_frame(i, f.timestamp, f.colour, f.depth))
+            await conn.send(proto.make_bye("done"))
+            received = await conn.until_closed(60)
+            return received, conn.close_code
 
     received, close_code = asyncio.run(send_two_and_leave())
     assert close_code == 1000

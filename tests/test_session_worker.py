@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from conftest import process_running
 
+from server import protocol as P
 from server.geometry import Intrinsics
 from server.sessions import CommandRefused, FrameRefused, PoseUpdate, SessionError
 from server.sessions.manager import SessionManager
 from server.sessions.session import FrameData, Session
 from server.sessions.store import SessionStore
-from server.transport import protocol as P
 
 
 class Updates:

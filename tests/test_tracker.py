@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from server.datasets import open_dataset
-from server.datasets.base import Trajectory
 from server.evaluation.metrics import evaluate
+from server.evaluation.trajectory import Trajectory
 from server.geometry import invert, rotation_angle_deg
 from server.pipeline import ground_truth_pose_at
 from server.registration import Tracker, TrackingState

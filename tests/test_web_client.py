@@ -42,7 +42,7 @@ from browser import (
 )
 from websockets.sync.client import connect
 
-from server.transport import protocol as proto
+from server import protocol as proto
 
 # The browser fixtures, for pytest to find in this module.
 chromium, demo_ready, open_page = browser.chromium, browser.demo_ready, browser.open_page

@@ -1,7 +1,8 @@
 """Replay an RGB-D sequence to a server session over the WebSocket protocol, paced like a camera.
 
 Frames are 'captured' on a fixed schedule; when the client already has ``max_in_flight`` frames
-unanswered, the captured frame is dropped on the client side, as a phone would.
+unanswered, the captured frame is dropped on the client side, as a phone would. The result says
+whether the run completed: every frame sent was answered and the server closed after bye.
 """
 
 from __future__ import annotations
@@ -15,15 +16,22 @@ from dataclasses import dataclass, field
 import numpy as np
 import websockets
 
+from server import protocol as proto
+from server.client.connection import NORMAL_CLOSE, Connection, close_name
 from server.datasets import RGBDDataset
-from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
+
+ANSWER_TIMEOUT_S = 30.0  # the longest wait for an answer (a frame's, or the last ones')
+CLOSE_TIMEOUT_S = 10.0  # the longest wait for the server's close after bye
 
 
 @dataclass
 class ReplayStats:
-    """What one replay saw. Latency: send to pose, milliseconds."""
+    """What one replay saw. Latency: send to pose, milliseconds.
+
+    ``failure`` says what ended the run early or left it incomplete (None: it completed);
+    ``missing`` counts the frames sent and never answered."""
 
     sent: int = 0
     client_dropped: int = 0
@@ -33,22 +41,24 @@ class ReplayStats:
     map_points: int = 0
     welcome: dict | None = None
     drone_events: list[dict] = field(default_factory=list)
+    missing: int = 0
+    invalid: list[str] = field(default_factory=list)  # server messages that broke the protocol
+    close_code: int | None = None
+    failure: str | None = None
 
+    @property
+    def answered(self) -> int:
+        """Frames sent and answered (by a pose, their own or a later frame's, or an error)."""
+        return self.sent - self.missing
 
-async def await_answers(
-    in_flight: dict,
-    answered: asyncio.Event,
-    deadline: float,
-    gone: Callable[[], bool] = lambda: False,
-) -> None:
-    """Wait until no frame is in flight (``answered`` is set on each answer), the monotonic
-    ``deadline`` passes, or ``gone()`` says the connection ended."""
-    while in_flight and not gone() and time.monotonic() < deadline:
-        answered.clear()
-        try:
-            await asyncio.wait_for(answered.wait(), max(0.01, deadline - time.monotonic()))
-        except asyncio.TimeoutError:
-            return
+    @property
+    def completed(self) -> bool:
+        return self.failure is None
+
+    def describe(self) -> str:
+        """One line for a log: counts, and what went wrong when it did."""
+        line = f"{self.sent} frames sent, {self.answered} answered, {self.missing} missing"
+        return line if self.completed else f"{line}; incomplete: {self.failure}"
 
 
 async def replay(
@@ -73,11 +83,14 @@ async def replay(
     (a camera); False waits for an answer instead, so that every frame is sent (tests).
     preencode: JPEG/PNG-encode every frame before streaming, so that the client's encoding time
     (a phone's own work) does not sit in the measured latency (benchmarks).
-    pilot: sees every message from the server and may answer with a ``command`` to send."""
+    pilot: sees every message from the server and may answer with a ``command`` to send.
+
+    Returns partial statistics when the run ends early, with ``failure`` saying why; raises
+    only when no conversation starts (refused connection: websockets.InvalidHandshake, OSError;
+    no welcome: ClientError)."""
     stats = ReplayStats()
     K = dataset.intrinsics
     n = len(dataset) if max_frames is None else max_frames
-    in_flight: dict[int, float] = {}
 
     def frame_message(i: int) -> dict:
         frame = dataset[i % len(dataset)]
@@ -94,81 +107,105 @@ async def replay(
         return {i: frame_message(i) for i in range(min(n, len(dataset)))}
 
     cache = await asyncio.to_thread(encode_all) if preencode else {}
-    answered = asyncio.Event()
-    async with websockets.connect(f"{ws_url}?token={token}", max_size=None, ssl=ssl) as ws:
-        await ws.send(
-            proto.encode(
-                proto.make_hello(
-                    client_name, (K.fx, K.fy, K.cx, K.cy), (K.width, K.height), depth_scale=1000.0
-                )
-            )
-        )
-        stats.welcome = proto.decode(await ws.recv())
-        if stats.welcome["type"] != "welcome":
-            raise proto.ProtocolError(
-                "unexpected_message", f"expected welcome, got {stats.welcome}"
-            )
+    hello = proto.make_hello(
+        client_name, (K.fx, K.fy, K.cx, K.cy), (K.width, K.height), depth_scale=1000.0
+    )
+    conn = await Connection.open(ws_url, token, hello, ssl=ssl, timeout=ANSWER_TIMEOUT_S)
+    stats.welcome = conn.welcome
 
-        async def receive() -> None:
-            async for data in ws:
-                msg = proto.decode(data)
-                if msg["type"] == "pose":
-                    sent_at = in_flight.pop(msg["seq"], None)
-                    if sent_at is not None:
-                        stats.latencies_ms.append((time.monotonic() - sent_at) * 1e3)
-                    # Frames the server dropped in favour of this one are answered by it.
-                    for seq in [s for s in in_flight if s < msg["seq"]]:
-                        in_flight.pop(seq)
-                    stats.poses.append(msg)
-                    if on_pose is not None:
-                        on_pose(msg)
-                elif msg["type"] == "map_chunk":
-                    stats.map_points += msg["count"]
-                elif msg["type"] == "error":
-                    stats.errors.append(msg)
-                    if msg.get("seq") is not None:
-                        in_flight.pop(msg["seq"], None)
-                elif msg["type"] == "drone_event":
-                    stats.drone_events.append(msg)
-                if pilot is not None and (command := pilot(msg)) is not None:
-                    await ws.send(proto.encode(command))
-                answered.set()
+    async def on_message(msg: dict, latency_ms: float | None) -> None:
+        kind = msg["type"]
+        if kind == "pose":
+            if latency_ms is not None:
+                stats.latencies_ms.append(latency_ms)
+            stats.poses.append(msg)
+            if on_pose is not None:
+                on_pose(msg)
+        elif kind == "map_chunk":
+            stats.map_points += msg["count"]
+        elif kind == "error":
+            stats.errors.append(msg)
+        elif kind == "drone_event":
+            stats.drone_events.append(msg)
+        if pilot is not None and (command := pilot(msg)) is not None:
+            await conn.send(command)
 
-        receiver = asyncio.create_task(receive())
+    async def stream() -> str | None:
+        """Send the frames on their schedule; -> why streaming stopped early, or None."""
         start = time.monotonic()
-        try:
-            for i in range(n):
-                due = start + i / fps
-                await asyncio.sleep(max(0.0, due - time.monotonic()))
-                while not drop_when_busy and len(in_flight) >= max_in_flight:
-                    answered.clear()
-                    await asyncio.wait_for(answered.wait(), timeout=30.0)
-                if len(in_flight) >= max_in_flight:
-                    stats.client_dropped += 1
-                    continue
-                if not loop_sequence and i >= len(dataset):
-                    break
-                # Encoding runs off the event loop: the loop may be a server's (the demo).
-                message = cache.get(i % len(dataset)) or await asyncio.to_thread(frame_message, i)
-                message = {**message, "seq": i}
-                in_flight[i] = time.monotonic()
-                await ws.send(proto.encode(message))
-                stats.sent += 1
-            # Wait for the last answers (bounded), then say goodbye.
-            await await_answers(in_flight, answered, time.monotonic() + 30.0)
-            await ws.send(proto.encode(proto.make_bye("done")))
-            await asyncio.wait_for(receiver, timeout=10.0)
-        except (asyncio.TimeoutError, websockets.ConnectionClosed):
-            pass
-        finally:
-            receiver.cancel()
+        for i in range(n):
+            if not conn.receiving:
+                return _ended(conn, stats)
+            due = start + i / fps
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
+            if not drop_when_busy and not await conn.wait_for_room(max_in_flight, ANSWER_TIMEOUT_S):
+                if not conn.receiving:
+                    return _ended(conn, stats)
+                return f"no answer within {ANSWER_TIMEOUT_S:g} s to {max_in_flight} frames"
+            if len(conn.in_flight) >= max_in_flight:
+                stats.client_dropped += 1
+                continue
+            if not loop_sequence and i >= len(dataset):
+                break
+            # Encoding runs off the event loop: the loop may be a server's (the demo).
+            message = cache.get(i % len(dataset)) or await asyncio.to_thread(frame_message, i)
+            await conn.send_frame({**message, "seq": i})
+            stats.sent += 1
+        return None
+
+    conn.start(on_message)
+    try:
+        stats.failure = await stream()
+        if stats.failure is None and not await conn.drain(ANSWER_TIMEOUT_S):
+            stats.failure = (
+                _ended(conn, stats)
+                if not conn.receiving
+                else f"no answer within {ANSWER_TIMEOUT_S:g} s to the last frames"
+            )
+        if conn.receiving:
+            try:
+                await conn.bye("done", CLOSE_TIMEOUT_S)
+            except asyncio.TimeoutError:
+                stats.failure = stats.failure or "no close from the server after bye"
+    except websockets.ConnectionClosed:
+        stats.failure = _ended(conn, stats)
+    finally:
+        await conn.close()
+    stats.close_code = conn.close_code
+    stats.missing = len(conn.in_flight)
+    stats.invalid = list(conn.invalid)
+    stats.failure = stats.failure or _failure(conn, stats)
     return stats
+
+
+def _ended(conn: Connection, stats: ReplayStats) -> str:
+    """Why the connection ended before the replay did."""
+    if conn.failure is not None:
+        return f"client failed: {conn.failure}"
+    return f"the connection ended ({close_name(conn.close_code)}) after {stats.sent} frames"
+
+
+def _failure(conn: Connection, stats: ReplayStats) -> str | None:
+    """What makes a finished run incomplete, if anything (checked in this order)."""
+    if conn.failure is not None:
+        return f"client failed: {conn.failure}"
+    if stats.close_code != NORMAL_CLOSE:
+        return f"connection ended with {close_name(stats.close_code)}"
+    if stats.missing:
+        return f"{stats.missing} frames never answered"
+    if stats.invalid:
+        return f"{len(stats.invalid)} invalid server messages, first: {stats.invalid[0]}"
+    return None
 
 
 def latency_summary(stats: ReplayStats) -> dict:
     lat = np.array(stats.latencies_ms) if stats.latencies_ms else np.array([np.nan])
     return {
         "sent": stats.sent,
+        "answered": stats.answered,
+        "missing": stats.missing,
+        "completed": stats.completed,
+        "failure": stats.failure,
         "poses": len(stats.poses),
         "client_dropped": stats.client_dropped,
         "server_dropped": stats.poses[-1]["dropped"] if stats.poses else 0,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from server.transport import protocol as proto
+from server import protocol as proto
 
 AHEAD_M = 0.7  # targets lie this far in front of a past camera
 MAX_REFUSALS = 3  # refused targets in a row before waiting for more map

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from server.datasets.base import RGBDDataset, RGBDFrame, Trajectory
+from server.datasets.base import RGBDDataset, RGBDFrame
 from server.datasets.redwood import RedwoodDataset
 from server.datasets.tum import TUMDataset
 from server.errors import DatasetError
@@ -51,7 +51,6 @@ __all__ = [
     "RGBDFrame",
     "RedwoodDataset",
     "TUMDataset",
-    "Trajectory",
     "open_dataset",
     "sniff_format",
 ]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from server.evaluation.trajectory import Trajectory
 from server.geometry import Intrinsics
 
 
@@ -23,18 +24,6 @@ class RGBDFrame:
     timestamp: float
     colour: np.ndarray
     depth: np.ndarray
-
-
-@dataclass
-class Trajectory:
-    """Timestamped poses: ``timestamps`` (N,) seconds, ``poses`` (N, 4, 4) T_world_camera,
-    metres."""
-
-    timestamps: np.ndarray
-    poses: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.timestamps)
 
 
 class RGBDDataset:

@@ -17,8 +17,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from server.datasets.base import RGBDDataset, RGBDFrame, Trajectory
+from server.datasets.base import RGBDDataset, RGBDFrame
 from server.errors import DatasetError, DroneSimError
+from server.evaluation.trajectory import Trajectory, associate, read_tum
 from server.geometry import Intrinsics
 from server.textfile import data_lines
 
@@ -32,39 +33,6 @@ TUM_DEFAULT_INTRINSICS = {
     "fr3": Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
 }
 INTRINSICS_FLAGS = "--fx --fy --cx --cy --width --height (and --depth-scale)"
-
-
-def associate(
-    a_stamps: np.ndarray, b_stamps: np.ndarray, max_diff: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one nearest-timestamp matching, greedy by smallest time difference (TUM associate.py).
-
-    a_stamps, b_stamps: timestamps in seconds, any order. max_diff: largest accepted |a - b| in s.
-    Returns index arrays (idx_a, idx_b), sorted by idx_a; both empty when nothing matches.
-    """
-    a = np.asarray(a_stamps, dtype=np.float64)
-    b = np.asarray(b_stamps, dtype=np.float64)
-    order = np.argsort(b, kind="stable")
-    b_sorted = b[order]
-    lo = np.searchsorted(b_sorted, a - max_diff, side="left")
-    hi = np.searchsorted(b_sorted, a + max_diff, side="right")
-    candidates = []  # (|diff|, i, j) for every pair within the tolerance
-    for i in range(len(a)):
-        for k in range(lo[i], hi[i]):
-            j = int(order[k])
-            diff = abs(a[i] - b[j])
-            if diff <= max_diff:
-                candidates.append((diff, i, j))
-    candidates.sort()
-    used_a, used_b, pairs = set(), set(), []
-    for _, i, j in candidates:
-        if i not in used_a and j not in used_b:
-            used_a.add(i)
-            used_b.add(j)
-            pairs.append((i, j))
-    pairs.sort()
-    idx = np.array(pairs, dtype=np.int64).reshape(-1, 2)
-    return idx[:, 0], idx[:, 1]
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -142,10 +110,6 @@ def _check_size(path: Path, image: np.ndarray, K: Intrinsics) -> None:
 
 def read_ground_truth(path: Path) -> Trajectory | None:
     """The TUM-format trajectory in ``path`` (T_world_camera, metres), or None if there is none."""
-    # Imported here: server.evaluation.trajectory imports server.datasets.base, which runs this
-    # package's __init__, which imports this module.
-    from server.evaluation.trajectory import read_tum
-
     if not path.is_file():
         return None
     try:

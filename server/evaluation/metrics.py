@@ -12,9 +12,8 @@ from enum import Enum
 import numpy as np
 from rich.table import Table
 
-from server.datasets.base import Trajectory
-from server.datasets.tum import associate
 from server.errors import TrajectoryError
+from server.evaluation.trajectory import Trajectory, associate
 
 logger = logging.getLogger(__name__)
 

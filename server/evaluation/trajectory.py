@@ -1,19 +1,19 @@
-"""TUM trajectory files: one read/write pair.
+"""Trajectories: timestamped camera poses, their matching by timestamp, and TUM files (one
+read/write pair). Datasets (ground truth), sessions and metrics all use these.
 
-Format: one pose per line, ``timestamp tx ty tz qx qy qz qw`` (seconds, metres, unit quaternion),
-``#`` starts a comment line. Poses are T_world_camera.
+TUM format: one pose per line, ``timestamp tx ty tz qx qy qz qw`` (seconds, metres, unit
+quaternion), ``#`` starts a comment line. Poses are T_world_camera.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from server.datasets.base import Trajectory
+from server.atomic import atomic_write
 from server.errors import TrajectoryError
 from server.geometry import pose_from_quaternion, quaternion_from_pose
 from server.textfile import data_lines
@@ -21,6 +21,51 @@ from server.textfile import data_lines
 logger = logging.getLogger(__name__)
 
 TUM_FORMAT = "'timestamp tx ty tz qx qy qz qw' (8 numbers per line, '#' for comments)"
+
+
+@dataclass
+class Trajectory:
+    """Timestamped poses: ``timestamps`` (N,) seconds, ``poses`` (N, 4, 4) T_world_camera,
+    metres."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+
+def associate(
+    a_stamps: np.ndarray, b_stamps: np.ndarray, max_diff: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one nearest-timestamp matching, greedy by smallest time difference (TUM associate.py).
+
+    a_stamps, b_stamps: timestamps in seconds, any order. max_diff: largest accepted |a - b| in s.
+    Returns index arrays (idx_a, idx_b), sorted by idx_a; both empty when nothing matches.
+    """
+    a = np.asarray(a_stamps, dtype=np.float64)
+    b = np.asarray(b_stamps, dtype=np.float64)
+    order = np.argsort(b, kind="stable")
+    b_sorted = b[order]
+    lo = np.searchsorted(b_sorted, a - max_diff, side="left")
+    hi = np.searchsorted(b_sorted, a + max_diff, side="right")
+    candidates = []  # (|diff|, i, j) for every pair within the tolerance
+    for i in range(len(a)):
+        for k in range(lo[i], hi[i]):
+            j = int(order[k])
+            diff = abs(a[i] - b[j])
+            if diff <= max_diff:
+                candidates.append((diff, i, j))
+    candidates.sort()
+    used_a, used_b, pairs = set(), set(), []
+    for _, i, j in candidates:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    pairs.sort()
+    idx = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    return idx[:, 0], idx[:, 1]
 
 
 def _parse_row(path: Path, line_no: int, line: str) -> tuple[float, np.ndarray]:
@@ -80,13 +125,6 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     for stamp, T in zip(timestamps, poses, strict=True):
         numbers = [*T[:3, 3], *quaternion_from_pose(T)]
         lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in numbers))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    text = "\n".join(lines) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
     logger.debug("wrote %d poses to %s", len(timestamps), path)

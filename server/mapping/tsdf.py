@@ -12,8 +12,6 @@ the part of that grid the frames fused since its last call can have changed.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import threading
 import zipfile
 from collections.abc import Callable
@@ -26,6 +24,7 @@ import open3d as o3d
 import open3d.core as o3c
 from numpy.typing import ArrayLike, NDArray
 
+from server.atomic import atomic_write
 from server.errors import ConfigError, DroneSimError
 from server.geometry import Intrinsics
 from server.geometry.arrays import (
@@ -79,21 +78,14 @@ def _rotate(points: ArrayLike, R: RealArray | None) -> FloatArray:
     )
 
 
-def _atomic_write(path: str | Path, suffix: str, write: Callable[[str], bool | None]) -> None:
-    """Call ``write(tmp)`` (False: it failed) on a temporary file beside ``path``, then rename
-    the file over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
-    try:
-        if write(tmp) is False:
+def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: object) -> None:
+    """Write ``geometry`` with the Open3D ``writer`` (binary PLY), atomically, readable by all."""
+
+    def write(tmp: str) -> None:
+        if writer(tmp, geometry) is False:
             raise MapError(f"Open3D could not write {path}")
-        os.chmod(tmp, 0o644)  # mkstemp makes it private
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    atomic_write(path, write, suffix=".ply", mode=0o644)
 
 
 _ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB 0..1
@@ -467,24 +459,14 @@ class TSDFMap:
             raise MapError(f"the map has no surface to write to {path} yet")
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         cloud.colors = o3d.utility.Vector3dVector(colours)
-        # Binary. open3d's stubs ask for a PathLike; the binding takes a str as well.
-        _atomic_write(
-            path,
-            ".ply",
-            lambda tmp: o3d.io.write_point_cloud(tmp, cloud),  # type: ignore[arg-type]
-        )
+        _open3d_write(path, o3d.io.write_point_cloud, cloud)
 
     def write_mesh_ply(self, path: str | Path) -> None:
         """Binary PLY of ``mesh()`` with vertex colours, written atomically."""
         mesh = self.mesh()
         if not mesh.has_triangles():
             raise MapError(f"the map has no surface to write to {path} yet")
-        # Binary. open3d's stubs ask for a PathLike; the binding takes a str as well.
-        _atomic_write(
-            path,
-            ".ply",
-            lambda tmp: o3d.io.write_triangle_mesh(tmp, mesh),  # type: ignore[arg-type]
-        )
+        _open3d_write(path, o3d.io.write_triangle_mesh, mesh)
 
     def save(self, path: str | Path) -> None:
         """Persist the whole grid and the camera positions, written atomically, in the layout of
@@ -508,7 +490,7 @@ class TSDFMap:
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
 
-        _atomic_write(path, ".npz", write)
+        atomic_write(path, write, suffix=".npz", mode=0o644)
         log.info("saved TSDF map (%d blocks) to %s", len(active), path)
 
     @classmethod

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from server import protocol as proto
 from server.errors import ConfigError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
@@ -28,7 +29,6 @@ from server.sessions.flight import CommandRefused
 from server.sessions.mapping import MapperClient
 from server.sessions.session import FrameData, FrameRefused, Session, SessionConfig
 from server.sessions.store import SessionStore
-from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
 

@@ -17,8 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from server.config import Config
-from server.datasets.base import Trajectory
-from server.evaluation.trajectory import write_tum
+from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
 from server.mapping.config import MappingConfig
 from server.mapping.tsdf import MapError

@@ -10,9 +10,9 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
+from server.atomic import atomic_write_bytes
 from server.errors import DroneSimError
 
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
@@ -22,21 +22,6 @@ STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
 
 class StoreError(DroneSimError):
     """A session's files are missing or unreadable."""
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` so that ``path`` holds either the old or the new content, never half."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class SessionStore:

@@ -1,4 +1,5 @@
-"""The WebSocket side of the server: the wire protocol codec (``protocol``), defined in ``shared/``.
+"""The web side of the server: FastAPI app, REST routes, the WebSocket endpoint and TLS.
 
-Pure numerical code (registration, mapping, simulation) never imports from here.
+The wire protocol itself is ``server.protocol``; pure numerical code (registration, mapping,
+simulation) never imports from here, nor do the Python clients (``server.client``).
 """

@@ -22,18 +22,15 @@ async def run_demo(app: FastAPI) -> None:
     dataset = open_dataset(path, "tum")
     session, token = manager.create()
     app.state.demo = {"id": session.id, "token": token}
-    scheme = "https" if settings.tls else "http"
-    base = f"{scheme}://{settings.host}:{settings.port}"
+    # The token stays out of the log: the operator finds the session's files on disk.
     log.warning(
-        "demo session %s (token %s): map at %s/api/sessions/%s/map.ply "
-        "(header 'Authorization: Bearer <token>')",
+        "demo session %s: its map and trajectory are saved under %s",
         session.id,
-        token,
-        base,
-        session.id,
+        settings.data_dir / "sessions" / session.id,
     )
     await asyncio.sleep(0.5)  # let uvicorn start listening
-    ws_url = f"{'wss' if settings.tls else 'ws'}://{settings.host}:{settings.port}/ws/sessions/{session.id}"
+    scheme = "wss" if settings.tls else "ws"
+    ws_url = f"{scheme}://{settings.host}:{settings.port}/ws/sessions/{session.id}"
     ssl = None
     if settings.tls:
         import ssl as ssl_module
@@ -50,15 +47,15 @@ async def run_demo(app: FastAPI) -> None:
             ssl=ssl,
             pilot=TourPilot(),
         )
-        arrivals = sum(e["event"] == "arrived" for e in stats.drone_events)
-        log.warning(
-            "demo session %s: %d frames sent, %d poses, %d map points streamed, "
-            "the drone reached %d targets",
-            session.id,
-            stats.sent,
-            len(stats.poses),
-            stats.map_points,
-            arrivals,
-        )
     except Exception:
-        log.exception("demo replay failed")
+        log.exception("demo session %s: the replay could not start", session.id)
+        return
+    arrivals = sum(e["event"] == "arrived" for e in stats.drone_events)
+    summary = (
+        f"{stats.describe()}; {len(stats.poses)} poses, {stats.map_points} map points streamed, "
+        f"the drone reached {arrivals} targets"
+    )
+    if stats.completed:
+        log.warning("demo session %s: %s", session.id, summary)
+    else:
+        log.error("demo session %s ended early: %s", session.id, summary)

@@ -29,7 +29,8 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse
 
 from server.datasets.demo import DemoSpec, demo_sequence_path
-from server.datasets.tum import associate, read_file_list, read_ground_truth, tum_intrinsics
+from server.datasets.tum import read_file_list, read_ground_truth, tum_intrinsics
+from server.evaluation.trajectory import associate
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["client"])

@@ -13,7 +13,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-from server.sessions.store import atomic_write_bytes
+from server.atomic import atomic_write_bytes
 
 
 def local_addresses() -> list[str]:

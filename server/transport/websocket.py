@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
+from server import protocol as proto
 from server.sessions import (
     CommandRefused,
     DroneNotice,
@@ -25,7 +26,6 @@ from server.sessions import (
     SessionFailed,
     SessionTakenOver,
 )
-from server.transport import protocol as proto
 
 log = logging.getLogger(__name__)
 router = APIRouter()

@@ -1,0 +1,254 @@
+"""Messages: builders from numpy data, msgpack packing and unpacking (each checked against
+protocol.json), and readers of the fields that carry arrays."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import msgpack
+import numpy as np
+
+from server.protocol.codecs import encode_depth, encode_jpeg
+from server.protocol.errors import ProtocolError
+from server.protocol.errors import floats as _floats
+from server.protocol.errors import new_message as _message
+from server.protocol.schema import validate
+from server.protocol.spec import LIMITS, VERSION
+
+
+def encode(message: dict, *, max_bytes: int | None = None) -> bytes:
+    """Validate (strictly) and pack one message; raises ProtocolError."""
+    validate(message, strict=True)
+    data = msgpack.packb(message, use_bin_type=True)
+    limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
+    if len(data) > limit:
+        raise ProtocolError("message_too_big", f"{len(data)} bytes, limit {limit}")
+    return data
+
+
+def decode(data: bytes, *, direction: str | None = None, max_bytes: int | None = None) -> dict:
+    """Unpack and validate one message; the size limit is checked before unpacking."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError("malformed_message", f"need binary data, got {type(data).__name__}")
+    limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
+    if len(data) > limit:
+        raise ProtocolError("message_too_big", f"{len(data)} bytes, limit {limit}")
+    try:
+        message = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
+        raise ProtocolError("malformed_message", f"not one msgpack object: {exc}") from exc
+    return validate(message, direction)
+
+
+# ---- message builders ----------------------------------------------------------------------------
+
+
+def make_hello(
+    client_name: str,
+    intrinsics: Sequence[float],
+    colour_size: Sequence[int],
+    depth_size: Sequence[int] | None = None,
+    depth_scale: float = 1000.0,
+    version: int = VERSION,
+    gravity: Sequence[float] | None = None,
+) -> dict:
+    """intrinsics: fx, fy, cx, cy of the colour image (px); sizes (width, height) px;
+    depth_size defaults to colour_size; depth_scale: depth units per metre; gravity: its
+    direction in the first camera's frame (None: the server assumes +y)."""
+    depth_size = colour_size if depth_size is None else depth_size
+    return _message(
+        "hello",
+        version=int(version),
+        client_name=client_name,
+        intrinsics=_floats(intrinsics, 4, "intrinsics"),
+        colour_size=[int(v) for v in colour_size],
+        depth_size=[int(v) for v in depth_size],
+        depth_scale=float(depth_scale),
+        gravity=None if gravity is None else _floats(gravity, 3, "gravity"),
+    )
+
+
+def make_frame(
+    seq: int,
+    timestamp: float,
+    colour_rgb: np.ndarray,
+    depth_m: np.ndarray,
+    depth_format: str = "png",
+    jpeg_quality: int = 80,
+    depth_scale: float = 1000.0,
+) -> dict:
+    """A frame message: colour (H, W, 3) uint8 RGB as JPEG, depth (h, w) metres as uint16."""
+    return _message(
+        "frame",
+        seq=int(seq),
+        timestamp=float(timestamp),
+        colour=encode_jpeg(colour_rgb, jpeg_quality),
+        depth=encode_depth(depth_m, depth_format, depth_scale),
+        depth_format=depth_format,
+        depth_scale=float(depth_scale),
+    )
+
+
+def make_command(
+    command_id: int,
+    name: str,
+    target: Sequence[float] | None = None,
+    speed: float | None = None,
+    *,
+    pixel: Sequence[float] | None = None,
+    seq: int | None = None,
+    sticks: Sequence[float] | None = None,
+) -> dict:
+    """target: world [x, y, z] metres (goto); pixel: [u, v] of frame seq (goto_pixel);
+    sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks)."""
+    return _message(
+        "command",
+        id=int(command_id),
+        name=name,
+        target=None if target is None else _floats(target, 3, "target"),
+        pixel=None if pixel is None else _floats(pixel, 2, "pixel"),
+        seq=None if seq is None else int(seq),
+        sticks=None if sticks is None else _floats(sticks, 4, "sticks"),
+        speed=None if speed is None else float(speed),
+    )
+
+
+def make_bye(reason: str | None = None) -> dict:
+    return _message("bye", reason=reason)
+
+
+def make_welcome(
+    session_id: str,
+    max_in_flight: int = LIMITS["max_in_flight"],
+    max_message_bytes: int = LIMITS["max_message_bytes"],
+    map_chunk_max_points: int = LIMITS["max_map_chunk_points"],
+) -> dict:
+    return _message(
+        "welcome",
+        version=VERSION,
+        session_id=session_id,
+        max_in_flight=int(max_in_flight),
+        max_message_bytes=int(max_message_bytes),
+        map_chunk_max_points=int(map_chunk_max_points),
+    )
+
+
+def make_pose(
+    seq: int,
+    timestamp: float,
+    T_world_camera: np.ndarray,
+    state: str,
+    inliers: int,
+    timings_ms: Mapping[str, float],
+    dropped: int,
+    keyframe: bool | None = None,
+) -> dict:
+    """T_world_camera: 4x4 (metres), sent row-major; state: ok / weak / lost (or TrackingState)."""
+    return _message(
+        "pose",
+        seq=int(seq),
+        timestamp=float(timestamp),
+        T_world_camera=_floats(T_world_camera, 16, "T_world_camera"),
+        state=str(getattr(state, "value", state)),
+        inliers=int(inliers),
+        timings_ms={str(k): float(v) for k, v in timings_ms.items()},
+        dropped=int(dropped),
+        keyframe=None if keyframe is None else bool(keyframe),
+    )
+
+
+def make_drone_state(
+    timestamp: float,
+    T_world_drone: np.ndarray,
+    velocity: Sequence[float],
+    mode: str,
+    command_id: int | None = None,
+    *,
+    T_camera_drone: np.ndarray | None = None,
+    camera_seq: int | None = None,
+    clearance: float | None = None,
+    target: Sequence[float] | None = None,
+    route: np.ndarray | None = None,
+) -> dict:
+    """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points."""
+    return _message(
+        "drone_state",
+        timestamp=float(timestamp),
+        T_world_drone=_floats(T_world_drone, 16, "T_world_drone"),
+        T_camera_drone=None
+        if T_camera_drone is None
+        else _floats(T_camera_drone, 16, "T_camera_drone"),
+        camera_seq=None if camera_seq is None else int(camera_seq),
+        velocity=_floats(velocity, 3, "velocity"),
+        mode=str(getattr(mode, "value", mode)),
+        clearance=None if clearance is None else float(clearance),
+        target=None if target is None else _floats(target, 3, "target"),
+        route=None if route is None else np.asarray(route, dtype=np.float64).ravel().tolist(),
+        command_id=None if command_id is None else int(command_id),
+    )
+
+
+def make_drone_event(
+    event: str,
+    timestamp: float,
+    position: Sequence[float],
+    message: str,
+    command_id: int | None = None,
+) -> dict:
+    return _message(
+        "drone_event",
+        event=str(getattr(event, "value", event)),
+        timestamp=float(timestamp),
+        position=_floats(position, 3, "position"),
+        message=message[:1024],
+        command_id=None if command_id is None else int(command_id),
+    )
+
+
+def make_map_chunk(
+    points: np.ndarray,
+    colours: np.ndarray,
+    chunk: int = 0,
+    total_points: int | None = None,
+    reset: bool | None = None,
+) -> dict:
+    """points (N, 3) metres -> N*12 bytes float32 LE; colours (N, 3) uint8 RGB -> N*3 bytes."""
+    pts = np.ascontiguousarray(points, dtype="<f4")
+    rgb = np.ascontiguousarray(colours, dtype=np.uint8)
+    if pts.ndim != 2 or pts.shape[1] != 3 or rgb.shape != pts.shape:
+        raise ProtocolError(
+            "invalid_field", f"need (N, 3) points and colours, got {pts.shape} and {rgb.shape}"
+        )
+    n = len(pts)
+    return _message(
+        "map_chunk",
+        chunk=int(chunk),
+        count=n,
+        points=pts.tobytes(),
+        colours=rgb.tobytes(),
+        total_points=n if total_points is None else int(total_points),
+        reset=reset,
+    )
+
+
+# ---- message readers --------------------------------------------------------------------------
+
+
+def pose_matrix(message: Mapping, key: str = "T_world_camera") -> np.ndarray:
+    """The 4x4 float64 transform of a pose (or drone_state with key='T_world_drone')."""
+    return np.asarray(message[key], dtype=np.float64).reshape(4, 4)
+
+
+def decode_map_chunk(message: Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """-> points (N, 3) float32 metres, colours (N, 3) uint8 RGB."""
+    points = np.frombuffer(message["points"], dtype="<f4").reshape(-1, 3).astype(np.float32)
+    colours = np.frombuffer(message["colours"], dtype=np.uint8).reshape(-1, 3).copy()
+    return points, colours
+
+
+def depth_intrinsics(hello: Mapping) -> tuple[float, float, float, float]:
+    """fx, fy, cx, cy of the depth image: the colour ones scaled to depth_size (pixel centres)."""
+    fx, fy, cx, cy = hello["intrinsics"]
+    (cw, ch), (dw, dh) = hello["colour_size"], hello["depth_size"]
+    sx, sy = dw / cw, dh / ch
+    return fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5

@@ -295,6 +295,13 @@ def test_a_route_blocked_for_good_emits_blocked_and_holds():
     assert drone.update_map(fm.origin, sealed, np.ones(fm.shape, bool)) is not None
     events, _ = fly(drone, 2.0)
     assert DroneEventKind.BLOCKED in kinds(events)
+    # Its text names the goal only through the frame the reader asks for (the session's world
+    # frame is not the simulator's), never in the simulator's own coordinates.
+    blocked = next(e for e in events if e.kind == DroneEventKind.BLOCKED)
+    np.testing.assert_allclose(blocked.point, scene.goal)
+    shifted = blocked.text(lambda p: p + 10.0)
+    assert "({:.2f}, {:.2f}, {:.2f}) m".format(*(scene.goal + 10.0)) in shifted, shifted
+    assert "({:.2f}, {:.2f}, {:.2f}) m".format(*scene.goal) not in shifted
     assert drone.status().mode == DroneMode.HOVER
     assert drone.status().T_flight_drone[0, 3] < 3.5 - R
 

@@ -92,6 +92,11 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
             break
     events = [n.event for n in published if isinstance(n, DroneNotice)]
     assert "arrived" in events and "collision" not in events
+    # The message names the target in the world frame, as the event's fields and the goto do
+    # (it once printed the flight frame's coordinates).
+    arrived = next(n for n in published if isinstance(n, DroneNotice) and n.event == "arrived")
+    assert "({:.2f}, {:.2f}, {:.2f}) m".format(*goal_world) in arrived.message, arrived.message
+    assert "({:.2f}, {:.2f}, {:.2f}) m".format(*scene.goal) not in arrived.message
     state = flight.state()
     assert isinstance(state, DroneUpdate) and state.mode == "hover"
     assert np.linalg.norm(state.T_world_drone[:3, 3] - goal_world) < 0.15

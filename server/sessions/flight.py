@@ -376,7 +376,7 @@ class Flight:
             event.kind.value,
             event.time_s,
             self._to_world(event.position),
-            event.message,
+            event.text(self._to_world),  # the pilot's frame, as the event's other fields
             event.command_id,
         )
 

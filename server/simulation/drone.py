@@ -87,13 +87,26 @@ class DroneCommandError(DroneSimError):
 
 @dataclass(frozen=True)
 class DroneEvent:
-    """Something the pilot should hear about (the protocol's drone_event)."""
+    """Something the pilot should hear about (the protocol's drone_event).
+
+    ``message`` names no coordinates itself: where it mentions a point it holds ``{point}``
+    and ``point`` is that point (flight frame, m). The simulator cannot say where the point is
+    in the pilot's frame; ``text`` writes it in whichever frame the caller maps it to."""
 
     kind: DroneEventKind
     time_s: float  # simulation time
     position: FloatArray  # (3,) flight frame, m
     message: str
     command_id: int | None = None
+    point: np.ndarray | None = None  # (3,) flight frame, m: the ``{point}`` of the message
+
+    def text(self, to_frame=lambda p: p) -> str:
+        """The message with ``{point}`` written as ``(x, y, z) m`` after ``to_frame`` (a map
+        from flight-frame points to the reader's frame; identity by default)."""
+        if self.point is None:
+            return self.message
+        x, y, z = np.asarray(to_frame(self.point), dtype=np.float64)
+        return self.message.format(point=f"({x:.2f}, {y:.2f}, {z:.2f}) m")
 
 
 @dataclass(frozen=True)
@@ -365,8 +378,15 @@ class DroneSimulator:
                 route = self._plan(goal, self._speed)
             except PlanningError as exc:
                 if blocked:
+                    goal = self._goal  # holding forgets it
                     self._hold(self._quad.position)
-                    self._emit(DroneEventKind.BLOCKED, f"no route any more: {exc}; holding")
+                    # The planner's own text gives flight-frame coordinates: not for the pilot.
+                    why = exc.reason.value.replace("_", " ")
+                    self._emit(
+                        DroneEventKind.BLOCKED,
+                        f"no route any more to {{point}} ({why}); holding",
+                        point=goal,
+                    )
                 return
             old = _polyline_length(remaining)
             if blocked or route.length_m < (1 - self.config.replan_min_gain) * old:
@@ -607,7 +627,7 @@ class DroneSimulator:
         slow = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz) <= cfg.arrival_speed_m_s
         if near and slow:
             self._hold(goal)
-            self._emit(DroneEventKind.ARRIVED, f"arrived at {np.round(goal, 2).tolist()}")
+            self._emit(DroneEventKind.ARRIVED, "arrived at {point}", point=goal)
 
     def _enter_manual(self) -> None:
         self._clear_route()
@@ -652,9 +672,11 @@ class DroneSimulator:
         free = self.flight_map.nearest_free(point, radius_m)
         return None if free is None else np.asarray(free, dtype=float)
 
-    def _emit(self, kind: DroneEventKind, message: str) -> None:
+    def _emit(self, kind: DroneEventKind, message: str, point: np.ndarray | None = None) -> None:
+        """message: text without coordinates; ``{point}`` in it stands for ``point``."""
         q = self._quad
-        event = DroneEvent(kind, self._time_s, q.position, message, self._command_id)
+        point = None if point is None else np.array(point, dtype=np.float64)
+        event = DroneEvent(kind, self._time_s, q.position, message, self._command_id, point)
         log.debug("drone event %s at %.2f s: %s", kind.value, self._time_s, message)
         self._events.append(event)
 

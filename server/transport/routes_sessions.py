@@ -1,4 +1,9 @@
-"""REST API for sessions: create, status, delete, and download map, mesh and trajectory."""
+"""REST API for sessions: create, status, delete, and download map, mesh and trajectory.
+
+Each route declares what it answers (``server.transport.schemas``, media types, error codes) so
+that ``/docs`` tells a client writer everything. The JSON bodies are sent as the sessions
+assemble them, unchanged: the models document them and the tests hold the bodies to them.
+"""
 
 from __future__ import annotations
 
@@ -7,46 +12,96 @@ import tempfile
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, Request, Response, status
+from fastapi.responses import JSONResponse
 
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import LiveSession
 from server.transport.deps import ManagerDep, SessionDep, creation_allowed
+from server.transport.schemas import ErrorBody, SessionCreated, SessionStatus
 from server.transport.websocket import end_connection
-
-router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
 PLY = "application/octet-stream"
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, dependencies=[Depends(creation_allowed)])
-def create_session(request: Request, manager: ManagerDep) -> dict:
-    """Create a live session. The token is shown only here: keep it, every other call needs it
-    (``Authorization: Bearer <token>``, or ``?token=`` on the WebSocket). A client creating
-    sessions too fast gets 429 with Retry-After; a full server 503."""
+def _error(description: str) -> dict:
+    return {"model": ErrorBody, "description": description}
+
+
+# Every call on a session: who may ask.
+_TOKEN_ERRORS = {
+    401: _error("no `Authorization: Bearer <token>` header"),
+    404: _error("unknown session id, or a token that does not open it (the same answer)"),
+}
+router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+
+
+def _file(media_type: str, description: str) -> dict:
+    """A download's 200 answer, for the OpenAPI document."""
+    return {
+        200: {
+            "description": description,
+            "content": {media_type: {"schema": {"type": "string", "format": "binary"}}},
+        }
+    }
+
+
+_NO_MAP = {409: _error("`map_unavailable`: the session has fused no surface yet")}
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    dependencies=[Depends(creation_allowed)],
+    response_model=SessionCreated,
+    responses={
+        429: _error("`rate_limited`: too many new sessions from this address; see Retry-After"),
+        503: _error("`server_full`: the server holds its maximum of live sessions"),
+    },
+)
+def create_session(request: Request, manager: ManagerDep) -> JSONResponse:
+    """Create a live session: **201** with `{id, token, websocket}`. No request body.
+
+    The token is shown only here: keep it, every other call needs it (`Authorization: Bearer
+    <token>`, or `?token=` on the WebSocket). `websocket` is the socket's URL without the
+    token. A client creating sessions too fast gets 429 with Retry-After (seconds); a full
+    server 503."""
     session, token = manager.create()
     scheme = "wss" if request.url.scheme == "https" else "ws"
-    return {
+    body = {
         "id": session.id,
         "token": token,
         "websocket": f"{scheme}://{request.url.netloc}/ws/sessions/{session.id}",
     }
+    return JSONResponse(body, status_code=status.HTTP_201_CREATED)
 
 
-@router.get("/{session_id}")
-def session_status(session: SessionDep) -> dict:
-    """Statistics of a live or closed session. ``tracking_lost``: the latest frame was lost (the
+@router.get("/{session_id}", response_model=SessionStatus, responses=_TOKEN_ERRORS)
+def session_status(session: SessionDep) -> JSONResponse:
+    """Statistics of a live or closed session (fields in the schema below).
+
+    `closed` stays false after a client's `bye`: the session waits for a reconnect until it
+    has had no connection and no frame for the server's `session_ttl_s`, then it is closed and
+    saved (`closed: true`, the snapshot final). `tracking_lost`: the latest frame was lost (the
     pose holds the last good one and the map takes no frames until tracking recovers)."""
     if not isinstance(session, LiveSession):
-        return session["status"] | {"closed": True, "tracking_lost": False}
-    return session.status()
+        return JSONResponse(session["status"] | {"closed": True, "tracking_lost": False})
+    body = session.status()
+    if body.get("closed"):  # answered from the final snapshot while the worker stops
+        body.setdefault("tracking_lost", False)
+    return JSONResponse(body)
 
 
-@router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete(
+    "/{session_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    response_class=Response,
+    responses=_TOKEN_ERRORS,
+)
 async def delete_session(
     request: Request, session_id: str, session: SessionDep, manager: ManagerDep
 ) -> Response:
-    """Stop the session and delete its map and trajectory; its open WebSocket, if any, is told
-    (``unauthorized``) and closed."""
+    """Stop the session and delete its map and trajectory: **204**, no body. Its open
+    WebSocket, if any, is told (error `unauthorized`) and closed with 4003."""
     await asyncio.to_thread(manager.delete, session_id)
     end_connection(request.app, session_id, "unauthorized", "this session was deleted")
     return Response(status_code=status.HTTP_204_NO_CONTENT)
@@ -73,9 +128,15 @@ def _download(data: bytes, filename: str, media_type: str) -> Response:
     )
 
 
-@router.get("/{session_id}/map.ply")
+@router.get(
+    "/{session_id}/map.ply",
+    response_class=Response,
+    responses=_file(PLY, "binary little-endian PLY point cloud") | _NO_MAP | _TOKEN_ERRORS,
+)
 def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
-    """The fused map's surface points with colours, binary PLY, world frame, metres."""
+    """The fused map's surface points with colours: binary little-endian PLY, one `vertex`
+    element with `double x, y, z` (world frame, metres) and `uchar red, green, blue`; no
+    faces. A live session's map as it is now; a closed one's as its final snapshot saved it."""
     if isinstance(session, LiveSession):
         data = session.download("map.ply")
     else:
@@ -83,9 +144,14 @@ def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> R
     return _download(data, f"{session_id}-map.ply", PLY)
 
 
-@router.get("/{session_id}/mesh.ply")
+@router.get(
+    "/{session_id}/mesh.ply",
+    response_class=Response,
+    responses=_file(PLY, "binary PLY triangle mesh") | _NO_MAP | _TOKEN_ERRORS,
+)
 def download_mesh(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
-    """The TSDF surface as a triangle mesh with vertex colours, binary PLY."""
+    """The TSDF surface as a triangle mesh with vertex colours: binary PLY (`vertex` with
+    x, y, z in the world frame, metres, normals and colours; `face` with vertex indices)."""
     if isinstance(session, LiveSession):
         data = session.download("mesh.ply")
     else:
@@ -94,9 +160,17 @@ def download_mesh(session_id: str, session: SessionDep, manager: ManagerDep) -> 
     return _download(data, f"{session_id}-mesh.ply", PLY)
 
 
-@router.get("/{session_id}/trajectory.tum")
+@router.get(
+    "/{session_id}/trajectory.tum",
+    response_class=Response,
+    responses=_file("text/plain", "TUM trajectory, text") | _TOKEN_ERRORS,
+)
 def download_trajectory(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
-    """Camera poses T_world_camera, one line per processed frame: ``t tx ty tz qx qy qz qw``."""
+    """Camera poses T_world_camera, TUM format: a `#` comment line, then one line per
+    processed frame in processing order, `t tx ty tz qx qy qz qw`: `t` is the frame's
+    timestamp echoed (the client's clock, seconds, 6 decimals), `tx ty tz` the camera centre
+    in the world frame (metres), `qx qy qz qw` its rotation (unit quaternion, w >= 0). A lost
+    frame repeats the last good pose. Empty but for the comment before the first frame."""
     if isinstance(session, LiveSession):
         data = session.download("trajectory.tum")
     else:

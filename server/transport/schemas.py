@@ -1,0 +1,164 @@
+"""What the REST API returns, as pydantic models: the wire schemas of ``/docs`` (OpenAPI).
+
+The routes return the bodies the sessions assemble (in their worker processes) unchanged; these
+models describe them for clients, and the tests check every body against them. Fields are
+declared with units and frames. A client must ignore fields it does not know (``extra``
+allowed): later versions may add counters. Positions are in the session's world frame (the
+camera frame of its first tracked frame, metres; see ``shared/PROTOCOL.md``).
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class SessionCreated(_Body):
+    """``POST /api/sessions`` answers 201 with this body."""
+
+    id: str = Field(
+        description="the session's id: 16 lowercase hex digits; {id} of every session URL",
+        pattern="^[0-9a-f]{16}$",
+    )
+    token: str = Field(
+        description="the session's secret (256 bits, URL-safe base64), shown only in this "
+        "answer: every other call needs it, as `Authorization: Bearer <token>` on REST and "
+        "as `?token=` on the WebSocket. The server keeps only its SHA-256",
+    )
+    websocket: str = Field(
+        description="URL of the session's WebSocket, ws:// or wss:// as the request came in "
+        "(`/ws/sessions/{id}`), WITHOUT the token: append `?token=<token>` to connect",
+    )
+
+
+class ErrorDetail(_Body):
+    code: str = Field(
+        description="unauthorized (401: no token), not_found (404: unknown id or wrong token, "
+        "the same answer), rate_limited (429, with a Retry-After header in seconds), "
+        "server_full (503: the server holds its maximum of live sessions), map_unavailable "
+        "(409: no map surface fused yet), session_failed (400: the session's worker died "
+        "during the request)"
+    )
+    message: str = Field(description="human-readable explanation")
+
+
+class ErrorBody(_Body):
+    """Every REST error (4xx/5xx) carries this body."""
+
+    error: ErrorDetail
+
+
+class Intrinsics(_Body):
+    """The camera of the session's hello: pixels of the colour image."""
+
+    fx: float = Field(description="focal length along x, px")
+    fy: float = Field(description="focal length along y, px")
+    cx: float = Field(description="principal point x, px (pixel centres at integers)")
+    cy: float = Field(description="principal point y, px")
+    width: int = Field(description="colour image width, px")
+    height: int = Field(description="colour image height, px")
+
+
+class MapStats(_Body):
+    """The session's TSDF map (Open3D VoxelBlockGrid)."""
+
+    frames_integrated: int = Field(description="frames fused into the map so far")
+    active_blocks: int = Field(description="voxel blocks holding data")
+    capacity_blocks: int = Field(description="voxel blocks allocated (grows on demand)")
+    voxel_m: float = Field(description="TSDF voxel edge, m")
+    memory_bytes: int = Field(description="approximate memory of the block buffers, bytes")
+
+
+class DroneSummary(_Body):
+    """The session's drone: ``{"spawned": false}`` until it appears (with the first map);
+    the other fields only once it has."""
+
+    spawned: bool = Field(description="the drone has appeared (drone_event 'spawned' was sent)")
+    mode: str | None = Field(
+        None, description="flight mode as drone_state.mode: landed, hover, manual, goto, landing"
+    )
+    position: list[float] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="[x, y, z] of the drone's centre, world frame, m",
+    )
+    clearance_m: float | None = Field(
+        None,
+        description="distance from the drone's centre to the nearest occupied or unobserved "
+        "cell of the flight map, m",
+    )
+    events: dict[str, int] | None = Field(
+        None, description="drone_event messages sent so far, by event name"
+    )
+
+
+class WorkerInfo(_Body):
+    """Where a live session runs."""
+
+    kind: str = Field(description="process (a local worker process) or ray (a Ray actor)")
+    threads: int = Field(description="native threads (OpenCV, BLAS) of its thread pools")
+    pid: int | None = Field(None, description="the worker's process id (on its node, for Ray)")
+    mapper_pid: int | None = Field(
+        None, description="process workers: the session's mapper process id"
+    )
+    node_id: str | None = Field(None, description="Ray: the node the actor runs on")
+    node_ip: str | None = Field(None, description="Ray: that node's address")
+
+
+class SessionStatus(_Body):
+    """``GET /api/sessions/{id}``: a live session's figures now, or a closed session's as its
+    final snapshot saved them."""
+
+    id: str = Field(description="the session's id")
+    created_at: float = Field(description="creation time, Unix seconds (the server's clock)")
+    closed: bool = Field(
+        description="true once the session was closed and saved: its final snapshot is on "
+        "disk and no frame is taken any more. A `bye` does NOT close it: a session with no "
+        "connection and no frame is closed after the server's session_ttl_s (300 s by "
+        "default), or at server shutdown; DELETE removes it instead"
+    )
+    client_name: str = Field(description="hello.client_name of the latest hello; '' before one")
+    frames_received: int = Field(
+        description="frame messages accepted from the client(s) over all connections"
+    )
+    frames_processed: int = Field(description="frames tracked: each got a pose")
+    frames_dropped: int = Field(
+        description="frames dropped unprocessed because a newer one arrived (newest wins); "
+        "as pose.dropped"
+    )
+    frames_failed: int = Field(
+        description="frames the server failed on (each answered with internal_error)"
+    )
+    fusion_skipped: int = Field(
+        description="tracked frames not fused into the map because the mapper was behind"
+    )
+    fusion_failed: int = Field(description="frames whose fusion into the map failed (logged)")
+    tracking_states: dict[str, int] = Field(
+        description="processed frames by tracking state: ok, weak, lost"
+    )
+    trajectory_poses: int = Field(description="lines of trajectory.tum: one per processed frame")
+    map: MapStats = Field(description="the TSDF map's figures")
+    intrinsics: Intrinsics | None = Field(description="the hello's camera; null before a hello")
+    drone: DroneSummary | None = Field(
+        description="the drone; null before the first hello (or with the simulation off)"
+    )
+    snapshot_error: str | None = Field(
+        description="why the latest snapshot failed (disk full, ...), null when it succeeded"
+    )
+    tracking_lost: bool = Field(
+        False,
+        description="the latest frame was lost: poses hold the last good one and the map takes "
+        "no frames until tracking recovers (false for a closed session)",
+    )
+    worker: WorkerInfo | None = Field(
+        None, description="live sessions only: where the session runs"
+    )
+    failure: str | None = Field(
+        None,
+        description="only on a session closed because its worker died: why. Its files are "
+        "those of its last snapshot",
+    )

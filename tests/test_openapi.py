@@ -11,8 +11,8 @@ import pydantic
 import pytest
 from conftest import Stream, auth
 
+from server.config import Config, ServerConfig
 from server.datasets import open_dataset
-from server.settings import Settings
 from server.transport.app import create_app
 from server.transport.schemas import ErrorBody, SessionCreated, SessionStatus
 
@@ -21,7 +21,9 @@ SESSION = "/api/sessions/{session_id}"
 
 @pytest.fixture(scope="module")
 def openapi(tmp_path_factory) -> dict:
-    return create_app(Settings(data_dir=tmp_path_factory.mktemp("data"))).openapi()
+    return create_app(
+        Config(server=ServerConfig(data_dir=tmp_path_factory.mktemp("data")))
+    ).openapi()
 
 
 def schema(openapi: dict, ref: dict) -> dict:

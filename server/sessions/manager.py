@@ -178,6 +178,14 @@ class SessionManager:
                 "created_at": session.created_at,
                 "status": {},
             }
+        # A worker killed mid-snapshot leaves its staging folder and temp files behind, as a
+        # killed server does; the committed snapshot beside them is whole.
+        try:
+            removed = self.store.remove_partial_files(session.id)
+        except OSError:
+            removed = []
+        if removed:
+            log.warning("session %s: removed partial files %s", session.id, ", ".join(removed))
         meta["closed"] = True
         meta["failure"] = reason
         meta["status"] = dict(meta.get("status") or {}, closed=True, failure=reason)

@@ -1,7 +1,7 @@
 """Sessions in worker processes (server/sessions/worker.py, host.py, live.py, manager.py): what
 crosses the pipe, errors as their own types, thread pools shared among sessions, and a frame the
 tracker fails on answered, not lost. The end-to-end paths (crash, takeover, SIGTERM) are in
-test_faults.py against real servers."""
+test_faults.py against real servers; failures counted and a dead map in test_failures.py."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import time
 
 import numpy as np
 import pytest
-from conftest import process_running
 
 from server import protocol as P
 from server.geometry import Intrinsics
@@ -154,34 +153,10 @@ def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
             session.drain(30)
         (refused,) = updates.wait_for(FrameRefused)
         assert refused.seq == 1 and refused.code == "internal_error" and "a bug" in refused.message
-        assert [p.seq for p in updates.wait_for(PoseUpdate, 2)] == [0, 2]
+        poses = updates.wait_for(PoseUpdate, 2)
+        assert [p.seq for p in poses] == [0, 2]
+        assert [p.failures["frames_failed"] for p in poses] == [0, 1]  # each pose says so
+        assert session.status()["frames_failed"] == session.status()["failures"]["frames_failed"]
         assert session.status()["frames_failed"] == 1
     finally:
         session.stop(save=False)
-
-
-def test_a_session_whose_mapping_process_dies_fails_as_a_whole(manager, room):
-    """Its worker ends too (a session without its map cannot go on): the client is told why
-    (SessionFailed) and the session is kept as its last snapshot left it."""
-    from server.sessions import SessionFailed
-
-    session, _ = manager.create()
-    updates = Updates()
-    session.start(updates)
-    session.configure(hello(room))
-    session.submit(0, frame_bytes(room, 0))
-    assert session.drain(30)
-    worker = session.status()["worker"]
-    os.kill(worker["mapper_pid"], 9)
-    for seq in range(1, 40):  # the next fusion finds the mapper gone
-        try:
-            session.submit(seq, frame_bytes(room, seq))
-        except SessionError:
-            break
-        time.sleep(0.05)
-    (failed,) = updates.wait_for(SessionFailed)
-    assert "mapping process died" in failed.message
-    assert manager.live_count == 0
-    meta = manager._saved[session.id]
-    assert meta["closed"] is True and "mapping process" in meta["failure"]
-    assert not process_running(worker["pid"])

@@ -47,7 +47,7 @@ class App {
 
   #emptySeen() {
     return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
-      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, shownSeq: null };
+      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null };
   }
 
   // ---- session and streaming --------------------------------------------------------------------
@@ -206,6 +206,7 @@ class App {
     s.states[pose.state] = (s.states[pose.state] ?? 0) + 1;
     s.lastPose = { seq: pose.seq, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera };
     s.serverDropped = pose.dropped;
+    s.serverFailures = pose.failures ?? {};
     this.hud.pose(pose);
     this.map.addCameraPose(pose.T_world_camera);
     const bitmap = this.streamer?.takeImage(pose.seq) ?? null;

@@ -35,6 +35,18 @@ export class Hud {
     this.poseTimes.push(now);
     while (this.poseTimes.length && this.poseTimes[0] < now - FPS_WINDOW_MS) this.poseTimes.shift();
     this.#set("tracking", `tracking ${pose.state}`, pose.state);
+    this.#failures(pose.failures ?? {});
+  }
+
+  /** The server's failure counts for this session (pose.failures): shown once any is above 0. */
+  #failures(counts) {
+    const el = this.fields.failures;
+    const failed = Object.entries(counts).filter(([, n]) => n > 0);
+    if (!el || (el.hidden && failed.length === 0)) return;
+    const total = failed.reduce((sum, [, n]) => sum + n, 0);
+    el.hidden = failed.length === 0;
+    this.#set("failures", `fail ${total}`);
+    el.title = failed.map(([name, n]) => `${name}: ${n}`).join(", ");
   }
 
   /** fps from the poses of the last two seconds; latency median in ms; dropped both sides. */

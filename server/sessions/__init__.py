@@ -5,9 +5,16 @@ No web code here: the transport hands decoded frames and commands in and gets up
 
 from server.sessions.errors import SessionError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate
-from server.sessions.live import LiveSession, SessionFailed, SessionTakenOver
+from server.sessions.live import LiveSession, SessionTakenOver
 from server.sessions.manager import SessionManager
-from server.sessions.session import FrameData, FrameRefused, MapUpdate, PoseUpdate, Session
+from server.sessions.session import (
+    FrameData,
+    FrameRefused,
+    MapUpdate,
+    PoseUpdate,
+    Session,
+    SessionFailed,
+)
 
 __all__ = [
     "CommandRefused",

@@ -14,12 +14,13 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from server.geometry import Intrinsics, invert
 from server.sessions.errors import SessionError
+from server.sessions.failures import RateLimitedLog
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneCommandError, DroneSimulator
 from server.simulation.flight_map import FlightMap, Region
@@ -30,6 +31,9 @@ log = logging.getLogger(__name__)
 _PIXEL_WINDOW = 3  # half-size of the window a tapped pixel's depth is read from, px
 _RECENT_FRAMES = 8  # frames kept for goto_pixel
 _TAP_SLACK_M = 0.6  # a tapped target may move this far to the nearest reachable point, m
+# Flight steps failing in a row before the drone is stopped for good (faulted): half a second
+# at 20 Hz. A failure or two (a bad map update) is counted and flown through.
+_MAX_FAILING_STEPS = 10
 
 
 _REFUSALS = {  # PlanningError reasons, for the pilot
@@ -104,7 +108,12 @@ class _CameraFrame:
 class Flight:
     """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come
     from the session's workers, ``command`` from the transport; a thread of its own advances the
-    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``."""
+    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``.
+
+    A flight step that raises is counted (``errors``) and logged, the first with its traceback,
+    then at most one line per 10 s; after _MAX_FAILING_STEPS in a row the drone is stopped for
+    good (``fault`` says why): its thread ends, a last drone_state says mode ``faulted`` (at
+    rest where it was), a drone_event ``faulted`` says why, and commands are refused."""
 
     def __init__(
         self,
@@ -114,8 +123,10 @@ class Flight:
         publish: Callable[[DroneUpdate | DroneNotice], None],
         state_hz: float = 20.0,
         spawn_ahead_m: float = 0.8,
+        log: logging.LoggerAdapter | logging.Logger = log,
     ) -> None:
         self.config = config
+        self.log = log
         self.K = K
         self.R_flight_world = flight_frame(gravity_world)
         self.T_world_flight = np.eye(4)  # constant: the state at 20 Hz needs it
@@ -135,6 +146,10 @@ class Flight:
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pending_region: Region | None = None
         self.event_counts: dict[str, int] = {}  # drone events so far, by kind
+        self.errors = 0  # flight steps that raised
+        self.fault: str | None = None  # why the drone was stopped for good, if it was
+        self._failed_steps = RateLimitedLog(self.log)
+        self._last_state: DroneUpdate | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -208,6 +223,12 @@ class Flight:
     ) -> None:
         """Carry out a pilot command (names and fields as the protocol's ``command``).
         Raises CommandRefused (code bad_command or unreachable_target)."""
+        if self.fault is not None:
+            raise CommandRefused(
+                "bad_command",
+                f"the drone's simulation failed and the drone is stopped ({self.fault}); "
+                "create a new session to fly again",
+            )
         if not self.spawned and name != "sticks":
             raise CommandRefused(
                 "bad_command",
@@ -317,19 +338,49 @@ class Flight:
 
     def _run(self) -> None:
         last = time.monotonic()
+        failing = 0  # steps failed in a row
         while not self._stop.wait(self.state_period_s):
             now = time.monotonic()
             # A starved thread slows the drone down rather than letting it jump.
             dt, last = min(now - last, 0.25), now
             try:
                 notices = self._tick(dt)
-            except Exception:  # the drone must never take the session down
-                log.exception("flight step failed")
+                state = self.state() if self.spawned else None
+            except Exception as exc:  # the drone must never take the session down
+                self.errors += 1
+                failing += 1
+                self._failed_steps.failure("a flight step")
+                if failing >= _MAX_FAILING_STEPS:
+                    self._stop_faulted(f"{type(exc).__name__}: {exc}", failing)
+                    return
                 continue
+            failing = 0
             for notice in notices:
                 self.publish(notice)
-            if self.spawned:
-                self.publish(self.state())
+            if state is not None:
+                self._last_state = state
+                self.publish(state)
+
+    def _stop_faulted(self, reason: str, failing: int) -> None:
+        """Stop the drone for good: its simulation failed ``failing`` steps in a row."""
+        self.fault = reason
+        self.log.error(
+            "the drone is stopped: %d flight steps in a row failed (%s)", failing, reason
+        )
+        final = self.state()  # the last good state, at rest, mode faulted
+        if final is None:
+            return  # never spawned: the client has no drone to hear about
+        self.publish(
+            DroneNotice(
+                "faulted",
+                final.timestamp,
+                final.T_world_drone[:3, 3],
+                f"the drone's simulation failed and the drone is stopped ({reason}); "
+                "create a new session to fly again",
+                None,
+            )
+        )
+        self.publish(final)
 
     def _tick(self, dt: float) -> list[DroneNotice]:
         with self._lock:
@@ -380,7 +431,19 @@ class Flight:
             event.command_id,
         )
 
-    def state(self) -> DroneUpdate:
+    def state(self) -> DroneUpdate | None:
+        """The drone's state now; once faulted, its last good state at rest (None when it
+        never spawned)."""
+        if self.fault is not None:
+            if self._last_state is None:
+                return None
+            return replace(
+                self._last_state,
+                mode="faulted",
+                velocity=np.zeros(3),
+                target=None,
+                route=None,
+            )
         with self._lock:
             s = self.sim.status()
         camera = self._latest_camera()
@@ -401,14 +464,17 @@ class Flight:
         )
 
     def summary(self) -> dict:
-        """For the session's status endpoint."""
-        if not self.spawned:
-            return {"spawned": False}
-        s = self.state()
+        """For the session's status endpoint: ``errors`` counts the flight steps that failed;
+        ``fault`` (when the drone was stopped for good) says why, and ``mode`` is faulted."""
+        health = {"errors": self.errors, "fault": self.fault}
+        s = self.state() if self.spawned or self.fault is not None else None
+        if s is None:
+            return {"spawned": False, **health}
         return {
             "spawned": True,
             "mode": s.mode,
             "position": s.T_world_drone[:3, 3].tolist(),
             "clearance_m": s.clearance,
             "events": dict(self.event_counts),
+            **health,
         }

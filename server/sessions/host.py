@@ -11,7 +11,6 @@ whatever the exception class looks like, and are raised again on the web side by
 
 from __future__ import annotations
 
-import logging
 import os
 import tempfile
 import time
@@ -25,12 +24,11 @@ from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
 from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.faults import inject
 from server.sessions.flight import CommandRefused
 from server.sessions.mapping import MapperClient
 from server.sessions.session import FrameData, FrameRefused, Session, SessionConfig
 from server.sessions.store import SessionStore
-
-log = logging.getLogger(__name__)
 
 DOWNLOADS = ("map.ply", "mesh.ply", "trajectory.tum")
 
@@ -106,6 +104,8 @@ class HostArgs:
     config: SessionConfig
     created_at: float
     threads: int  # native threads for this session's libraries
+    # Tests only: stage -> the calls that fail (server/sessions/faults.py); None in service.
+    faults: dict[str, list[int]] | None = None
 
 
 class SessionHost:
@@ -143,6 +143,8 @@ class SessionHost:
         except ConfigError as exc:
             raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
         self.session.configure(intrinsics, hello.get("client_name", ""), hello.get("gravity"))
+        if self.args.faults and self._hello is None:
+            inject(self.session, self.args.faults)
         self.session.start(self.publish)
         self._hello = hello
 
@@ -170,8 +172,7 @@ class SessionHost:
         except (proto.ProtocolError, SessionError) as exc:
             self.publish(FrameRefused(seq, exc.code, str(exc)))
         except Exception as exc:  # a bug on one frame: the client hears internal_error
-            log.exception("session %s: frame %s failed to decode", self.session.id, seq)
-            self.publish(FrameRefused(seq, "internal_error", f"{type(exc).__name__}: {exc}"))
+            self.session.frame_failed(seq, exc, "to decode")
 
     def command(self, name: str, command_id: int, fields: dict) -> None:
         """A pilot command; raises CommandRefused."""

@@ -13,18 +13,10 @@ from collections import OrderedDict
 from collections.abc import Callable
 
 from server.sessions.errors import SessionError
-from server.sessions.session import FrameRefused, PoseUpdate
+from server.sessions.session import FrameRefused, PoseUpdate, SessionFailed
 from server.sessions.worker import WorkerLost
 
 _RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)
-
-
-class SessionFailed:
-    """The update a client gets when its session's worker died: the session is closed and
-    saved from its last snapshot."""
-
-    def __init__(self, message: str) -> None:
-        self.message = message
 
 
 class SessionTakenOver:
@@ -40,7 +32,9 @@ class SessionTakenOver:
 class LiveSession:
     """One live session in the web process. ``worker`` offers ``call``, ``post``, ``stop``,
     ``kill``, ``describe`` and ``dropped`` (``server.sessions.worker.ProcessWorker``, or the Ray
-    actor's handle); ``on_lost`` is told when the worker dies on its own."""
+    actor's handle); ``on_lost`` is told when the worker dies on its own, ``on_failed`` when
+    the session fails in a live worker (its map is gone: ``Session.fail``) and must be stopped
+    and saved."""
 
     def __init__(
         self,
@@ -49,6 +43,7 @@ class LiveSession:
         created_at: float,
         start_worker: Callable[[LiveSession], object],
         on_lost: Callable[[LiveSession, str], None] | None = None,
+        on_failed: Callable[[LiveSession, str], None] | None = None,
     ) -> None:
         self.id = session_id
         self.token_hash = token_hash
@@ -64,6 +59,8 @@ class LiveSession:
         self._received: OrderedDict[int, float] = OrderedDict()  # seq -> arrival (monotonic)
         self._lock = threading.Lock()
         self._on_lost = on_lost
+        self._on_failed = on_failed
+        self.sends_failed = 0  # connections ended because sending an update failed (web side)
         self.worker = start_worker(self)
 
     @property
@@ -86,10 +83,18 @@ class LiveSession:
                 received = self._received.pop(item.seq, None)
             if isinstance(item, PoseUpdate):
                 item.dropped += self.worker.dropped  # dropped before the worker saw them
+                item.failures["sends_failed"] = self.sends_failed
                 if received is not None:
                     item.timings_ms["server_total"] = (time.monotonic() - received) * 1e3
         elif isinstance(item, SessionTakenOver) and item.closed:
             self.closed = True  # ended by another front-end: the reaper lets go of it here
+        elif isinstance(item, SessionFailed):  # the worker lives on, to stop and save it
+            self.closed = True
+            if self._on_failed is not None:
+                self._on_failed(self, item.message)
+        self._tell(item)
+
+    def _tell(self, item) -> None:
         on_update = self.on_update
         if on_update is not None:
             on_update(item)
@@ -97,7 +102,7 @@ class LiveSession:
     def lost(self, reason: str) -> None:
         """The worker died on its own: the client is told; the manager saves what is on disk."""
         self.closed = True
-        self.deliver(SessionFailed(reason))
+        self._tell(SessionFailed(reason))
         if self._on_lost is not None:
             self._on_lost(self, reason)
 
@@ -148,6 +153,7 @@ class LiveSession:
                 raise
             return self.final_meta["status"]
         status["frames_dropped"] += self.worker.dropped
+        status["failures"]["sends_failed"] = self.sends_failed
         status["frames_received"] = self.received
         threads = status.pop("threads")
         return status | {"worker": self.worker.describe() | {"threads": threads}}

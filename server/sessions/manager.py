@@ -75,6 +75,7 @@ class SessionManager:
         self.max_sessions = max_sessions
         self.workers = workers or ProcessWorkers()
         self.threads = threads
+        self.faults: dict[str, list[int]] | None = None  # tests: HostArgs.faults of new sessions
         self._live: dict[str, LiveSession] = {}
         self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
         self._closing: set[str] = set()  # live sessions being stopped and saved
@@ -125,6 +126,7 @@ class SessionManager:
             self.config,
             time.time(),
             threads,
+            self.faults,
         )
         try:
             session = LiveSession(
@@ -133,6 +135,7 @@ class SessionManager:
                 args.created_at,
                 lambda s: self.workers.start(args, s),
                 self.session_lost,
+                self.session_failed,
             )
             session.worker.call("save_meta")
         except BaseException:
@@ -175,6 +178,14 @@ class SessionManager:
                 "created_at": session.created_at,
                 "status": {},
             }
+        # A worker killed mid-snapshot leaves its staging folder and temp files behind, as a
+        # killed server does; the committed snapshot beside them is whole.
+        try:
+            removed = self.store.remove_partial_files(session.id)
+        except OSError:
+            removed = []
+        if removed:
+            log.warning("session %s: removed partial files %s", session.id, ", ".join(removed))
         meta["closed"] = True
         meta["failure"] = reason
         meta["status"] = dict(meta.get("status") or {}, closed=True, failure=reason)
@@ -185,6 +196,15 @@ class SessionManager:
         with self._lock:
             self._saved[session.id] = meta
         self._rebalance()
+
+    def session_failed(self, session: LiveSession, reason: str) -> None:
+        """A session failed in its live worker (its map is gone): stop and save it now, off the
+        caller's thread (the worker's reader). A save that fails is retried by the reaper, as
+        for any closed session."""
+        log.error("session %s: %s; stopping and saving it", session.id, reason)
+        threading.Thread(
+            target=self.close, args=(session.id,), name=f"close-{session.id}", daemon=True
+        ).start()
 
     def authorize(self, session_id: str, token: str | None) -> LiveSession | dict:
         """The live session, or the saved meta of a closed one, that ``token`` opens.
@@ -220,7 +240,12 @@ class SessionManager:
         if found is None:
             return None
         session = LiveSession(
-            session_id, found.token_hash, found.created_at, found.attach, self.session_lost
+            session_id,
+            found.token_hash,
+            found.created_at,
+            found.attach,
+            self.session_lost,
+            self.session_failed,
         )
         with self._lock:
             return self._live.setdefault(session_id, session)

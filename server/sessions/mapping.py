@@ -25,6 +25,7 @@ from server.mapping.config import MappingConfig
 from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions.errors import SessionError
+from server.sessions.failures import SessionLog
 
 log = logging.getLogger(__name__)
 
@@ -46,12 +47,15 @@ def lower_this_threads_priority(nice: int) -> None:
 class Fused:
     """What one fused frame gave: new preview points (world metres, RGB) and, when asked for,
     the drone's occupancy for the region changed since the last time (``TSDFMap.
-    occupancy_update``: origin, occupied, observed in the flight frame), or None."""
+    occupancy_update``: origin, occupied, observed in the flight frame), or None;
+    ``occupancy_error`` says why the occupancy asked for could not be had (the frame is fused
+    all the same)."""
 
     points: np.ndarray
     colours: np.ndarray
     total_points: int
     occupancy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    occupancy_error: str | None = None
 
 
 class Mapper:
@@ -80,10 +84,13 @@ class Mapper:
             points, colours = self.preview.new_points(
                 colour, depth, K, T_world_camera, self.preview_points
             )
-            grid = None
+            grid, error = None, None
             if occupancy is not None:
-                grid = self.map.occupancy_update(*occupancy)
-            return Fused(points, colours, self.preview.total, grid)
+                try:
+                    grid = self.map.occupancy_update(*occupancy)
+                except Exception as exc:  # the drone's map misses this one; the TSDF has it
+                    error = f"{type(exc).__name__}: {exc}"
+            return Fused(points, colours, self.preview.total, grid, error)
 
     def stats(self) -> dict:
         return self.map.stats()
@@ -126,7 +133,7 @@ class MapperLost(SessionError):
         super().__init__("session_failed", message)
 
 
-def mapper_main(conn, config: MappingConfig, threads: int) -> None:
+def mapper_main(conn, config: MappingConfig, threads: int, session_id: str = "") -> None:
     """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
     closes (its session stopped, or died)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session's worker decides when it ends
@@ -138,6 +145,7 @@ def mapper_main(conn, config: MappingConfig, threads: int) -> None:
     from server.sessions.host import as_remote
 
     mapper = Mapper(config)
+    session_log = SessionLog(log, session_id)
     while True:
         try:
             method, args = conn.recv()
@@ -147,7 +155,7 @@ def mapper_main(conn, config: MappingConfig, threads: int) -> None:
             reply = (True, getattr(mapper, method)(*args))
         except Exception as exc:
             if not isinstance(exc, MapError):
-                log.exception("mapping: %s failed", method)
+                session_log.exception("mapping: %s failed", method)
             reply = (False, as_remote(exc))
         try:
             conn.send(reply)
@@ -156,15 +164,13 @@ def mapper_main(conn, config: MappingConfig, threads: int) -> None:
 
 
 class MapperClient:
-    """A ``Mapper`` in another process, reached over ``conn`` (one call at a time).
-    ``on_lost`` is called (once per failed call) when that process is gone, before MapperLost
-    is raised: a session without its map cannot go on, and its worker decides what ends."""
+    """A ``Mapper`` in another process, reached over ``conn`` (one call at a time). When that
+    process is gone, every call raises MapperLost: a session without its map cannot go on, and
+    the session decides how it ends (``Session.fail``)."""
 
-    def __init__(self, conn, on_lost=None) -> None:
+    def __init__(self, conn) -> None:
         self._conn = conn
         self._lock = threading.Lock()
-        self._on_lost = on_lost
-        self._closed = False
 
     def _call(self, method: str, *args):
         from server.sessions.host import raise_remote
@@ -174,8 +180,6 @@ class MapperClient:
                 self._conn.send((method, args))
                 ok, value = self._conn.recv()
             except (EOFError, OSError, ValueError) as exc:
-                if self._on_lost is not None and not self._closed:
-                    self._on_lost()
                 raise MapperLost(f"the session's mapping process is gone ({exc})") from None
         if not ok:
             raise_remote(value)
@@ -196,5 +200,4 @@ class MapperClient:
     def close(self) -> None:
         """Let the mapping process end (it exits when its pipe closes)."""
         with self._lock:
-            self._closed = True
             self._conn.close()

@@ -25,6 +25,7 @@ from server.registration import Tracker, TrackingState
 from server.registration.config import RegistrationConfig
 from server.registration.preprocess import resample_depth
 from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
 from server.sessions.mapping import (
     MAPPING_NICE,
@@ -37,6 +38,9 @@ from server.sessions.store import SessionStore
 from server.simulation.config import SimulationConfig
 
 log = logging.getLogger(__name__)
+
+_KEYFRAME_WAIT_S = 10.0  # a keyframe waits this long for room in a mapper that is behind
+_POLL_S = 0.2  # how often a wait on the mapping thread checks that it is still alive
 
 
 def hash_token(token: str) -> str:
@@ -94,6 +98,7 @@ class PoseUpdate:
     timings_ms: dict[str, float]
     dropped: int  # frames dropped so far in this session
     processed: int
+    failures: dict[str, int] = field(default_factory=dict)  # Failures, counted so far
 
 
 @dataclass
@@ -117,8 +122,19 @@ class FrameRefused:
     message: str
 
 
+@dataclass
+class SessionFailed:
+    """The session cannot go on: its map is gone (the mapping process or thread died), or, on
+    the web side, its whole worker died. The client is told and its socket closed
+    (session_failed, 4010). ``saved``: the session is being stopped and saved (its trajectory
+    whole, its map as far as it was kept); else it is kept as of its last snapshot."""
+
+    message: str
+    saved: bool = False
+
+
 # What a session hands its client, from its worker threads.
-Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused
+Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed
 
 
 @dataclass
@@ -136,7 +152,13 @@ class Session:
     The tracking worker registers the newest frame and reports its pose at once; the mapping
     worker fuses frames into the TSDF behind it, so fusion never delays a pose. Keyframes are
     always fused; other frames are skipped when the mapper is behind. ``on_update`` receives
-    PoseUpdate, MapUpdate, DroneUpdate and DroneNotice objects, from the worker threads."""
+    PoseUpdate, MapUpdate, DroneUpdate and DroneNotice objects, from the worker threads.
+
+    Failures are counted (``failures``, in the status and every pose) and logged with the
+    session's id. A frame the tracker fails on is answered internal_error; a fusion that fails
+    is skipped. When the map itself is gone (its process or thread died) the session fails as a
+    whole (``fail``): frames are refused from then on and the client is told (SessionFailed);
+    tracking never waits for a dead mapper, and ``stop`` never blocks on one."""
 
     def __init__(
         self,
@@ -148,6 +170,7 @@ class Session:
         mapper: Mapper | MapperClient | None = None,
     ) -> None:
         self.id = session_id
+        self.log = SessionLog(log, session_id)
         self.token_hash = token_hash
         self.store = store
         self.config = config or SessionConfig.from_config()
@@ -170,8 +193,8 @@ class Session:
         self._trajectory: list[tuple[float, np.ndarray]] = []
         self._states = {s.value: 0 for s in TrackingState}
         self.received = self.processed = self.dropped = 0
-        self.failed_frames = 0  # frames the server failed on (each answered internal_error)
-        self.fusion_failed = 0  # frames the map failed to fuse (each logged)
+        self.failures = Failures()  # guarded by _lock; flight_errors is the drone's own count
+        self.failure: str | None = None  # why the session could not go on (see fail)
         self._last_seq = -1
         self._lock = threading.Lock()  # guards the trajectory and counters
         self._inbox: FrameData | None = None
@@ -206,6 +229,7 @@ class Session:
                 gravity,
                 self._publish,
                 self.config.drone_state_hz,
+                log=SessionLog(logging.getLogger("server.sessions.flight"), self.id),
             )
         self.intrinsics = intrinsics
         self.client_name = client_name
@@ -246,6 +270,8 @@ class Session:
         """Queue a frame; a frame still waiting is dropped in its favour."""
         if self.tracker is None:
             raise SessionError("no_hello", "send a hello before frames")
+        if self.failure is not None:
+            raise SessionError("session_failed", f"{self.failure}; the session has ended")
         with self._lock:
             if frame.seq <= self._last_seq:
                 raise SessionError(
@@ -287,21 +313,26 @@ class Session:
                 try:
                     self._process(frame)
                 except Exception as exc:  # one bad frame must not end the session's worker
-                    log.exception("session %s: frame %d failed", self.id, frame.seq)
-                    with self._lock:
-                        self.failed_frames += 1
-                    self._publish(
-                        FrameRefused(
-                            frame.seq,
-                            "internal_error",
-                            f"the server failed on this frame ({type(exc).__name__}: {exc})",
-                        )
-                    )
+                    self.frame_failed(frame.seq, exc)
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()  # for drain()
             if stopping and frame is None:
                 return
+
+    def frame_failed(self, seq: int | None, exc: Exception, stage: str = "") -> None:
+        """The server failed on frame ``seq`` (a bug, raised as ``exc``): logged with its
+        traceback (call from the except block), counted, and answered internal_error."""
+        self.log.exception("frame %s failed%s", seq, f" {stage}" if stage else "")
+        with self._lock:
+            self.failures.frames_failed += 1
+        self._publish(
+            FrameRefused(
+                seq,
+                "internal_error",
+                f"the server failed on this frame ({type(exc).__name__}: {exc})",
+            )
+        )
 
     def _snapshot_if_due(self) -> None:
         """The periodic snapshot (mapping thread); a failure keeps everything in memory."""
@@ -312,7 +343,7 @@ class Session:
         try:
             self.snapshot()
         except SnapshotError as exc:
-            log.error("%s; the previous one stays whole and the map stays in memory", exc)
+            self.log.error("%s; the previous one stays whole and the map stays in memory", exc)
 
     def _process(self, frame: FrameData) -> None:
         """Track the frame and publish its pose at once; then the keyframe work the tracker
@@ -352,6 +383,7 @@ class Session:
                 timings,
                 dropped,
                 processed,
+                self.failure_counts(),
             )
         )
         new_keyframe = result.new_keyframe
@@ -364,22 +396,43 @@ class Session:
 
     # ------------------------------------------------------------------ mapping worker
     def _queue_fusion(self, job: _FuseJob) -> None:
-        """Keyframes wait for room (no keyframe is lost from the map); other frames are
-        skipped when the mapper is behind."""
-        try:
-            if job.keyframe:
-                self._fuse_jobs.put(job, timeout=10.0)
-            else:
-                self._fuse_jobs.put_nowait(job)
-        except queue.Full:
-            with self._lock:
-                self.fusion_skipped += 1
+        """Keyframes wait for room (no keyframe is lost from the map), up to _KEYFRAME_WAIT_S;
+        other frames are skipped when the mapper is behind. Nothing waits for a mapping thread
+        that has ended."""
+        deadline = time.monotonic() + (_KEYFRAME_WAIT_S if job.keyframe else 0.0)
+        while self._mapping_alive():
+            try:
+                if job.keyframe:
+                    self._fuse_jobs.put(job, timeout=_POLL_S)
+                else:
+                    self._fuse_jobs.put_nowait(job)
+                return
+            except queue.Full:
+                if time.monotonic() >= deadline:
+                    break
+        with self._lock:
+            self.fusion_skipped += 1
+
+    def _mapping_alive(self) -> bool:
+        thread = self._mapping_thread
+        return thread is not None and thread.is_alive() and self.failure is None
 
     def _map(self) -> None:
-        """Fuses frames, and writes the periodic snapshots: here a slow disk delays the map,
-        never a pose. The thread runs at a lower priority than tracking (Linux nice values are
-        per thread): when the cores are short, the map falls behind, not the poses."""
+        """The mapping thread: fuses frames and writes the periodic snapshots, so that a slow
+        disk delays the map, never a pose. It runs at a lower priority than tracking (Linux nice
+        values are per thread): when the cores are short, the map falls behind, not the poses.
+        A fusion that fails is counted and skipped; if the thread itself ends on an error, or
+        the map's process is gone, the session cannot go on (``fail``)."""
         lower_this_threads_priority(MAPPING_NICE)
+        try:
+            self._fuse_until_stopped()
+        except MapperLost:
+            self.fail("the session's mapping process died")
+        except BaseException as exc:  # the thread ends here: say why, and end the session
+            self.log.exception("the mapping thread died")
+            self.fail(f"the session's mapping thread died ({type(exc).__name__}: {exc})")
+
+    def _fuse_until_stopped(self) -> None:
         K = self.intrinsics
         while True:
             try:
@@ -395,18 +448,41 @@ class Session:
                     job.colour, job.depth, K, job.T_world_camera, self._occupancy_request()
                 )
             except MapperLost:
-                return  # the session cannot go on: MapperClient has ended its worker
+                raise
             except Exception:
-                log.exception("session %s: fusing frame %d failed", self.id, job.seq)
+                self.log.exception("fusing frame %d failed", job.seq)
                 with self._lock:
-                    self.fusion_failed += 1
+                    self.failures.fusions_failed += 1
                 continue
             with self._lock:
                 self._dirty = True
             if len(fused.points):
                 self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
-            if fused.occupancy is not None and self.flight is not None:
+            self._update_flight_map(job.seq, fused)
+
+    def _update_flight_map(self, seq: int, fused) -> None:
+        """Hand the drone its occupancy for what the frame changed; a failure is counted (the
+        drone then flies on the map it had) and never ends the mapping."""
+        error = fused.occupancy_error
+        if error is None and fused.occupancy is not None and self.flight is not None:
+            try:
                 self.flight.map_region_changed(*fused.occupancy)
+            except Exception as exc:
+                error = f"{type(exc).__name__}: {exc}"
+        if error is not None:
+            self.log.error("the drone's map missed frame %d (%s)", seq, error)
+            with self._lock:
+                self.failures.flight_map_failed += 1
+
+    def fail(self, reason: str) -> None:
+        """The session cannot go on (its map is gone): frames are refused from now on, and the
+        client is told (SessionFailed); the web side then stops and saves the session."""
+        with self._lock:
+            if self.failure is not None:
+                return
+            self.failure = reason
+        self.log.error("%s; the session ends and is saved", reason)
+        self._publish(SessionFailed(reason, saved=True))
 
     def _occupancy_request(self) -> tuple[float, np.ndarray] | None:
         """Ask the mapper for the drone's occupancy at most every flight_map_interval_s: a fused
@@ -427,10 +503,26 @@ class Session:
             poses = np.array([T for _, T in self._trajectory]).reshape(-1, 4, 4)
         return Trajectory(stamps, poses)
 
+    def failure_counts(self) -> dict[str, int]:
+        """The session's Failures so far, by name (the drone counts its own flight errors)."""
+        with self._lock:
+            counts = self.failures.as_dict()
+        if self.flight is not None:
+            counts["flight_errors"] = self.flight.errors
+        return counts
+
+    def _map_figures(self) -> dict:
+        """The map's statistics; once its process has ended (stopped, or died), its last."""
+        if not self._map_closed:
+            try:
+                self._map_stats = self.mapper.stats()
+            except MapperLost:
+                self._map_closed = True
+        return self._map_stats
+
     def status(self) -> dict:
-        if not self._map_closed:  # after stop, the map's last figures (its process has ended)
-            self._map_stats = self.mapper.stats()
-        map_stats = self._map_stats
+        map_stats = self._map_figures()
+        failures = self.failure_counts()
         with self._lock:
             return {
                 "id": self.id,
@@ -440,12 +532,14 @@ class Session:
                 "frames_received": self.received,
                 "frames_processed": self.processed,
                 "frames_dropped": self.dropped,
-                "frames_failed": self.failed_frames,
+                "frames_failed": failures["frames_failed"],
                 "fusion_skipped": self.fusion_skipped,
                 "tracking_states": dict(self._states),
                 "trajectory_poses": len(self._trajectory),
                 "map": map_stats,
-                "fusion_failed": self.fusion_failed,
+                "fusion_failed": failures["fusions_failed"],  # the name before failures existed
+                "failures": failures,
+                "failure": self.failure,
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
                 "drone": None if self.flight is None else self.flight.summary(),
                 "snapshot_error": self.snapshot_error,
@@ -453,7 +547,8 @@ class Session:
 
     def snapshot(self) -> None:
         """Write map, trajectory and meta as one snapshot: staged beside the previous one, then
-        renamed into place (``SessionStore.commit``), so a crash leaves a whole snapshot.
+        renamed into place (``SessionStore.commit``), so a crash leaves a whole snapshot. When
+        the map's process is gone, its files stay as the previous snapshot left them.
 
         Raises SnapshotError when the disk refuses (full, gone): the previous snapshot stays
         whole, everything stays in memory, and ``snapshot_error`` (in the status) says why until
@@ -463,19 +558,25 @@ class Session:
         try:
             staging = self.store.staging(self.id)
             write_tum(staging / "trajectory.tum", self.trajectory())
-            names = ["trajectory.tum", *self.mapper.save(str(staging))]
+            names = ["trajectory.tum"]
+            if not self._map_closed:
+                try:
+                    names += self.mapper.save(str(staging))
+                except MapperLost:
+                    self._map_closed = True
             self.snapshot_error = None
             self.store.commit(self.id, names, self.meta())
         except (OSError, MapError) as exc:  # MapError: Open3D refused to write
             with self._lock:
                 self._dirty = True
+                self.failures.snapshots_failed += 1
             self.snapshot_error = f"{type(exc).__name__}: {exc}"
             raise SnapshotError(f"session {self.id}: snapshot failed ({exc})") from exc
         finally:
             self._last_snapshot = time.monotonic()  # a failed one is retried after the interval
 
     def meta(self) -> dict:
-        return {
+        meta = {
             "id": self.id,
             "token_sha256": self.token_hash,
             "created_at": self.created_at,
@@ -483,9 +584,13 @@ class Session:
             "voxel_m": self.config.mapping.tsdf.voxel_m,
             "status": self.status(),
         }
+        if self.failure is not None:
+            meta["failure"] = self.failure
+        return meta
 
     def stop(self, save: bool = True) -> None:
-        """Stop the worker after the frame in hand, then (optionally) write a final snapshot."""
+        """Stop the worker after the frame in hand, then (optionally) write a final snapshot.
+        Never waits for a mapping thread that has ended."""
         with self._wake:
             self._stopping = True
             self._wake.notify()
@@ -493,11 +598,23 @@ class Session:
             self.flight.stop()
         if self._worker is not None:
             self._worker.join(timeout=30)
-            self._fuse_jobs.put(None)  # after every queued fusion
-            self._mapping_thread.join(timeout=60)
+            self._end_mapping_thread()
         self.closed = True
         if save:
             self.snapshot()  # raises SnapshotError: the map stays, for the next try
-        self._map_stats = self.mapper.stats()
+        self._map_figures()
         self._map_closed = True
         self.mapper.close()
+
+    def _end_mapping_thread(self, timeout_s: float = 60.0) -> None:
+        """After every queued fusion: the thread ends at the None (a dead one is not waited
+        for)."""
+        thread = self._mapping_thread
+        deadline = time.monotonic() + timeout_s
+        while thread.is_alive() and time.monotonic() < deadline:
+            try:
+                self._fuse_jobs.put(None, timeout=_POLL_S)
+                break
+            except queue.Full:
+                continue
+        thread.join(max(0.0, deadline - time.monotonic()))

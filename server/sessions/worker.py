@@ -50,9 +50,6 @@ class WorkerLost(SessionError):
 # ---- the worker's side ------------------------------------------------------------------------
 
 
-EXIT_MAPPER_LOST = 70  # a worker whose mapping process died ends with this
-
-
 def _worker_main(conn, args, mapper_conn) -> None:
     """Entry point of a worker process: host the session (its map in the mapping process at
     the other end of ``mapper_conn``) and serve the pipe until told to stop or until the web
@@ -61,8 +58,11 @@ def _worker_main(conn, args, mapper_conn) -> None:
     # then stops each session with a final save, which must find its worker alive.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from server.sessions.failures import SessionLog
     from server.sessions.host import SessionHost, as_remote
     from server.sessions.mapping import MapperClient
+
+    session_log = SessionLog(log, args.session_id)
 
     # Everything the worker says goes through one queue and one thread, in order: a reply (to
     # a drain, say) never overtakes the poses published before it.
@@ -78,7 +78,9 @@ def _worker_main(conn, args, mapper_conn) -> None:
     sender = threading.Thread(target=forward, name="outgoing", daemon=True)
     sender.start()
     try:
-        mapper = MapperClient(mapper_conn, on_lost=lambda: os._exit(EXIT_MAPPER_LOST))
+        # A dead mapper fails the session, which then ends cleanly: stopped and saved by the
+        # web side (Session.fail), this process serving it to the end.
+        mapper = MapperClient(mapper_conn)
         host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper)
     except Exception as exc:
         outgoing.put(("reply", 0, False, as_remote(exc)))
@@ -94,7 +96,7 @@ def _worker_main(conn, args, mapper_conn) -> None:
         except Exception as exc:
             value, ok = as_remote(exc), False
             if value.kind == "internal":  # a bug, not an answer: keep its traceback
-                log.exception("session %s: %s failed", args.session_id, method)
+                session_log.exception("%s failed", method)
         if call_id is not None:
             outgoing.put(("reply", call_id, ok, value))
         return ok
@@ -150,7 +152,7 @@ class ProcessWorker:
             target=mapper_main,
             daemon=True,
             name=f"session-{args.session_id}-map",
-            args=(mapper_end, args.config.mapping, 1),
+            args=(mapper_end, args.config.mapping, 1, args.session_id),
         )
         self.process = ctx.Process(
             target=_worker_main,
@@ -336,8 +338,6 @@ def _ignore(*_) -> None:
 def _describe_exit(code: int | None) -> str:
     if code is None:
         return "still running, not answering"
-    if code == EXIT_MAPPER_LOST:
-        return "its mapping process died"
     if code < 0:
         try:
             return f"killed by {signal.Signals(-code).name}"

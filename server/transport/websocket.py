@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass, field
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocketState
 
 from server import protocol as proto
 from server.sessions import (
@@ -22,10 +23,12 @@ from server.sessions import (
     FrameRefused,
     LiveSession,
     MapUpdate,
+    PoseUpdate,
     SessionError,
     SessionFailed,
     SessionTakenOver,
 )
+from server.sessions.failures import SessionLog
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -111,9 +114,15 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         loop.call_soon_threadsafe(outbox.put, item)
 
     errors = _ErrorRun(proto.LIMITS["max_consecutive_errors"])
-    sender = asyncio.create_task(
-        _send_updates(ws, outbox, app.state.config.mapping.preview_points, connection, errors)
+    # A larger preview (PREVIEW_POINTS) goes out in several chunks: one over the limit would be
+    # refused by the codec.
+    chunk_points = max(
+        1, min(app.state.config.mapping.preview_points, proto.LIMITS["max_map_chunk_points"])
     )
+    sender = asyncio.create_task(
+        _send_updates(ws, outbox, chunk_points, session, connection, errors)
+    )
+    sender.add_done_callback(lambda task: _sender_ended(task, session, connection))
     try:
         await _receive(ws, session, deliver, settings.max_message_bytes, outbox, connection, errors)
     except WebSocketDisconnect:
@@ -197,8 +206,38 @@ class _ErrorRun:
         return self.count >= self.limit
 
 
+def _send_failed(session: LiveSession, connection: _Connection) -> None:
+    """Sending to this socket failed on a bug (logged by the caller): count it and end the
+    connection with its documented code (send_failed, 4011); the session goes on, and the
+    client's reconnect gets a fresh sender."""
+    session.sends_failed += 1
+    connection.end(
+        "send_failed", "the server failed to send an update on this connection; reconnect"
+    )
+
+
+def _sender_ended(task: asyncio.Task, session: LiveSession, connection: _Connection) -> None:
+    """The sender task's end is observed: one that raised (past _send_updates' own guard)
+    must not leave the client waiting for poses that will never come."""
+    if task.cancelled() or task.exception() is None:
+        return
+    SessionLog(log, session.id).error(
+        "the sender task died", exc_info=(type(task.exception()), task.exception(), None)
+    )
+    _send_failed(session, connection)
+
+
+def _closed(ws: WebSocket) -> bool:
+    return WebSocketState.DISCONNECTED in (ws.client_state, ws.application_state)
+
+
 async def _send_updates(
-    ws: WebSocket, outbox: _Outbox, chunk_points: int, connection: _Connection, errors: _ErrorRun
+    ws: WebSocket,
+    outbox: _Outbox,
+    chunk_points: int,
+    session: LiveSession,
+    connection: _Connection,
+    errors: _ErrorRun,
 ) -> None:
     chunk = 0
     try:
@@ -242,31 +281,38 @@ async def _send_updates(
                 connection.end("session_taken_over", item.message)
                 return
             if isinstance(item, SessionFailed):
+                kept = "saved" if item.saved else "kept as of its last snapshot"
                 connection.end(
                     "session_failed",
-                    f"{item.message}; the session is closed and "
-                    "kept as of its last snapshot, downloadable with its token",
+                    f"{item.message}; the session is closed and {kept}, downloadable with its "
+                    "token",
                 )
                 return
             errors.reset()
-            await _send(
-                ws,
-                proto.make_pose(
-                    item.seq,
-                    item.timestamp,
-                    item.T_world_camera,
-                    item.state,
-                    item.inliers,
-                    item.timings_ms,
-                    item.dropped,
-                    item.keyframe,
-                ),
-            )
-    except (WebSocketDisconnect, RuntimeError, OSError, asyncio.CancelledError):
+            await _send(ws, _pose(item))
+    except (WebSocketDisconnect, OSError, asyncio.CancelledError):
         return
-    except Exception:  # a bug in sending must not leave the client waiting on a dead socket
-        log.exception("session socket: sending an update failed")
-        connection.end("internal_error", "the server failed to send an update; reconnect")
+    except Exception as exc:  # a bug in sending must not leave the client waiting on a dead socket
+        if isinstance(exc, RuntimeError) and _closed(ws):
+            return  # Starlette's answer to a send on a socket that has closed
+        SessionLog(log, session.id).exception("sending an update failed")
+        _send_failed(session, connection)
+
+
+def _pose(p: PoseUpdate) -> dict:
+    pose = proto.make_pose(
+        p.seq,
+        p.timestamp,
+        p.T_world_camera,
+        p.state,
+        p.inliers,
+        p.timings_ms,
+        p.dropped,
+        p.keyframe,
+    )
+    if p.failures:
+        pose["failures"] = {name: int(n) for name, n in p.failures.items()}
+    return pose
 
 
 async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Outbox) -> None:
@@ -347,7 +393,7 @@ async def _receive(
             except (WebSocketDisconnect, OSError):
                 raise
             except Exception:  # a bug on one message: say so with a documented code, keep going
-                log.exception("session %s: failed on a client message", session.id)
+                SessionLog(log, session.id).exception("failed on a client message")
                 error = proto.ProtocolError(
                     "internal_error", "the server failed on this message", seq=_seq(data)
                 )

@@ -15,6 +15,7 @@ import pytest
 import websockets
 from conftest import Stream, process_running, session_status
 
+from server import protocol as P
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.geometry import Intrinsics
@@ -25,7 +26,6 @@ from server.sessions.session import FrameData, PoseUpdate, Session, _FuseJob
 from server.sessions.store import SessionStore
 from server.simulation import scenes
 from server.simulation.config import SimulationConfig
-from server.transport import protocol as P
 from server.transport import websocket
 
 
@@ -56,11 +56,11 @@ class Updates:
             return found
 
 
-async def _answers(ws, n: int) -> list[dict]:
+async def _answers(conn, n: int) -> list[dict]:
     """The next n poses or errors (what answers frames), skipping what comes unasked."""
     got = []
     while len(got) < n:
-        msg = P.decode(await asyncio.wait_for(ws.recv(), 60))
+        msg = await conn.receive(60)
         if msg["type"] in ("pose", "error"):
             got.append(msg)
     return got
@@ -85,8 +85,8 @@ def test_a_failed_frame_and_a_failed_fusion_are_answered_and_counted_in_every_la
         answers = []
         for seq in range(8):
             f = room[seq]
-            await stream.ws.send(P.encode(P.make_frame(seq, f.timestamp, f.colour, f.depth)))
-            answers += await _answers(stream.ws, 1)
+            await stream.conn.send(P.make_frame(seq, f.timestamp, f.colour, f.depth))
+            answers += await _answers(stream.conn, 1)
         await stream.close()
         return answers
 
@@ -301,11 +301,11 @@ def test_a_dying_sender_ends_the_socket_with_send_failed_and_the_client_comes_ba
         await stream.open()
         await stream.send_range(range(2))
         f = room[2]
-        await stream.ws.send(P.encode(P.make_frame(2, f.timestamp, f.colour, f.depth)))
+        await stream.conn.send(P.make_frame(2, f.timestamp, f.colour, f.depth))
         told = []
         with pytest.raises(websockets.ConnectionClosed) as closed:
             while True:
-                msg = P.decode(await asyncio.wait_for(stream.ws.recv(), 30))
+                msg = await stream.conn.receive(30)
                 if msg["type"] in ("pose", "error"):
                     told.append(msg)
         await stream.open()  # the same token: the session goes on

@@ -78,7 +78,9 @@ class DroneSummary(_Body):
 
     spawned: bool = Field(description="the drone has appeared (drone_event 'spawned' was sent)")
     mode: str | None = Field(
-        None, description="flight mode as drone_state.mode: landed, hover, manual, goto, landing"
+        None,
+        description="flight mode as drone_state.mode: landed, hover, manual, goto, landing, "
+        "faulted",
     )
     position: list[float] | None = Field(
         None,
@@ -94,6 +96,24 @@ class DroneSummary(_Body):
     events: dict[str, int] | None = Field(
         None, description="drone_event messages sent so far, by event name"
     )
+    errors: int = Field(0, description="simulation steps that failed (flight_errors)")
+    fault: str | None = Field(
+        None,
+        description="why the drone was stopped for good after failing steps (mode faulted); "
+        "null while it flies",
+    )
+
+
+class Failures(_Body):
+    """Failures on the server's side, counted per session (PROTOCOL.md, "Failures"); a client
+    must ignore names it does not know."""
+
+    frames_failed: int = Field(description="frames answered internal_error (decode or track)")
+    fusions_failed: int = Field(description="tracked frames that failed to fuse: not in the map")
+    flight_map_failed: int = Field(description="occupancy updates for the drone that failed")
+    flight_errors: int = Field(description="drone simulation steps that failed")
+    snapshots_failed: int = Field(description="periodic or final snapshots that failed")
+    sends_failed: int = Field(description="connections ended with send_failed (close 4011)")
 
 
 class WorkerInfo(_Body):
@@ -157,8 +177,14 @@ class SessionStatus(_Body):
     worker: WorkerInfo | None = Field(
         None, description="live sessions only: where the session runs"
     )
+    failures: Failures | None = Field(
+        None,
+        description="the session's failure counts so far, as pose.failures (absent in the "
+        "snapshots of sessions saved before the counts existed)",
+    )
     failure: str | None = Field(
         None,
-        description="only on a session closed because its worker died: why. Its files are "
-        "those of its last snapshot",
+        description="why the session ended early: its worker, mapping process or mapping "
+        "thread died (session_failed). Its files are those of its last snapshot; the "
+        "trajectory reaches the last pose when the worker itself survived",
     )

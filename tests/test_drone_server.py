@@ -66,6 +66,21 @@ def drone_position(state: dict) -> np.ndarray:
     return proto.pose_matrix(state, "T_world_drone")[:3, 3]
 
 
+async def flight_map_caught_up(server, sid: str, token: str, timeout_s: float = 30.0) -> float:
+    """Seconds until the drone's flight map holds every frame fused into the map (status
+    drone.map_frames == map.frames_integrated), once no frame is in flight: the mapping thread
+    finishes the fusions queued, then hands the drone the rest (on a quiet machine within the
+    3 s update interval plus its 1 s idle poll; a fixed bound would only measure the load)."""
+    start = time.monotonic()
+    while True:
+        status = await asyncio.to_thread(session_status, server.url, sid, token)
+        fused, held = status["map"]["frames_integrated"], status["drone"]["map_frames"]
+        if fused > 0 and held == fused:
+            return time.monotonic() - start
+        assert time.monotonic() - start < timeout_s, f"the drone's map holds {held} of {fused}"
+        await asyncio.sleep(0.2)
+
+
 async def fly(server, dataset) -> dict:
     sid, token = server.create_session()
     K = dataset.intrinsics
@@ -84,6 +99,9 @@ async def fly(server, dataset) -> dict:
             await pilot.wait_for("pose", seq=i)
         out = {"spawned": await pilot.wait_for("drone_event", event="spawned")}
         await pilot.wait_for("drone_state")
+        # The frames stopped: the drone's map catches up with everything fused (without that
+        # catch-up the target below sat in space the drone had not been told was free).
+        out["caught_up_s"] = await flight_map_caught_up(server, sid, token)
 
         # 1. goto a place the camera looked at from close by: observed free space.
         poses = {m["seq"]: proto.pose_matrix(m) for m in pilot.of("pose")}

@@ -145,6 +145,10 @@ class Flight:
         self._pending_lock = threading.Lock()
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pending_region: Region | None = None
+        self._pending_frames: int | None = None
+        # Fused frames the flight map holds (the session's count; for clients that must know
+        # whether the drone's map has caught up with map.frames_integrated).
+        self.map_frames = 0
         self.event_counts: dict[str, int] = {}  # drone events so far, by kind
         self.errors = 0  # flight steps that raised
         self.fault: str | None = None  # why the drone was stopped for good, if it was
@@ -182,18 +186,31 @@ class Flight:
             self._pending_region = None
 
     def map_region_changed(
-        self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray
+        self,
+        origin: np.ndarray,
+        occupied: np.ndarray,
+        observed: np.ndarray,
+        frames: int | None = None,
     ) -> None:
         """New occupancy for a sub-box of the grid, flight frame (``TSDFMap.occupancy_update``:
         origin (3,) metres on the grid's lattice, occupied and observed (X, Y, Z) bool). Cheap
         to call often: boxes pending together merge (the newer wins where they overlap) and
-        the flight thread applies them in one update."""
+        the flight thread applies them in one update. ``frames``: how many fused frames the
+        flight map holds once this is applied (``map_frames``)."""
         region = Region.whole(origin, occupied, observed)
         with self._pending_lock:
             pending = self._pending_region
             self._pending_region = (
                 region if pending is None else pending.merged(region, self.flight_map.voxel_m)
             )
+            if frames is not None:
+                self._pending_frames = frames
+
+    def map_includes(self, frames: int) -> None:
+        """The frames fused since the last update changed nothing the drone's grid holds: the
+        flight map holds ``frames`` fused frames once what is pending is applied."""
+        with self._pending_lock:
+            self._pending_frames = frames
 
     def feed_from_map(self, tsdf_map) -> bool:
         """Hand the drone what the frames fused into ``tsdf_map`` (a ``TSDFMap``) since the last
@@ -387,11 +404,14 @@ class Flight:
             events = []
             with self._pending_lock:
                 grid, region = self._pending_map, self._pending_region
-                self._pending_map = self._pending_region = None
+                frames = self._pending_frames
+                self._pending_map = self._pending_region = self._pending_frames = None
             if grid is not None:
                 self.sim.update_map(*grid)
             if region is not None:
                 self.sim.update_map_region(region)
+            if frames is not None:
+                self.map_frames = frames
             if grid is not None or region is not None:
                 if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
@@ -466,7 +486,7 @@ class Flight:
     def summary(self) -> dict:
         """For the session's status endpoint: ``errors`` counts the flight steps that failed;
         ``fault`` (when the drone was stopped for good) says why, and ``mode`` is faulted."""
-        health = {"errors": self.errors, "fault": self.fault}
+        health = {"errors": self.errors, "fault": self.fault, "map_frames": self.map_frames}
         s = self.state() if self.spawned or self.fault is not None else None
         if s is None:
             return {"spawned": False, **health}

@@ -15,7 +15,7 @@ import os
 import signal
 import tempfile
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,7 @@ class Fused:
     total_points: int
     occupancy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     occupancy_error: str | None = None
+    stats: dict = field(default_factory=dict)  # the map's ``stats()`` after this frame
 
 
 class Mapper:
@@ -90,7 +91,16 @@ class Mapper:
                     grid = self.map.occupancy_update(*occupancy)
                 except Exception as exc:  # the drone's map misses this one; the TSDF has it
                     error = f"{type(exc).__name__}: {exc}"
-            return Fused(points, colours, self.preview.total, grid, error)
+            return Fused(points, colours, self.preview.total, grid, error, self.map.stats())
+
+    def occupancy(
+        self, voxel_m: float, R_flight_world: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The drone's occupancy for the region the frames fused since the last request changed
+        (as ``Fused.occupancy``), or None when nothing changed: the catch-up after the last
+        frames, which asked for none (it is asked for at most every flight_map_interval_s)."""
+        with self._lock:
+            return self.map.occupancy_update(voxel_m, R_flight_world)
 
     def stats(self) -> dict:
         return self.map.stats()
@@ -187,6 +197,9 @@ class MapperClient:
 
     def fuse(self, colour, depth, K, T_world_camera, occupancy=None) -> Fused:
         return self._call("fuse", colour, depth, K, T_world_camera, occupancy)
+
+    def occupancy(self, voxel_m, R_flight_world):
+        return self._call("occupancy", voxel_m, R_flight_world)
 
     def stats(self) -> dict:
         return self._call("stats")

@@ -186,6 +186,10 @@ class Session:
         self.on_update: Callable[[Update], None] | None = None
         self.flight: Flight | None = None  # the drone, from the first hello on
         self._flight_map_at = -np.inf
+        # Frames fused so far, and how many of them the drone's map has been asked to include
+        # (both mapping thread only).
+        self._fused = 0
+        self._flight_map_fused = 0
         self._fuse_jobs: queue.Queue[_FuseJob | None] = queue.Queue(maxsize=4)
         self._mapping_thread: threading.Thread | None = None
         self.fusion_skipped = 0
@@ -439,14 +443,14 @@ class Session:
                 job = self._fuse_jobs.get(timeout=1.0)
             except queue.Empty:
                 self._snapshot_if_due()
+                self._catch_up_flight_map()
                 continue
             if job is None:  # stopping: stop() writes the final snapshot itself
                 return
             self._snapshot_if_due()
+            occupancy = self._occupancy_request()
             try:
-                fused = self.mapper.fuse(
-                    job.colour, job.depth, K, job.T_world_camera, self._occupancy_request()
-                )
+                fused = self.mapper.fuse(job.colour, job.depth, K, job.T_world_camera, occupancy)
             except MapperLost:
                 raise
             except Exception:
@@ -454,25 +458,52 @@ class Session:
                 with self._lock:
                     self.failures.fusions_failed += 1
                 continue
+            self._fused += 1
             with self._lock:
                 self._dirty = True
+            if fused.stats:
+                self._map_stats = fused.stats
             if len(fused.points):
                 self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
-            self._update_flight_map(job.seq, fused)
+            if occupancy is not None:
+                self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
 
-    def _update_flight_map(self, seq: int, fused) -> None:
-        """Hand the drone its occupancy for what the frame changed; a failure is counted (the
-        drone then flies on the map it had) and never ends the mapping."""
-        error = fused.occupancy_error
-        if error is None and fused.occupancy is not None and self.flight is not None:
+    def _catch_up_flight_map(self) -> None:
+        """No frame to fuse (the phone holds still, or the stream ended): hand the drone the
+        occupancy of the frames fused since its last update. Those frames asked for none (one
+        is asked for at most every flight_map_interval_s), so without this the drone would
+        refuse to fly into space they saw free until the next frame came."""
+        if self.flight is None or self._flight_map_fused == self._fused:
+            return
+        request = self._occupancy_request()
+        if request is None:
+            return
+        try:
+            grid, error = self.mapper.occupancy(*request), None
+        except MapperLost:
+            raise
+        except Exception as exc:
+            grid, error = None, f"{type(exc).__name__}: {exc}"
+        self._update_flight_map("the catch-up", grid, error)
+
+    def _update_flight_map(self, what: str, grid, error: str | None) -> None:
+        """Hand the drone the occupancy the mapper gave for what changed (None: nothing did);
+        the flight map then holds every frame fused so far. A failure is counted (the drone
+        flies on the map it had) and never ends the mapping."""
+        if error is None and self.flight is not None:
             try:
-                self.flight.map_region_changed(*fused.occupancy)
+                if grid is not None:
+                    self.flight.map_region_changed(*grid, frames=self._fused)
+                else:
+                    self.flight.map_includes(self._fused)
             except Exception as exc:
                 error = f"{type(exc).__name__}: {exc}"
         if error is not None:
-            self.log.error("the drone's map missed frame %d (%s)", seq, error)
+            self.log.error("the drone's map missed %s (%s)", what, error)
             with self._lock:
                 self.failures.flight_map_failed += 1
+            return
+        self._flight_map_fused = self._fused
 
     def fail(self, reason: str) -> None:
         """The session cannot go on (its map is gone): frames are refused from now on, and the
@@ -512,7 +543,12 @@ class Session:
         return counts
 
     def _map_figures(self) -> dict:
-        """The map's statistics; once its process has ended (stopped, or died), its last."""
+        """The map's statistics: as of the latest fusion (a status never waits behind the
+        mapper, which runs at a lower priority and may be busy for seconds on a loaded
+        machine); from the mapper itself before the first one. Once its process has ended
+        (stopped, or died), its last."""
+        if self._map_stats:
+            return self._map_stats
         if not self._map_closed:
             try:
                 self._map_stats = self.mapper.stats()

@@ -97,6 +97,12 @@ class DroneSummary(_Body):
         None, description="drone_event messages sent so far, by event name"
     )
     errors: int = Field(0, description="simulation steps that failed (flight_errors)")
+    map_frames: int = Field(
+        0,
+        description="fused frames the drone's flight map holds; it has caught up with the map "
+        "when this equals map.frames_integrated (it is updated at most every "
+        "flight_map_interval_s while frames come, and once more when they stop)",
+    )
     fault: str | None = Field(
         None,
         description="why the drone was stopped for good after failing steps (mode faulted); "

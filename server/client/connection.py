@@ -58,10 +58,12 @@ async def create_session(
     return body["id"], body["token"]
 
 
-async def dial(url: str, token: str, *, ssl: Any = None, **kwargs: Any) -> Any:
+async def dial(url: str, token: str | None, *, ssl: Any = None, **kwargs: Any) -> Any:
     """The raw WebSocket to ``url`` (``ws(s)://host:port/ws/sessions/{id}``) with the session's
-    token. Raises websockets.InvalidHandshake when the server refuses the upgrade."""
-    return await websockets.connect(f"{url}?token={token}", max_size=None, ssl=ssl, **kwargs)
+    token (None: without one, as a stranger would try). Raises websockets.InvalidHandshake when
+    the server refuses the upgrade."""
+    query = "" if token is None else f"?token={token}"
+    return await websockets.connect(f"{url}{query}", max_size=None, ssl=ssl, **kwargs)
 
 
 class Socket:
@@ -71,7 +73,7 @@ class Socket:
         self.ws = ws
 
     @classmethod
-    async def connect(cls, url: str, token: str, *, ssl: Any = None, **kwargs: Any):
+    async def connect(cls, url: str, token: str | None, *, ssl: Any = None, **kwargs: Any):
         """Open ``url`` with the session's token (see ``dial``)."""
         return cls(await dial(url, token, ssl=ssl, **kwargs))
 

@@ -117,6 +117,14 @@ class Socket:
         except websockets.ConnectionClosed:
             return self.close_code
 
+    async def ping(self, timeout: float | None = None) -> float:
+        """A ping and its pong -> the round trip in seconds: proof that the server still holds
+        this connection. Raises websockets.ConnectionClosed when it does not, TimeoutError."""
+        t0 = time.monotonic()
+        pong = await self.ws.ping()
+        await asyncio.wait_for(pong, timeout)
+        return time.monotonic() - t0
+
     @property
     def close_code(self) -> int | None:
         return self.ws.close_code

@@ -22,6 +22,7 @@ from conftest import auth
 from pydantic import ValidationError
 
 from server import protocol as P
+from server.client.connection import Socket
 from server.config import Config, ServerConfig
 from server.sessions import manager as manager_module
 from server.sessions.manager import SessionManager
@@ -58,13 +59,13 @@ def raw_request(port: int, method: str, path: str, token: str | None = None) -> 
     return int(status_line.split()[1]), rest.partition(b"\r\n\r\n")[2]
 
 
-async def ws_refusal(url: str) -> tuple[dict, int]:
-    """The error message and close code a WebSocket at ``url`` gets."""
-    async with websockets.connect(url) as ws:
-        msg = P.decode(await ws.recv())
-        with pytest.raises(websockets.ConnectionClosed) as closed:
-            await ws.recv()
-        return msg, closed.value.rcvd.code
+async def ws_refusal(url: str, token: str | None) -> tuple[dict, int | None]:
+    """The error message and close code a WebSocket to ``url`` with ``token`` (None: none at
+    all) gets; nothing else may come between them."""
+    async with await Socket.connect(url, token) as socket:
+        msg = await socket.receive(10)
+        assert await socket.until_closed(10) == []
+        return msg, socket.close_code
 
 
 # ---- tokens ------------------------------------------------------------------------------------
@@ -159,17 +160,13 @@ def test_every_session_resource_refuses_a_missing_or_wrong_token_alike_for_unkno
             # The token goes in a header, never in a REST URL (logs, history, referrers).
             assert httpx.request(method, f"{base}/{sid}{path}?token={token}").status_code == 401
         refusals = [
-            asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{i}{q}"))
-            for i, q in (
-                (sid, "?token=wrong"),
-                (UNKNOWN_ID, f"?token={token}"),
-                (sid, f"?token={other_token}"),
-            )
+            asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{i}", t))
+            for i, t in ((sid, "wrong"), (UNKNOWN_ID, token), (sid, other_token))
         ]
         assert all(code == P.CLOSE_CODES["unauthorized"] for _, code in refusals)
         assert all(msg["name"] == "unauthorized" for msg, _ in refusals)
         assert len({msg["message"] for msg, _ in refusals}) == 1
-        msg, code = asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{sid}"))
+        msg, code = asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{sid}", None))
         assert msg["name"] == "unauthorized" and code == P.CLOSE_CODES["unauthorized"]
 
     check(server, sid, token)
@@ -249,7 +246,7 @@ def test_ids_and_file_names_never_reach_outside_the_data_directory(live_server, 
                 assert status in (307, 400, 404, 405, 414), (method, sid, suffix, status, body)
                 assert secret.encode() not in body
         try:  # a path that matches no route is refused at the handshake
-            msg, code = asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{sid}?token={token}"))
+            msg, code = asyncio.run(ws_refusal(f"{server.ws_url}/ws/sessions/{sid}", token))
             assert msg["name"] == "unauthorized" and code == P.CLOSE_CODES["unauthorized"]
         except websockets.InvalidStatus as refused:
             assert refused.response.status_code in (403, 404)

@@ -40,9 +40,10 @@ from browser import (
     start_replay,
     wait_for_approach,
 )
-from websockets.sync.client import connect
+from conftest import LoopThread
 
 from server import protocol as proto
+from server.client.connection import Connection
 
 # The browser fixtures, for pytest to find in this module.
 chromium, demo_ready, open_page = browser.chromium, browser.demo_ready, browser.open_page
@@ -681,10 +682,18 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
     }""")
     page.wait("window.captureHeld === true", 10, "a capture held at the gate")
     saved = page.page.evaluate("JSON.parse(sessionStorage.getItem('dronesim.session'))")
-    url = f"{server.ws_url}/ws/sessions/{saved['id']}?token={saved['token']}"
-    with connect(url, max_size=None) as other:
-        other.send(proto.encode(saved["hello"]))
-        assert proto.decode(other.recv(timeout=10))["type"] == "welcome"
+    told: list[dict] = []  # what the server says to the other device
+
+    async def take_over() -> Connection:
+        other = await Connection.open(
+            f"{server.ws_url}/ws/sessions/{saved['id']}", saved["token"], saved["hello"], timeout=10
+        )
+        other.start(lambda message, _latency: told.append(message))
+        return other
+
+    with LoopThread() as loop:  # the protocol client's loop beside Playwright's sync API
+        other = loop.run(take_over())
+        assert other.welcome["session_id"] == session
         page.wait("window.dronesim.client.state === 'taken_over'", 10, "the page to let go")
         reconnects = page.snapshot()["counts"]["reconnects"]
         page.page.evaluate("window.openCaptureGate()")
@@ -695,7 +704,9 @@ def test_desktop_map_reconnect_sticks_and_map_tap(live_server, open_page):
         assert [e["state"] for e in s["statusLog"][-2:]] == ["open", "taken_over"]
         assert page.page.inner_text("[data-field=connection]") == "taken over"
         assert "took this session over" in page.page.inner_text("#banner")
-        other.ping().wait(timeout=5)  # still ours
+        loop.run(other.ping(5))  # still ours: the server answers, and said nothing against it
+        assert other.receiving and not [m for m in told if m["type"] == "error"], told
+        loop.run(other.close())
     page.page.click("#btn-stream")  # Start: this page takes its session back
     page.wait("window.dronesim.client.isOpen", 20, "the page to take its session back")
     assert page.snapshot()["session"] == session

@@ -58,10 +58,12 @@ async def create_session(
     return body["id"], body["token"]
 
 
-async def dial(url: str, token: str, *, ssl: Any = None, **kwargs: Any) -> Any:
+async def dial(url: str, token: str | None, *, ssl: Any = None, **kwargs: Any) -> Any:
     """The raw WebSocket to ``url`` (``ws(s)://host:port/ws/sessions/{id}``) with the session's
-    token. Raises websockets.InvalidHandshake when the server refuses the upgrade."""
-    return await websockets.connect(f"{url}?token={token}", max_size=None, ssl=ssl, **kwargs)
+    token (None: without one, as a stranger would try). Raises websockets.InvalidHandshake when
+    the server refuses the upgrade."""
+    query = "" if token is None else f"?token={token}"
+    return await websockets.connect(f"{url}{query}", max_size=None, ssl=ssl, **kwargs)
 
 
 class Socket:
@@ -71,7 +73,7 @@ class Socket:
         self.ws = ws
 
     @classmethod
-    async def connect(cls, url: str, token: str, *, ssl: Any = None, **kwargs: Any):
+    async def connect(cls, url: str, token: str | None, *, ssl: Any = None, **kwargs: Any):
         """Open ``url`` with the session's token (see ``dial``)."""
         return cls(await dial(url, token, ssl=ssl, **kwargs))
 
@@ -114,6 +116,14 @@ class Socket:
                 await self.receive_raw(timeout)
         except websockets.ConnectionClosed:
             return self.close_code
+
+    async def ping(self, timeout: float | None = None) -> float:
+        """A ping and its pong -> the round trip in seconds: proof that the server still holds
+        this connection. Raises websockets.ConnectionClosed when it does not, TimeoutError."""
+        t0 = time.monotonic()
+        pong = await self.ws.ping()
+        await asyncio.wait_for(pong, timeout)
+        return time.monotonic() - t0
 
     @property
     def close_code(self) -> int | None:

@@ -115,7 +115,7 @@ def track(
     config = _load_config(config_file, sets, flags)
     ds = _open(dataset, fx, fy, cx, cy, depth_scale)
     _print_config(config, "configuration")
-    run = run_odometry(ds, config.registration, max_frames=frames)
+    run = run_odometry(ds, config.registration, max_frames=frames, mapping=config.mapping)
     paths = write_outputs(run, out, ds, config.registration)
     paths["config"] = write_config(config, out / "config.yaml")
     s = run.summary

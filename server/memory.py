@@ -1,12 +1,12 @@
-"""The server process's memory: which malloc it runs on, and giving a closed session's memory back.
+"""The server process's memory: which malloc it runs on.
 
 Two causes made a long-running server grow (``benchmarks/soak.py``: +488 MB/min with 2 phones and
 a new session every minute, although every session was closed on time):
 
 - A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer
-  to one another, so reference counting never frees them: they wait for Python's full
-  collection, which runs rarely when a few objects hold hundreds of MB of native arrays.
-  :func:`release_session_memory` collects right after each close.
+  to one another, so reference counting never frees them. Sessions now run in worker processes
+  of their own (``server/sessions/worker.py``): a closed session's memory leaves with its
+  process, whatever cycles it held.
 - Each session's tracking, mapping and flight threads free tens of MB of images, point clouds and
   TSDF blocks a second, and glibc's malloc keeps a fragmented per-thread arena's pages: with the
   collection alone, the level RSS fell back to after each generation of sessions still rose
@@ -21,7 +21,6 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
-import gc
 import logging
 import os
 import sys
@@ -84,20 +83,3 @@ def restart_on_jemalloc() -> None:
 def this_process_allocator() -> str:
     """:func:`loaded_allocator` of this process, which cannot change once it runs."""
     return loaded_allocator()
-
-
-@functools.cache
-def _malloc_trim():
-    try:
-        return ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None
-
-
-def release_session_memory() -> None:
-    """Free what closed sessions left in reference cycles, then ask glibc's malloc to return
-    free pages to the system (jemalloc returns them by itself). Tens of ms: once per close."""
-    gc.collect()
-    trim = _malloc_trim() if this_process_allocator() == "glibc" else None
-    if trim is not None:
-        trim(0)

@@ -18,6 +18,7 @@ from server.datasets import RGBDDataset
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
+from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
 from server.registration.config import RegistrationConfig
@@ -49,16 +50,18 @@ def run_odometry(
     dataset: RGBDDataset,
     config: RegistrationConfig | None = None,
     max_frames: int | None = None,
-    fuse_every: int = 5,
-    voxel_m: float = 0.02,
+    mapping: MappingConfig | None = None,
     progress: bool = True,
 ) -> OdometryRun:
-    """Register the first ``max_frames`` frames of ``dataset`` and fuse every ``fuse_every``-th
-    tracked frame (and every keyframe) into a point cloud map.
+    """Register the first ``max_frames`` frames of ``dataset`` and fuse every
+    ``mapping.fuse_every``-th tracked frame (and every keyframe) into a point cloud map with
+    ``mapping.tsdf.voxel_m`` voxels (offline, the map is a point cloud, not the server's TSDF).
 
     The first pose is the ground truth's when the dataset has one (so that estimates and ground
     truth share a frame for plots), else the identity.
     """
+    mapping = mapping or MappingConfig()
+    fuse_every, voxel_m = mapping.fuse_every, mapping.tsdf.voxel_m
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     first = dataset[0]
     tracker = Tracker(dataset.intrinsics, config, ground_truth_pose_at(dataset, first.timestamp))

@@ -437,3 +437,20 @@ def test_each_drone_command_needs_its_own_field():
     sticks = P.make_command(2, "sticks", sticks=[0.0, 0.5, 1.0, -1.0])
     assert P.decode(P.encode(sticks))["sticks"] == [0.0, 0.5, 1.0, -1.0]
     expect("invalid_field", P.encode, {**sticks, "sticks": [0.0, 0.0, 1.5, 0.0]})
+
+
+@pytest.mark.parametrize(
+    "command, named",
+    [
+        ({"type": "command", "id": 8, "name": "goto"}, 8),  # no target
+        ({"type": "command", "id": 9, "name": "fly_away"}, 9),  # no such command
+        ({"type": "command", "id": -1, "name": "goto"}, None),  # an id the error cannot carry
+        ({"type": "command", "name": "goto"}, None),  # no id at all
+    ],
+)
+def test_a_refused_command_names_its_id_when_it_can_be_read(command, named):
+    with pytest.raises(P.ProtocolError) as refused:
+        P.decode(msgpack.packb(command), direction=P.CLIENT_TO_SERVER)
+    error = refused.value.to_message()
+    assert error.get("command_id") == named, error
+    P.validate(error, P.SERVER_TO_CLIENT)  # what the client gets is itself valid

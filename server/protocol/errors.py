@@ -14,11 +14,14 @@ from server.protocol.spec import ERROR_NAMES, ERRORS, MAX_SEQ
 class ProtocolError(DroneSimError):
     """A message breaks the protocol. ``code`` is an error name from protocol.json."""
 
-    def __init__(self, code: str, message: str, *, seq: int | None = None) -> None:
+    def __init__(
+        self, code: str, message: str, *, seq: int | None = None, command_id: int | None = None
+    ) -> None:
         if code not in ERRORS:
             raise ValueError(f"unknown protocol error code {code!r}; known: {sorted(ERRORS)}")
         super().__init__(f"{code}: {message}")
         self.code, self.message, self.seq = code, message, seq
+        self.command_id = command_id  # the refused command's id, when it could be read
 
     @property
     def number(self) -> int:
@@ -34,10 +37,15 @@ class ProtocolError(DroneSimError):
         return ERRORS[self.code]["close"]
 
     def to_message(self) -> dict:
-        """The error for the client; a seq that is itself invalid (e.g. negative) is left out,
-        as the error message could not carry it."""
+        """The error for the client; a seq or command id that is itself invalid (e.g.
+        negative) is left out, as the error message could not carry it."""
         valid = isinstance(self.seq, int) and 0 <= self.seq <= MAX_SEQ
-        return make_error(self.code, self.message, seq=self.seq if valid else None)
+        command_id = self.command_id
+        if not (isinstance(command_id, int) and 0 <= command_id <= MAX_SEQ):
+            command_id = None
+        return make_error(
+            self.code, self.message, seq=self.seq if valid else None, command_id=command_id
+        )
 
 
 def new_message(kind: str, **fields: Any) -> dict:

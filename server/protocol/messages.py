@@ -37,7 +37,16 @@ def decode(data: bytes, *, direction: str | None = None, max_bytes: int | None =
         message = msgpack.unpackb(data, raw=False, strict_map_key=True)
     except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
         raise ProtocolError("malformed_message", f"not one msgpack object: {exc}") from exc
-    return validate(message, direction)
+    try:
+        return validate(message, direction)
+    except ProtocolError as exc:
+        # A refused command names itself when its id can be read, as the spec promises the
+        # pilot (a command error carries command_id).
+        if isinstance(message, dict) and message.get("type") == "command":
+            command_id = message.get("id")
+            if type(command_id) is int:
+                exc.command_id = command_id
+        raise
 
 
 # ---- message builders ----------------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import os
 import threading
+import time
 from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
@@ -261,3 +262,25 @@ class LoopThread:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(10)
         self.loop.close()
+
+
+class Updates:
+    """Collects a session's updates (any thread) and waits for the ones a test expects."""
+
+    def __init__(self) -> None:
+        self.items: list = []
+        self._cond = threading.Condition()
+
+    def __call__(self, item) -> None:
+        with self._cond:
+            self.items.append(item)
+            self._cond.notify_all()
+
+    def wait_for(self, kind, n: int = 1, timeout_s: float = 60.0) -> list:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while len(found := [i for i in self.items if isinstance(i, kind)]) < n:
+                remaining = deadline - time.monotonic()
+                assert remaining > 0, f"only {len(found)} {kind.__name__} of {n}: {self.items}"
+                self._cond.wait(remaining)
+            return found

@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 
 import numpy as np
 import pytest
 import websockets
-from conftest import Stream, process_running, session_status
+from conftest import Stream, Updates, process_running, session_status
 
 from server import protocol as P
 from server.datasets import open_dataset
@@ -32,28 +31,6 @@ from server.transport import websocket
 @pytest.fixture(scope="module")
 def room(shared_data):
     return open_dataset(shared_data / "synthetic_room0")
-
-
-class Updates:
-    """A session's updates (any thread), waited for by kind."""
-
-    def __init__(self) -> None:
-        self.items: list = []
-        self._cond = threading.Condition()
-
-    def __call__(self, item) -> None:
-        with self._cond:
-            self.items.append(item)
-            self._cond.notify_all()
-
-    def wait_for(self, kind, n: int = 1, timeout_s: float = 60.0) -> list:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(found := [i for i in self.items if isinstance(i, kind)]) < n:
-                remaining = deadline - time.monotonic()
-                assert remaining > 0, f"only {len(found)} {kind.__name__} of {n}"
-                self._cond.wait(remaining)
-            return found
 
 
 async def _answers(conn, n: int) -> list[dict]:

@@ -6,11 +6,10 @@ test_faults.py against real servers; failures counted and a dead map in test_fai
 from __future__ import annotations
 
 import os
-import threading
-import time
 
 import numpy as np
 import pytest
+from conftest import Updates
 
 from server import protocol as P
 from server.geometry import Intrinsics
@@ -18,28 +17,6 @@ from server.sessions import CommandRefused, FrameRefused, PoseUpdate, SessionErr
 from server.sessions.manager import SessionManager
 from server.sessions.session import FrameData, Session
 from server.sessions.store import SessionStore
-
-
-class Updates:
-    """Collects a session's updates (any thread) and waits for the ones a test expects."""
-
-    def __init__(self) -> None:
-        self.items: list = []
-        self._cond = threading.Condition()
-
-    def __call__(self, item) -> None:
-        with self._cond:
-            self.items.append(item)
-            self._cond.notify_all()
-
-    def wait_for(self, kind, n: int = 1, timeout_s: float = 60.0) -> list:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(found := [i for i in self.items if isinstance(i, kind)]) < n:
-                remaining = deadline - time.monotonic()
-                assert remaining > 0, f"only {len(found)} {kind.__name__} of {n}: {self.items}"
-                self._cond.wait(remaining)
-            return found
 
 
 @pytest.fixture

@@ -95,7 +95,7 @@ class Mapper:
     def stats(self) -> dict:
         return self.map.stats()
 
-    def save(self, folder: str) -> list[str]:
+    def save(self, folder: str | Path) -> list[str]:
         """Write the map's snapshot files into ``folder`` (map.npz, and map.ply once there is a
         surface); returns the names written."""
         if self.map.stats()["frames_integrated"] == 0:

@@ -79,7 +79,10 @@ def _intrinsics_for(path: Path, fx: float, fy: float, cx: float, cy: float):
     images = sorted(p for p in path.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if not images:
         raise DroneSimError(f"no images under {path}")
-    h, w = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED).shape[:2]
+    first = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED)
+    if first is None:
+        raise DroneSimError(f"cannot read the image {images[0]}")
+    h, w = first.shape[:2]
     return Intrinsics(fx, fy, cx, cy, w, h)
 
 
@@ -191,19 +194,19 @@ def serve(
 
     _print_config(config, "configuration")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    ssl = {}
+    ssl_certfile = ssl_keyfile = None  # plain HTTP
     if settings.tls:
         from server.transport.tls import ensure_certificate, local_addresses
 
         cert, key = ensure_certificate(settings.data_dir / "tls")
-        ssl = {"ssl_certfile": str(cert), "ssl_keyfile": str(key)}
+        ssl_certfile, ssl_keyfile = str(cert), str(key)
         console.print(
             f"HTTPS with a self-signed certificate ({cert}); from a phone on the same "
             f"network open https://<this machine>:{settings.port}/ (addresses: "
             f"{', '.join(local_addresses())}) and accept the certificate once."
         )
     logging.getLogger().setLevel(logging.INFO)
-    make_server(config, log_level="info", **ssl).run()
+    make_server(config, log_level="info", ssl_certfile=ssl_certfile, ssl_keyfile=ssl_keyfile).run()
 
 
 @app.command()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -55,23 +56,24 @@ class ServerConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
+    port: int = Field(default=8000, ge=1, le=65535)
     data_dir: Path = Path("data")  # sessions' maps and trajectories live here
     tls: bool = False  # serve HTTPS with a self-signed certificate kept in data_dir/tls
-    max_sessions: int = Field(16, ge=1)  # live sessions at once; more get 503
+    max_sessions: int = Field(default=16, ge=1)  # live sessions at once; more get 503
     # Refused before decoding; at most uvicorn's ws_max_size (16 MiB), which refuses larger first.
-    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
-    session_ttl_s: float = Field(300.0, gt=0)  # a disconnected session is closed after this
-    snapshot_interval_s: float = Field(10.0, gt=0)  # periodic atomic snapshot of map + trajectory
-    drone_state_hz: float = Field(20.0, gt=0, le=60)  # drone_state messages per second
+    max_message_bytes: int = Field(default=4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
+    session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
+    snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
+    drone_state_hz: float = Field(default=20.0, gt=0, le=60)  # drone_state messages per second
     # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
     # cores among the live sessions, rebalanced as they come and go.
-    worker_threads: int = Field(0, ge=0, le=256)
+    worker_threads: int = Field(default=0, ge=0, le=256)
     demo: bool = False  # start a session that replays the bundled demo sequence
-    demo_fps: float = Field(15.0, gt=0, le=60)
+    demo_fps: float = Field(default=15.0, gt=0, le=60)
     cors_origins: list[str] = []  # extra allowed origins; same origin is always allowed
-    create_rate_per_min: float = Field(30.0, ge=0)  # sessions one client IP may create; 0: no limit
-    create_burst: int = Field(20, ge=1)  # ...of which this many at once
+    # Sessions one client IP may create per minute (0: no limit), this many of them at once.
+    create_rate_per_min: float = Field(default=30.0, ge=0)
+    create_burst: int = Field(default=20, ge=1)
     # Reverse proxies whose X-Forwarded-For / -Proto are believed (uvicorn's forwarded_allow_ips:
     # comma-separated addresses or networks, "*" for any); the rate limit then counts the phone's
     # address, not the proxy's. Others' forwarding headers are ignored, so they cannot forge one.
@@ -248,9 +250,9 @@ def read_config_file(path: Path) -> dict[str, Any]:
         if suffix in (".yaml", ".yml"):
             values = yaml.safe_load(text)
         elif suffix == ".toml":
-            try:
+            if sys.version_info >= (3, 11):
                 import tomllib
-            except ImportError:  # Python 3.10
+            else:
                 import tomli as tomllib
 
             values = tomllib.loads(text)

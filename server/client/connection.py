@@ -202,6 +202,7 @@ class Connection(Socket):
         here, its send-to-pose latency in milliseconds, else None."""
         kind, seq = message["type"], message.get("seq")
         if kind == "pose":
+            seq = message["seq"]  # a pose always names its frame (protocol.json)
             sent_at = self.in_flight.get(seq)
             for s in [s for s in self.in_flight if s <= seq]:
                 del self.in_flight[s]

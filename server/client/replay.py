@@ -148,7 +148,9 @@ async def replay(
             if not loop_sequence and i >= len(dataset):
                 break
             # Encoding runs off the event loop: the loop may be a server's (the demo).
-            message = cache.get(i % len(dataset)) or await asyncio.to_thread(frame_message, i)
+            message = cache.get(i % len(dataset))
+            if message is None:
+                message = await asyncio.to_thread(frame_message, i)
             await conn.send_frame({**message, "seq": i})
             stats.sent += 1
         return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from server.datasets.base import RGBDDataset, RGBDFrame
@@ -9,8 +10,9 @@ from server.datasets.redwood import RedwoodDataset
 from server.datasets.tum import TUMDataset
 from server.errors import DatasetError
 
-# Format name -> loader class; each takes the folder path plus its own keyword arguments.
-DATASETS: dict[str, type[RGBDDataset]] = {
+# Format name -> loader class; each takes the folder path plus its own keyword arguments, so
+# their constructors differ beyond the path.
+DATASETS: dict[str, Callable[..., RGBDDataset]] = {
     "tum": TUMDataset,
     "redwood": RedwoodDataset,
 }

@@ -127,7 +127,8 @@ def build_scene(spec: DemoSpec) -> tuple[o3d.t.geometry.RaycastingScene, dict[st
     scene = o3d.t.geometry.RaycastingScene()
     colour, cell, mix = [], [], []
     for lo, hi, pattern in _room_boxes(rng):
-        mesh = o3d.geometry.TriangleMesh.create_box(*np.subtract(hi, lo)).translate(lo)
+        mesh = o3d.geometry.TriangleMesh.create_box(*np.subtract(hi, lo))
+        mesh.translate(lo)  # in place (it returns the mesh typed as a plain Geometry3D)
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         colour.append(rng.uniform(0.35, 0.95, 3))
         cell.append(PATTERNS[pattern][0])
@@ -247,7 +248,7 @@ def render_frame(scene, materials: dict, T_world_camera: np.ndarray, spec: DemoS
     for i in range(3):
         rays[:, 3 + i] = R[i, 0] * x + R[i, 1] * y + R[i, 2]
     dirs = rays[:, 3:]
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # shares rays' memory, read only
     z = hit["t_hit"].numpy()  # directions have unit z in the camera frame, so t_hit is depth
     miss = ~np.isfinite(z)  # none in a closed room, but be safe
     z[miss] = 0.0

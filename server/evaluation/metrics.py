@@ -208,8 +208,9 @@ def format_table(rows: dict[str, dict], title: str = "Trajectory error") -> Tabl
         cells = []
         for key, _, factor in TABLE_COLUMNS:
             value = metrics.get(key)
-            shown = value is not None and np.isfinite(value)
-            cells.append(f"{value * factor:.2f}" if shown else "-")
+            cells.append(
+                "-" if value is None or not np.isfinite(value) else f"{value * factor:.2f}"
+            )
         matched = metrics.get("matched")
         cells.append("-" if matched is None else str(matched))
         table.add_row(name, *cells)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from server.errors import DroneSimError
 from server.protocol.spec import ERROR_NAMES, ERRORS, MAX_SEQ
@@ -53,7 +53,7 @@ def new_message(kind: str, **fields: Any) -> dict:
     return {"type": kind, **{k: v for k, v in fields.items() if v is not None}}
 
 
-def floats(values: Any, n: int, name: str) -> list[float]:
+def floats(values: ArrayLike, n: int, name: str) -> list[float]:
     """``values`` flattened to n floats for the field ``name``; raises invalid_field."""
     flat = np.asarray(values, dtype=np.float64).reshape(-1)
     if flat.size != n:
@@ -67,7 +67,7 @@ def make_error(
     *,
     seq: int | None = None,
     command_id: int | None = None,
-    nearest: Sequence[float] | None = None,
+    nearest: ArrayLike | None = None,
 ) -> dict:
     """code: an error name ('corrupt_image') or its number (200); nearest: world metres."""
     name = ERROR_NAMES.get(code, code) if isinstance(code, int) else code

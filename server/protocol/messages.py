@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 
 import msgpack
 import numpy as np
+from numpy.typing import ArrayLike
 
 from server.protocol.codecs import encode_depth, encode_jpeg
 from server.protocol.errors import ProtocolError
@@ -26,8 +27,9 @@ def encode(message: dict, *, max_bytes: int | None = None) -> bytes:
     return data
 
 
-def decode(data: bytes, *, direction: str | None = None, max_bytes: int | None = None) -> dict:
-    """Unpack and validate one message; the size limit is checked before unpacking."""
+def decode(data: object, *, direction: str | None = None, max_bytes: int | None = None) -> dict:
+    """Unpack and validate one message; the size limit is checked before unpacking. ``data`` is
+    whatever the socket gave: anything but bytes (a text frame) is a malformed_message."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError("malformed_message", f"need binary data, got {type(data).__name__}")
     limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
@@ -54,12 +56,12 @@ def decode(data: bytes, *, direction: str | None = None, max_bytes: int | None =
 
 def make_hello(
     client_name: str,
-    intrinsics: Sequence[float],
+    intrinsics: ArrayLike,
     colour_size: Sequence[int],
     depth_size: Sequence[int] | None = None,
     depth_scale: float = 1000.0,
     version: int = VERSION,
-    gravity: Sequence[float] | None = None,
+    gravity: ArrayLike | None = None,
 ) -> dict:
     """intrinsics: fx, fy, cx, cy of the colour image (px); sizes (width, height) px;
     depth_size defaults to colour_size; depth_scale: depth units per metre; gravity: its
@@ -101,12 +103,12 @@ def make_frame(
 def make_command(
     command_id: int,
     name: str,
-    target: Sequence[float] | None = None,
+    target: ArrayLike | None = None,
     speed: float | None = None,
     *,
-    pixel: Sequence[float] | None = None,
+    pixel: ArrayLike | None = None,
     seq: int | None = None,
-    sticks: Sequence[float] | None = None,
+    sticks: ArrayLike | None = None,
 ) -> dict:
     """target: world [x, y, z] metres (goto); pixel: [u, v] of frame seq (goto_pixel);
     sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks)."""
@@ -169,14 +171,14 @@ def make_pose(
 def make_drone_state(
     timestamp: float,
     T_world_drone: np.ndarray,
-    velocity: Sequence[float],
+    velocity: ArrayLike,
     mode: str,
     command_id: int | None = None,
     *,
     T_camera_drone: np.ndarray | None = None,
     camera_seq: int | None = None,
     clearance: float | None = None,
-    target: Sequence[float] | None = None,
+    target: ArrayLike | None = None,
     route: np.ndarray | None = None,
 ) -> dict:
     """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points."""
@@ -200,7 +202,7 @@ def make_drone_state(
 def make_drone_event(
     event: str,
     timestamp: float,
-    position: Sequence[float],
+    position: ArrayLike,
     message: str,
     command_id: int | None = None,
 ) -> dict:

@@ -13,7 +13,7 @@ import numpy as np
 from server.protocol.errors import ProtocolError
 from server.protocol.spec import ERROR_NAMES, LIMITS, MESSAGES, VERSION
 
-_PY_TYPES = {
+_PY_TYPES: dict[str, type | tuple[type, ...]] = {
     "int": int,
     "float": (int, float),
     "str": str,
@@ -24,9 +24,16 @@ _PY_TYPES = {
 }
 
 
+def _is_kind(value: object, kind: str) -> bool:
+    """Whether ``value`` has the protocol type ``kind``; a bool is no number."""
+    if isinstance(value, bool):
+        return kind == "bool"
+    return isinstance(value, _PY_TYPES[kind])
+
+
 def _check_value(value: Any, spec: Mapping, where: str) -> None:
     kind = spec["type"]
-    if (isinstance(value, bool) and kind != "bool") or not isinstance(value, _PY_TYPES[kind]):
+    if not _is_kind(value, kind):
         raise ProtocolError("invalid_field", f"{where} must be {kind}, got {type(value).__name__}")
     if kind == "float" and not math.isfinite(value):
         raise ProtocolError("invalid_field", f"{where} must be finite, got {value}")

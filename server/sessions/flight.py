@@ -311,7 +311,7 @@ class Flight:
         with self._frames_lock:
             if seq is None and self._frames:
                 seq = next(reversed(self._frames))
-            frame = self._frames.get(seq)
+            frame = None if seq is None else self._frames.get(seq)
         if frame is None:
             raise CommandRefused(
                 "bad_command",

@@ -161,7 +161,7 @@ class SessionHost:
                 raise SessionError("no_hello", "send a hello before frames")
             colour, depth = proto.decode_frame_images(message, self._hello)
             frame = FrameData(
-                seq,
+                message["seq"],  # required in a frame, so validated with it
                 message["timestamp"],
                 colour,
                 depth,

@@ -11,6 +11,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any, Literal, Protocol, overload
 
 from server.sessions.errors import SessionError
 from server.sessions.session import FrameRefused, PoseUpdate, SessionFailed
@@ -29,19 +30,36 @@ class SessionTakenOver:
         self.closed = closed
 
 
+class SessionWorker(Protocol):
+    """What a live session asks of its worker: ``server.sessions.worker.ProcessWorker``, or
+    ``server.sessions.ray_workers.RayWorker`` (the Ray actor's handle)."""
+
+    dropped: int  # frames dropped before the worker saw them
+
+    def call(self, method: str, *args: Any, timeout_s: float = 60.0) -> Any:
+        """Run ``method`` on the session's host; its value (whatever that method returns)."""
+        ...
+
+    def post(self, method: str, *args: Any) -> None: ...
+
+    def stop(self, save: bool, timeout_s: float = 120.0) -> dict: ...
+
+    def kill(self) -> None: ...
+
+    def describe(self) -> dict: ...
+
+
 class LiveSession:
-    """One live session in the web process. ``worker`` offers ``call``, ``post``, ``stop``,
-    ``kill``, ``describe`` and ``dropped`` (``server.sessions.worker.ProcessWorker``, or the Ray
-    actor's handle); ``on_lost`` is told when the worker dies on its own, ``on_failed`` when
-    the session fails in a live worker (its map is gone: ``Session.fail``) and must be stopped
-    and saved."""
+    """One live session in the web process, its work done by a ``SessionWorker``; ``on_lost``
+    is told when the worker dies on its own, ``on_failed`` when the session fails in a live
+    worker (its map is gone: ``Session.fail``) and must be stopped and saved."""
 
     def __init__(
         self,
         session_id: str,
         token_hash: str,
         created_at: float,
-        start_worker: Callable[[LiveSession], object],
+        start_worker: Callable[[LiveSession], SessionWorker],
         on_lost: Callable[[LiveSession, str], None] | None = None,
         on_failed: Callable[[LiveSession, str], None] | None = None,
     ) -> None:
@@ -80,7 +98,7 @@ class LiveSession:
         here, from the frame's arrival in this process to its pose leaving it."""
         if isinstance(item, PoseUpdate | FrameRefused):
             with self._lock:
-                received = self._received.pop(item.seq, None)
+                received = None if item.seq is None else self._received.pop(item.seq, None)
             if isinstance(item, PoseUpdate):
                 item.dropped += self.worker.dropped  # dropped before the worker saw them
                 item.failures["sends_failed"] = self.sends_failed
@@ -149,9 +167,10 @@ class LiveSession:
         try:
             status = self.worker.call("status")
         except WorkerLost:
-            if self._saved_meta() is None:
+            meta = self._saved_meta()
+            if meta is None:
                 raise
-            return self.final_meta["status"]
+            return meta["status"]
         status["frames_dropped"] += self.worker.dropped
         status["failures"]["sends_failed"] = self.sends_failed
         status["frames_received"] = self.received
@@ -171,6 +190,12 @@ class LiveSession:
         return self.worker.call("download", name, timeout_s=300)
 
     # ------------------------------------------------------------------ the end
+    @overload
+    def stop(self, save: Literal[True] = True) -> dict: ...
+
+    @overload
+    def stop(self, save: bool) -> dict | None: ...
+
     def stop(self, save: bool = True) -> dict | None:
         """Stop the worker; with ``save``, after its final snapshot (returns the saved meta;
         raises SnapshotError when the save failed and the worker stays). Without, the worker

@@ -13,10 +13,11 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.host import HostArgs
-from server.sessions.live import LiveSession
+from server.sessions.live import LiveSession, SessionWorker
 from server.sessions.session import SessionConfig, hash_token
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import ProcessWorker
@@ -33,14 +34,34 @@ class FoundSession:
 
     token_hash: str
     created_at: float
-    attach: Callable[[LiveSession], object]  # -> the worker, delivering to this LiveSession
+    attach: Callable[[LiveSession], SessionWorker]  # -> the worker, delivering to this session
+
+
+class WorkerBackend(Protocol):
+    """Where sessions' workers run: ``ProcessWorkers`` or ``server.sessions.ray_workers``'
+    ``RayWorkers``."""
+
+    kind: str
+
+    def start(self, args: HostArgs, session: LiveSession) -> SessionWorker:
+        """A new worker for ``session``, delivering its updates to it."""
+        ...
+
+    def find(self, session_id: str) -> FoundSession | None:
+        """A live session this front-end did not start, or None."""
+        ...
+
+    def detach(self) -> None:
+        """The front-end is going away: let go of the sessions that outlive it."""
+        ...
+
+    def close(self) -> None: ...
 
 
 class ProcessWorkers:
     """Runs each session in a local worker process (the default; ``server.sessions.ray_workers``
-    runs them as Ray actors instead). A back-end offers ``kind``, ``start``, ``find`` and
-    ``close``; its workers offer ``call``, ``post``, ``stop``, ``kill``, ``describe``, ``alive``
-    and ``dropped`` (see ``server.sessions.worker.ProcessWorker``)."""
+    runs them as Ray actors instead). Its workers are ``server.sessions.worker.ProcessWorker``s
+    (a ``SessionWorker``)."""
 
     kind = "process"
 
@@ -51,6 +72,9 @@ class ProcessWorkers:
         """A live session this front-end did not start: another front-end's, or its own
         before a restart. Local processes die with their front-end: never any."""
         return None
+
+    def detach(self) -> None:
+        """Local processes end with their front-end: no session outlives it."""
 
     def close(self) -> None:
         pass
@@ -67,13 +91,13 @@ class SessionManager:
         store: SessionStore,
         config: SessionConfig | None = None,
         max_sessions: int = 16,
-        workers=None,
+        workers: WorkerBackend | None = None,
         threads: int = 0,
     ) -> None:
         self.store = store
         self.config = config or SessionConfig.from_config()
         self.max_sessions = max_sessions
-        self.workers = workers or ProcessWorkers()
+        self.workers: WorkerBackend = workers or ProcessWorkers()
         self.threads = threads
         self.faults: dict[str, list[int]] | None = None  # tests: HostArgs.faults of new sessions
         self._live: dict[str, LiveSession] = {}
@@ -220,13 +244,13 @@ class SessionManager:
         if found is None and not (saved or {}).get("closed"):
             # Unknown here, or on disk but never closed: maybe live on the cluster.
             found = self._adopt(session_id)
-        found = found or saved
-        if isinstance(found, LiveSession):
-            expected = found.token_hash
+        entry: LiveSession | dict | None = found or saved
+        if isinstance(entry, LiveSession):
+            expected = entry.token_hash
         else:
-            expected = (found or {}).get("token_sha256", _NO_SESSION_HASH)
-        if hmac.compare_digest(hash_token(token), expected) and found is not None:
-            return found
+            expected = (entry or {}).get("token_sha256", _NO_SESSION_HASH)
+        if hmac.compare_digest(hash_token(token), expected) and entry is not None:
+            return entry
         raise SessionError("not_found", "no session with this id for this token")
 
     def _adopt(self, session_id: str) -> LiveSession | None:
@@ -263,10 +287,9 @@ class SessionManager:
                 return False
             self._closing.add(session_id)
             session.closed = True  # a hello now gets "closed"; frames no longer arrive
-        saved, meta = False, None
+        meta: dict | None = None  # the saved meta, once saved
         try:
             meta = session.stop(save=True)
-            saved = True
         except SnapshotError as exc:
             log.error("%s: the session stays in memory, closed to frames; retrying later", exc)
         except SessionError as exc:  # the worker died while stopping: keep its last snapshot
@@ -276,9 +299,10 @@ class SessionManager:
             with self._lock:
                 self._closing.discard(session_id)
                 deleted = session_id not in self._live
-                if saved and not deleted:
+                if meta is not None and not deleted:
                     del self._live[session_id]
                     self._saved[session_id] = meta
+        saved = meta is not None
         if deleted:
             self.store.delete(session_id)  # the final snapshot wrote after the delete
         if saved:

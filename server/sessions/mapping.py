@@ -105,7 +105,7 @@ class Mapper:
     def stats(self) -> dict:
         return self.map.stats()
 
-    def save(self, folder: str) -> list[str]:
+    def save(self, folder: str | Path) -> list[str]:
         """Write the map's snapshot files into ``folder`` (map.npz, and map.ply once there is a
         surface); returns the names written."""
         if self.map.stats()["frames_integrated"] == 0:
@@ -198,7 +198,9 @@ class MapperClient:
     def fuse(self, colour, depth, K, T_world_camera, occupancy=None) -> Fused:
         return self._call("fuse", colour, depth, K, T_world_camera, occupancy)
 
-    def occupancy(self, voxel_m, R_flight_world):
+    def occupancy(
+        self, voxel_m: float, R_flight_world: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return self._call("occupancy", voxel_m, R_flight_world)
 
     def stats(self) -> dict:

@@ -72,7 +72,11 @@ def actor_name(session_id: str) -> str:
 # ---- the actor (on a cluster node) -----------------------------------------------------------
 
 
-@ray.remote(concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8})
+# Ray's typing of remote() with options lists the task options only, not the actor's
+# concurrency_groups.
+@ray.remote(  # type: ignore[call-overload]
+    concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8}
+)
 class SessionActor:
     """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
     owner, until another front-end sends a hello)."""
@@ -503,17 +507,21 @@ def _connect(address: str) -> bool:
         _RAY_USERS += 1
         if ray.is_initialized():
             return local
-        options = {"namespace": NAMESPACE, "logging_level": logging.WARNING, "log_to_driver": False}
+        include_dashboard = None  # Ray's default
         if local:
             # One machine: Ray on the loopback only (its node address, and what it listens on).
             os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
             from ray._private import ray_constants
 
             ray_constants.ENABLE_RAY_CLUSTER = False
-            options |= {"address": "local", "include_dashboard": False}
-        else:
-            options["address"] = address
-        ray.init(**options)
+            include_dashboard = False
+        ray.init(
+            address=address,
+            namespace=NAMESPACE,
+            logging_level=logging.WARNING,
+            log_to_driver=False,
+            include_dashboard=include_dashboard,
+        )
         _RAY_OURS = True
         return local
 
@@ -533,7 +541,8 @@ class RayWorkers:
 
     def start(self, args, session) -> RayWorker:
         args = replace(args, threads=SESSION_THREADS)
-        actor = SessionActor.options(
+        # mypy keeps the class a decorator returns as the plain class; it is Ray's ActorClass.
+        actor = SessionActor.options(  # type: ignore[attr-defined]
             name=actor_name(args.session_id),
             namespace=NAMESPACE,
             lifetime="detached",

@@ -305,6 +305,12 @@ class Session:
         return True
 
     # ------------------------------------------------------------------ worker
+    def _configured(self) -> tuple[Intrinsics, Tracker]:
+        """The camera and tracker the hello set (``configure``); submit takes no frame before."""
+        if self.intrinsics is None or self.tracker is None:
+            raise SessionError("no_hello", "send a hello before frames")
+        return self.intrinsics, self.tracker
+
     def _run(self) -> None:
         while True:
             with self._wake:
@@ -353,10 +359,10 @@ class Session:
         """Track the frame and publish its pose at once; then the keyframe work the tracker
         deferred (a new keyframe, or a switch to an earlier one), and the frame's fusion job:
         the client never waits for either."""
-        K = self.intrinsics
+        K, tracker = self._configured()
         t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
-        result = self.tracker.track(frame.colour, depth)
+        result = tracker.track(frame.colour, depth)
         timings = {
             "decode": frame.decode_ms,
             **{f"track_{k}": v for k, v in result.timings_ms.items()},
@@ -392,7 +398,7 @@ class Session:
         )
         new_keyframe = result.new_keyframe
         if result.keyframe_due:
-            new_keyframe = self.tracker.update_keyframe()
+            new_keyframe = tracker.update_keyframe()
         if tracked and (new_keyframe or (processed - 1) % self.config.mapping.fuse_every == 0):
             self._queue_fusion(
                 _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, new_keyframe)
@@ -437,7 +443,6 @@ class Session:
             self.fail(f"the session's mapping thread died ({type(exc).__name__}: {exc})")
 
     def _fuse_until_stopped(self) -> None:
-        K = self.intrinsics
         while True:
             try:
                 job = self._fuse_jobs.get(timeout=1.0)
@@ -448,6 +453,7 @@ class Session:
             if job is None:  # stopping: stop() writes the final snapshot itself
                 return
             self._snapshot_if_due()
+            K, _ = self._configured()  # a job comes from a tracked frame: after the hello
             occupancy = self._occupancy_request()
             try:
                 fused = self.mapper.fuse(job.colour, job.depth, K, job.T_world_camera, occupancy)
@@ -486,7 +492,12 @@ class Session:
             grid, error = None, f"{type(exc).__name__}: {exc}"
         self._update_flight_map("the catch-up", grid, error)
 
-    def _update_flight_map(self, what: str, grid, error: str | None) -> None:
+    def _update_flight_map(
+        self,
+        what: str,
+        grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        error: str | None,
+    ) -> None:
         """Hand the drone the occupancy the mapper gave for what changed (None: nothing did);
         the flight map then holds every frame fused so far. A failure is counted (the drone
         flies on the map it had) and never ends the mapping."""
@@ -646,6 +657,8 @@ class Session:
         """After every queued fusion: the thread ends at the None (a dead one is not waited
         for)."""
         thread = self._mapping_thread
+        if thread is None:  # never started
+            return
         deadline = time.monotonic() + timeout_s
         while thread.is_alive() and time.monotonic() < deadline:
             try:

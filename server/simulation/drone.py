@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
 
@@ -100,7 +100,7 @@ class DroneEvent:
     command_id: int | None = None
     point: np.ndarray | None = None  # (3,) flight frame, m: the ``{point}`` of the message
 
-    def text(self, to_frame=lambda p: p) -> str:
+    def text(self, to_frame: Callable[[FloatArray], ArrayLike] = lambda p: p) -> str:
         """The message with ``{point}`` written as ``(x, y, z) m`` after ``to_frame`` (a map
         from flight-frame points to the reader's frame; identity by default)."""
         if self.point is None:
@@ -239,7 +239,7 @@ class DroneSimulator:
             self._start_route(route)
 
     def command_sticks(
-        self, sticks: Sequence[float], now_s: float | None = None, command_id: int | None = None
+        self, sticks: ArrayLike, now_s: float | None = None, command_id: int | None = None
     ) -> None:
         """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1 (climb rate, yaw rate with
         positive counter-clockwise seen from above, forward speed, rightward speed; each a
@@ -378,8 +378,7 @@ class DroneSimulator:
                 route = self._plan(goal, self._speed)
             except PlanningError as exc:
                 if blocked:
-                    goal = self._goal  # holding forgets it
-                    self._hold(self._quad.position)
+                    self._hold(self._quad.position)  # forgets self._goal; ``goal`` keeps it
                     # The planner's own text gives flight-frame coordinates: not for the pilot.
                     why = exc.reason.value.replace("_", " ")
                     self._emit(

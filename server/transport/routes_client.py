@@ -141,15 +141,16 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files", query: st
     rgb_stamps, rgb_names = read_file_list(folder / "rgb.txt")
     depth_stamps, depth_names = read_file_list(folder / "depth.txt")
     idx_rgb, idx_depth = associate(rgb_stamps, depth_stamps, 0.02)
+    times = [float(rgb_stamps[i]) for i in idx_rgb]
     frames = [
         {
-            "timestamp": float(rgb_stamps[i]),
+            "timestamp": t,
             "colour": f"{files_url}/{rgb_names[i]}{query}",
             "depth": f"{files_url}/{depth_names[j]}{query}",
         }
-        for i, j in zip(idx_rgb, idx_depth, strict=True)
+        for t, i, j in zip(times, idx_rgb, idx_depth, strict=True)
     ]
-    span = frames[-1]["timestamp"] - frames[0]["timestamp"]
+    span = times[-1] - times[0]
     fps = (len(frames) - 1) / span if len(frames) > 1 and span > 0 else 15.0
     return {
         "name": folder.name,

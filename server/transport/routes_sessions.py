@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.responses import JSONResponse
@@ -23,19 +24,23 @@ from server.transport.websocket import end_connection
 PLY = "application/octet-stream"
 
 
-def _error(description: str) -> dict:
+# A route's documented answers, for the OpenAPI document: status -> FastAPI's response entry.
+_Responses = dict[int | str, dict[str, Any]]
+
+
+def _error(description: str) -> dict[str, Any]:
     return {"model": ErrorBody, "description": description}
 
 
 # Every call on a session: who may ask.
-_TOKEN_ERRORS = {
+_TOKEN_ERRORS: _Responses = {
     401: _error("no `Authorization: Bearer <token>` header"),
     404: _error("unknown session id, or a token that does not open it (the same answer)"),
 }
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
 
-def _file(media_type: str, description: str) -> dict:
+def _file(media_type: str, description: str) -> _Responses:
     """A download's 200 answer, for the OpenAPI document."""
     return {
         200: {
@@ -45,7 +50,7 @@ def _file(media_type: str, description: str) -> dict:
     }
 
 
-_NO_MAP = {409: _error("`map_unavailable`: the session has fused no surface yet")}
+_NO_MAP: _Responses = {409: _error("`map_unavailable`: the session has fused no surface yet")}
 
 
 @router.post(

@@ -20,8 +20,10 @@ def local_addresses() -> list[str]:
     """This machine's IPv4 addresses that a phone on the same network could reach."""
     addresses = {"127.0.0.1"}
     try:
-        for info in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET):
-            addresses.add(info[4][0])
+        for *_, sockaddr in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET):
+            host = sockaddr[0]  # an AF_INET sockaddr is (host, port)
+            if isinstance(host, str):
+                addresses.add(host)
     except OSError:
         pass
     return sorted(addresses)
@@ -35,7 +37,7 @@ def ensure_certificate(folder: Path) -> tuple[Path, Path]:
         return cert_path, key_path
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "dronesim-ar local server")])
-    alt = [x509.DNSName("localhost"), x509.DNSName(socket.gethostname())]
+    alt: list[x509.GeneralName] = [x509.DNSName("localhost"), x509.DNSName(socket.gethostname())]
     alt += [x509.IPAddress(ipaddress.ip_address(a)) for a in local_addresses()]
     now = dt.datetime.now(dt.timezone.utc)
     cert = (

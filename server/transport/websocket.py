@@ -219,11 +219,10 @@ def _send_failed(session: LiveSession, connection: _Connection) -> None:
 def _sender_ended(task: asyncio.Task, session: LiveSession, connection: _Connection) -> None:
     """The sender task's end is observed: one that raised (past _send_updates' own guard)
     must not leave the client waiting for poses that will never come."""
-    if task.cancelled() or task.exception() is None:
+    exc = None if task.cancelled() else task.exception()
+    if exc is None:
         return
-    SessionLog(log, session.id).error(
-        "the sender task died", exc_info=(type(task.exception()), task.exception(), None)
-    )
+    SessionLog(log, session.id).error("the sender task died", exc_info=(type(exc), exc, None))
     _send_failed(session, connection)
 
 
@@ -377,10 +376,10 @@ async def _receive(
                 if message["type"] != "frame":  # a frame's run ends with its pose
                     errors.reset()
             except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
-                error = proto.make_error(
+                refusal = proto.make_error(
                     exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
                 )
-                await _send(ws, error)
+                await _send(ws, refusal)
             except SessionError as exc:
                 error = proto.ProtocolError(
                     _SESSION_CODES.get(exc.code, "internal_error"),

@@ -22,7 +22,7 @@ from server.errors import ConfigError
 from server.geometry import Intrinsics
 from server.mapping.config import MAX_PREVIEW_POINTS, MappingConfig, TSDFConfig
 from server.registration.config import RegistrationConfig
-from server.sessions.session import SessionConfig
+from server.sessions.config import SessionConfig
 from server.simulation.config import SimulationConfig
 
 REPO = Path(__file__).resolve().parents[1]

@@ -15,8 +15,9 @@ from server import protocol as P
 from server.geometry import Intrinsics
 from server.sessions import CommandRefused, FrameRefused, PoseUpdate, SessionError
 from server.sessions.manager import SessionManager
-from server.sessions.session import FrameData, Session
+from server.sessions.session import Session
 from server.sessions.store import SessionStore
+from server.sessions.updates import FrameData
 
 
 @pytest.fixture

@@ -7,12 +7,12 @@ from server.sessions.errors import SessionError
 from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate
 from server.sessions.live import LiveSession, SessionTakenOver
 from server.sessions.manager import SessionManager
-from server.sessions.session import (
+from server.sessions.session import Session
+from server.sessions.updates import (
     FrameData,
     FrameRefused,
     MapUpdate,
     PoseUpdate,
-    Session,
     SessionFailed,
 )
 

@@ -23,12 +23,14 @@ from server.errors import ConfigError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
+from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.faults import inject
 from server.sessions.flight import CommandRefused
 from server.sessions.mapping import MapperClient
-from server.sessions.session import FrameData, FrameRefused, Session, SessionConfig
+from server.sessions.session import Session
 from server.sessions.store import SessionStore
+from server.sessions.updates import FrameData, FrameRefused
 
 DOWNLOADS = ("map.ply", "mesh.ply", "trajectory.tum")
 

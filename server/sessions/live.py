@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any, Literal, Protocol, overload
 
 from server.sessions.errors import SessionError
-from server.sessions.session import FrameRefused, PoseUpdate, SessionFailed
+from server.sessions.updates import FrameRefused, PoseUpdate, SessionFailed
 from server.sessions.worker import WorkerLost
 
 _RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.host import HostArgs
 from server.sessions.live import LiveSession, SessionWorker
-from server.sessions.session import SessionConfig, hash_token
-from server.sessions.store import SessionStore, StoreError
+from server.sessions.store import SessionStore, StoreError, hash_token
 from server.sessions.worker import ProcessWorker
 
 log = logging.getLogger(__name__)

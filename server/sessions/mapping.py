@@ -102,8 +102,15 @@ class Mapper:
         with self._lock:
             return self.map.occupancy_update(voxel_m, R_flight_world)
 
-    def stats(self) -> dict:
-        return self.map.stats()
+    def stats(self, wait: bool = True) -> dict | None:
+        """The map's figures (``TSDFMap.stats``); None instead of waiting when the map is busy
+        (a fusion in progress) and ``wait`` is False."""
+        if not self._lock.acquire(blocking=wait):
+            return None
+        try:
+            return self.map.stats()
+        finally:
+            self._lock.release()
 
     def save(self, folder: str | Path) -> list[str]:
         """Write the map's snapshot files into ``folder`` (map.npz, and map.ply once there is a
@@ -203,7 +210,11 @@ class MapperClient:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return self._call("occupancy", voxel_m, R_flight_world)
 
-    def stats(self) -> dict:
+    def stats(self, wait: bool = True) -> dict | None:
+        """As ``Mapper.stats``: None at once when a call (a fusion) is in progress and ``wait``
+        is False, since the mapping process answers one call at a time."""
+        if not wait and self._lock.locked():
+            return None
         return self._call("stats")
 
     def save(self, folder: str) -> list[str]:

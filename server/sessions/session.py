@@ -6,27 +6,24 @@ the newest wins, so latency stays bounded and stale frames are dropped and count
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from server.config import Config
 from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
-from server.mapping.config import MappingConfig
 from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState
-from server.registration.config import RegistrationConfig
 from server.registration.preprocess import resample_depth
+from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
-from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight
+from server.sessions.flight import CommandRefused, Flight
 from server.sessions.mapping import (
     MAPPING_NICE,
     Mapper,
@@ -35,106 +32,19 @@ from server.sessions.mapping import (
     lower_this_threads_priority,
 )
 from server.sessions.store import SessionStore
-from server.simulation.config import SimulationConfig
+from server.sessions.updates import (
+    FrameData,
+    FrameRefused,
+    MapUpdate,
+    PoseUpdate,
+    SessionFailed,
+    Update,
+)
 
 log = logging.getLogger(__name__)
 
 _KEYFRAME_WAIT_S = 10.0  # a keyframe waits this long for room in a mapper that is behind
 _POLL_S = 0.2  # how often a wait on the mapping thread checks that it is still alive
-
-
-def hash_token(token: str) -> str:
-    return hashlib.sha256(token.encode()).hexdigest()
-
-
-@dataclass(frozen=True)
-class SessionConfig:
-    """What one session needs of the one configuration (server/config.py): its sections as
-    they are, with no defaults of their own. Plain dataclasses, pickled to the session's worker
-    process or Ray actor."""
-
-    registration: RegistrationConfig
-    mapping: MappingConfig
-    simulation: SimulationConfig | None  # None: no drone
-    snapshot_interval_s: float  # periodic atomic snapshot of map + trajectory
-    drone_state_hz: float  # drone_state messages per second
-
-    @classmethod
-    def from_config(cls, config: Config | None = None) -> SessionConfig:
-        """The session's part of ``config``; of the defaults (environment unread) when None."""
-        config = config or Config.defaults()
-        return cls(
-            registration=config.registration,
-            mapping=config.mapping,
-            simulation=config.simulation,
-            snapshot_interval_s=config.server.snapshot_interval_s,
-            drone_state_hz=config.server.drone_state_hz,
-        )
-
-
-@dataclass
-class FrameData:
-    """A decoded frame: colour (H, W, 3) RGB uint8; depth (h, w) float32 metres, 0 = none, may be
-    smaller than colour (resampled here)."""
-
-    seq: int
-    timestamp: float
-    colour: np.ndarray
-    depth: np.ndarray
-    received_at: float = field(default_factory=time.monotonic)
-    decode_ms: float = 0.0
-
-
-@dataclass
-class PoseUpdate:
-    """The outcome of one processed frame, for the client."""
-
-    seq: int
-    timestamp: float
-    T_world_camera: np.ndarray  # 4x4, metres
-    state: str
-    inliers: int
-    keyframe: bool
-    timings_ms: dict[str, float]
-    dropped: int  # frames dropped so far in this session
-    processed: int
-    failures: dict[str, int] = field(default_factory=dict)  # Failures, counted so far
-
-
-@dataclass
-class MapUpdate:
-    """New map preview points, sent as they are fused (after the frame's pose)."""
-
-    seq: int
-    points: np.ndarray  # (N, 3) float32 world metres
-    colours: np.ndarray  # (N, 3) uint8 RGB
-    total_points: int
-
-
-@dataclass
-class FrameRefused:
-    """A frame that got no pose: unusable (corrupt image, size mismatch, bad depth) or one the
-    server failed on (internal_error). The client gets the error with the frame's seq; the
-    session goes on."""
-
-    seq: int | None
-    code: str
-    message: str
-
-
-@dataclass
-class SessionFailed:
-    """The session cannot go on: its map is gone (the mapping process or thread died), or, on
-    the web side, its whole worker died. The client is told and its socket closed
-    (session_failed, 4010). ``saved``: the session is being stopped and saved (its trajectory
-    whole, its map as far as it was kept); else it is kept as of its last snapshot."""
-
-    message: str
-    saved: bool = False
-
-
-# What a session hands its client, from its worker threads.
-Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed
 
 
 @dataclass
@@ -553,18 +463,19 @@ class Session:
             counts["flight_errors"] = self.flight.errors
         return counts
 
-    def _map_figures(self) -> dict:
-        """The map's statistics: as of the latest fusion (a status never waits behind the
-        mapper, which runs at a lower priority and may be busy for seconds on a loaded
-        machine); from the mapper itself before the first one. Once its process has ended
-        (stopped, or died), its last."""
-        if self._map_stats:
-            return self._map_stats
+    def _map_figures(self, wait: bool = False) -> dict:
+        """The map's statistics: fresh when the mapper is idle; while it fuses, as of the latest
+        fusion (a status never waits behind the mapper, which runs at a lower priority and may
+        take seconds on a loaded machine). Once its process has ended (stopped, or died), its
+        last."""
         if not self._map_closed:
             try:
-                self._map_stats = self.mapper.stats()
+                fresh = self.mapper.stats(wait=wait or not self._map_stats)
             except MapperLost:
                 self._map_closed = True
+            else:
+                if fresh is not None:
+                    self._map_stats = fresh
         return self._map_stats
 
     def status(self) -> dict:
@@ -649,7 +560,7 @@ class Session:
         self.closed = True
         if save:
             self.snapshot()  # raises SnapshotError: the map stays, for the next try
-        self._map_figures()
+        self._map_figures(wait=True)
         self._map_closed = True
         self.mapper.close()
 

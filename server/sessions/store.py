@@ -6,6 +6,7 @@ TSDF) and ``map.ply`` (its surface points, ready to download).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -18,6 +19,11 @@ from server.errors import DroneSimError
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
 FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json")
 STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
+
+
+def hash_token(token: str) -> str:
+    """What a session keeps of its token (sha256, hex): the token itself is never stored."""
+    return hashlib.sha256(token.encode()).hexdigest()
 
 
 class StoreError(DroneSimError):

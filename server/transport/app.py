@@ -18,7 +18,7 @@ from server.config import Config
 from server.mapping.tsdf import MapError
 from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
-from server.sessions.session import SessionConfig
+from server.sessions.config import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import warm_up
 from server.transport import routes_client, routes_sessions, websocket

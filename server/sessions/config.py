@@ -1,0 +1,35 @@
+"""What one session needs of the one configuration (``server/config.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from server.config import Config
+from server.mapping.config import MappingConfig
+from server.registration.config import RegistrationConfig
+from server.simulation.config import SimulationConfig
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """What one session needs of the one configuration (server/config.py): its sections as
+    they are, with no defaults of their own. Plain dataclasses, pickled to the session's worker
+    process or Ray actor."""
+
+    registration: RegistrationConfig
+    mapping: MappingConfig
+    simulation: SimulationConfig | None  # None: no drone
+    snapshot_interval_s: float  # periodic atomic snapshot of map + trajectory
+    drone_state_hz: float  # drone_state messages per second
+
+    @classmethod
+    def from_config(cls, config: Config | None = None) -> SessionConfig:
+        """The session's part of ``config``; of the defaults (environment unread) when None."""
+        config = config or Config.defaults()
+        return cls(
+            registration=config.registration,
+            mapping=config.mapping,
+            simulation=config.simulation,
+            snapshot_interval_s=config.server.snapshot_interval_s,
+            drone_state_hz=config.server.drone_state_hz,
+        )

@@ -1,0 +1,76 @@
+"""What goes into a session (a decoded frame) and what it hands its client (poses, map
+preview, drone states and events, refusals, its failure): plain data, no threads, no web code."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from server.sessions.flight import DroneNotice, DroneUpdate
+
+
+@dataclass
+class FrameData:
+    """A decoded frame: colour (H, W, 3) RGB uint8; depth (h, w) float32 metres, 0 = none, may be
+    smaller than colour (resampled here)."""
+
+    seq: int
+    timestamp: float
+    colour: np.ndarray
+    depth: np.ndarray
+    received_at: float = field(default_factory=time.monotonic)
+    decode_ms: float = 0.0
+
+
+@dataclass
+class PoseUpdate:
+    """The outcome of one processed frame, for the client."""
+
+    seq: int
+    timestamp: float
+    T_world_camera: np.ndarray  # 4x4, metres
+    state: str
+    inliers: int
+    keyframe: bool
+    timings_ms: dict[str, float]
+    dropped: int  # frames dropped so far in this session
+    processed: int
+    failures: dict[str, int] = field(default_factory=dict)  # Failures, counted so far
+
+
+@dataclass
+class MapUpdate:
+    """New map preview points, sent as they are fused (after the frame's pose)."""
+
+    seq: int
+    points: np.ndarray  # (N, 3) float32 world metres
+    colours: np.ndarray  # (N, 3) uint8 RGB
+    total_points: int
+
+
+@dataclass
+class FrameRefused:
+    """A frame that got no pose: unusable (corrupt image, size mismatch, bad depth) or one the
+    server failed on (internal_error). The client gets the error with the frame's seq; the
+    session goes on."""
+
+    seq: int | None
+    code: str
+    message: str
+
+
+@dataclass
+class SessionFailed:
+    """The session cannot go on: its map is gone (the mapping process or thread died), or, on
+    the web side, its whole worker died. The client is told and its socket closed
+    (session_failed, 4010). ``saved``: the session is being stopped and saved (its trajectory
+    whole, its map as far as it was kept); else it is kept as of its last snapshot."""
+
+    message: str
+    saved: bool = False
+
+
+# What a session hands its client, from its worker threads.
+Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed

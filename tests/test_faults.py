@@ -229,7 +229,8 @@ def test_a_client_that_drops_off_and_returns_within_the_ttl_continues_its_sessio
     after = status()
     assert after["closed"] is False and after["frames_processed"] == 30
     assert after["map"]["frames_integrated"] > before["map"]["frames_integrated"] > 0
-    assert stream.map_points > points_before > 0
+    # The map grew after the return (its preview may still lag the poses at the drop).
+    assert stream.map_points > points_before
     # One trajectory across both sockets, as if the phone had never left.
     np.testing.assert_allclose(
         stream.matrices()[:, :3, 3], offline_track(room, 30)[:, :3, 3], atol=1e-6

@@ -88,7 +88,9 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
     connections: dict[str, _Connection] = app.state.connections
     await ws.accept()
     try:
-        session = manager.authorize(session_id, token)
+        # Off the event loop: with Ray, an id this process does not hold is looked up on the
+        # cluster (up to seconds), and every other socket would wait for it.
+        session = await asyncio.to_thread(manager.authorize, session_id, token)
     except SessionError as exc:
         return await _refuse(ws, proto.ProtocolError("unauthorized", str(exc)))
     if not isinstance(session, LiveSession):

@@ -498,11 +498,42 @@ def test_too_many_errors_in_a_row_close_the_socket(server, neighbour_keeps_going
         async with fresh_session(server) as client:
             await client.hello()
             for seq in range(limit):
-                await client.send(frame(seq, depth=P.encode_depth(_ZERO)))
-                assert_documented(await client.answer(), "bad_depth", seq=seq)
+                colour = frame(seq)["colour"]
+                await client.send(frame(seq, colour=colour[: len(colour) // 2]))
+                assert_documented(await client.answer(), "corrupt_image", seq=seq)
             return await client.close_code()
 
     assert run(go()) == P.CLOSE_CODES["too_many_errors"]
+
+
+def test_empty_depth_is_answered_but_never_closes_the_session(server, neighbour_keeps_going):
+    """A phone's depth from motion starts empty: more all-zero depth maps than
+    max_consecutive_errors are each answered bad_depth, the socket stays open, and the first
+    frame with depth gets its pose. Empty depth between other errors does not add to their
+    run either."""
+    limit = P.LIMITS["max_consecutive_errors"]
+
+    async def go():
+        async with fresh_session(server) as client:
+            await client.hello()
+            seq = 0
+            for seq in range(limit + 10):
+                await client.send(frame(seq, depth=P.encode_depth(_ZERO)))
+                assert_documented(await client.answer(), "bad_depth", seq=seq)
+            for _ in range(limit - 1):  # one short of the limit, with empty depth between
+                seq += 1
+                colour = frame(seq)["colour"]
+                await client.send(frame(seq, colour=colour[: len(colour) // 2]))
+                assert_documented(await client.answer(), "corrupt_image", seq=seq)
+                seq += 1
+                await client.send(frame(seq, depth=P.encode_depth(_ZERO)))
+                assert_documented(await client.answer(), "bad_depth", seq=seq)
+            seq += 1
+            await client.send(frame(seq))
+            pose = await client.answer(60)
+            assert pose["type"] == "pose" and pose["seq"] == seq, pose
+
+    run(go())
 
 
 def test_a_wrong_depth_scale_that_bypassed_the_codec_is_still_refused_after_decoding():

@@ -164,5 +164,6 @@ def decode_frame_images(message: Mapping, hello: Mapping) -> tuple[np.ndarray, n
             f"all-zero depth: {100 * valid:.2f}% of pixels valid, "
             f"need {100 * LIMITS['min_valid_depth_fraction']:.0f}%",
             seq=seq,
+            counted=False,
         )
     return colour, depth

@@ -15,13 +15,22 @@ class ProtocolError(DroneSimError):
     """A message breaks the protocol. ``code`` is an error name from protocol.json."""
 
     def __init__(
-        self, code: str, message: str, *, seq: int | None = None, command_id: int | None = None
+        self,
+        code: str,
+        message: str,
+        *,
+        seq: int | None = None,
+        command_id: int | None = None,
+        counted: bool = True,
     ) -> None:
         if code not in ERRORS:
             raise ValueError(f"unknown protocol error code {code!r}; known: {sorted(ERRORS)}")
         super().__init__(f"{code}: {message}")
         self.code, self.message, self.seq = code, message, seq
         self.command_id = command_id  # the refused command's id, when it could be read
+        # Whether it counts toward max_consecutive_errors: an empty depth map does not (a
+        # phone's depth from motion starts empty and may stay so for seconds).
+        self.counted = counted
 
     @property
     def number(self) -> int:

@@ -171,7 +171,9 @@ class SessionHost:
                 decode_ms=(time.perf_counter() - t0) * 1e3,
             )
             self.session.submit(frame)
-        except (proto.ProtocolError, SessionError) as exc:
+        except proto.ProtocolError as exc:
+            self.publish(FrameRefused(seq, exc.code, str(exc), counted=exc.counted))
+        except SessionError as exc:
             self.publish(FrameRefused(seq, exc.code, str(exc)))
         except Exception as exc:  # a bug on one frame: the client hears internal_error
             self.session.frame_failed(seq, exc, "to decode")

@@ -59,6 +59,7 @@ class FrameRefused:
     seq: int | None
     code: str
     message: str
+    counted: bool = True  # toward max_consecutive_errors (ProtocolError.counted)
 
 
 @dataclass

@@ -273,7 +273,10 @@ async def _send_updates(
                 continue
             if isinstance(item, FrameRefused):  # answered like a bad message, and counted
                 error = proto.ProtocolError(
-                    _SESSION_CODES.get(item.code, item.code), item.message, seq=item.seq
+                    _SESSION_CODES.get(item.code, item.code),
+                    item.message,
+                    seq=item.seq,
+                    counted=item.counted,
                 )
                 if await _report(ws, error, errors):
                     return
@@ -422,7 +425,7 @@ async def _report(ws: WebSocket, error: proto.ProtocolError, errors: _ErrorRun) 
         await _refuse(ws, error)
         return True
     await _send(ws, error.to_message())
-    if errors.add():
+    if error.counted and errors.add():
         await ws.close(code=proto.CLOSE_CODES["too_many_errors"], reason="too_many_errors")
         return True
     return False

@@ -88,7 +88,8 @@ class App {
       this.ar.setUp(up);
       this.map.setUp(up);
       if (resumed && this.map.pointCount === 0) this.#restoreMap();
-      this.streamer = new Streamer(this.client, source, { fps });
+      // A recording waits for the server rather than dropping frames; a live camera cannot.
+      this.streamer = new Streamer(this.client, source, { fps, holdBack: source.kind === "replay" });
       // A replay reopened into its session goes on where it was: the camera does not jump.
       const place = JSON.parse(sessionStorage.getItem(REPLAY_KEY) ?? "null");
       if (resumed && source.kind === "replay" && place?.session === id && place.name === source.sequence.name) {
@@ -97,6 +98,7 @@ class App {
       this.streamer.addEventListener("sent", () => sessionStorage.setItem(REPLAY_KEY, JSON.stringify(
         { session: id, name: source.sequence?.name, tick: this.streamer.tick })));
       this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
+      this.streamer.addEventListener("held", (e) => this.hud.heldBack(e.detail.held));
       this.streamer.addEventListener("failure", (e) => this.hud.toast(`capture failed: ${e.detail.message}`, "error", 8000));
       this.streamer.start();
     } catch (exc) {
@@ -376,6 +378,8 @@ class App {
       counts: { ...this.client.counts },
       statusLog: this.client.statusLog.map(({ state, message }) => ({ state, message })),
       skipped: this.streamer?.skipped ?? 0,
+      heldBack: this.streamer?.heldBack ?? false,
+      heldBackMs: this.streamer?.heldBackMs ?? 0,
       inFlight: this.client.inFlight.size,
       latencyMs: this.client.latencyMs,
       hello: this.hello ?? null,

@@ -49,6 +49,12 @@ export class Hud {
     el.title = failed.map(([name, n]) => `${name}: ${n}`).join(", ");
   }
 
+  /** A replay waiting for the server (it slows down rather than drop frames): say so. */
+  heldBack(held) {
+    const el = this.fields.held;
+    if (el) el.hidden = !held;
+  }
+
   /** fps from the poses of the last two seconds; latency median in ms; dropped both sides. */
   rates({ latencyMs, clientSkipped, serverDropped }) {
     const now = performance.now();

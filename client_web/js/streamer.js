@@ -1,14 +1,19 @@
 // The capture loop: a camera that "captures" at up to `fps`; a frame captured while the session
 // already has max_in_flight frames unanswered (or is still packing the previous one, or is not
-// connected) is skipped, as a phone's camera would drop it. Sent frames keep their image for the
-// AR view until their pose arrives.
+// connected) is skipped, as a phone's camera would drop it. A recording (holdBack) has no reason
+// to drop frames: it sends a frame when the previous one's pose came back, or at its own rate,
+// whichever is slower; while the server is behind, its clock stops and the frame waits, so a
+// slow server gives a slower replay, never a lost one. Sent frames keep their image for the AR view
+// until their pose arrives.
+
+const HOLD_POLL_MS = 10; // how often a held-back recording looks for room again
 
 export class Streamer extends EventTarget {
   /**
    * @param {import("./connection.js").SessionClient} client
    * @param {{capture: (tick: number, timestamp: number) => Promise<object|null>, keep?: Function}} source
    */
-  constructor(client, source, { fps = 15 } = {}) {
+  constructor(client, source, { fps = 15, holdBack = false } = {}) {
     super();
     this.client = client;
     this.source = source;
@@ -17,6 +22,9 @@ export class Streamer extends EventTarget {
     this.tick = 0;
     this.capturing = false;
     this.skipped = 0; // camera frames dropped on this side
+    this.holdBack = holdBack; // a recording: wait for the server instead of dropping frames
+    this.heldBack = false; // waiting for the server now
+    this.heldBackMs = 0; // in all, since start
     this.images = new Map(); // seq -> ImageBitmap, until shown or answered
   }
 
@@ -44,6 +52,27 @@ export class Streamer extends EventTarget {
 
   async #onTick() {
     if (!this.running) return;
+    // A recording sends its next frame when the previous pose came back: with two in flight the
+    // server may still drop one (its inbox keeps the newest while a keyframe is being made).
+    if (this.holdBack && (this.capturing || !this.client.isOpen || this.client.inFlight.size > 0)) {
+      if (!this.client.isOpen) this.client.wake(); // a session paused by the idle timeout reconnects
+      if (!this.heldBack) {
+        this.heldBack = true;
+        this.heldSince = performance.now();
+        this.dispatchEvent(new CustomEvent("held", { detail: { held: true } }));
+      }
+      this.timer = setTimeout(() => this.#onTick(), HOLD_POLL_MS);
+      return;
+    }
+    if (this.heldBack) {
+      // The recording's clock resumes from now: this frame goes at once, the next one a frame
+      // period later (no burst to catch up, which would outrun the server again).
+      const now = performance.now();
+      this.heldBack = false;
+      this.heldBackMs += now - this.heldSince;
+      this.t0 = now - ((this.tick - this.firstTick + 1) * 1000) / this.fps;
+      this.dispatchEvent(new CustomEvent("held", { detail: { held: false } }));
+    }
     const tick = this.tick++;
     this.#schedule();
     if (this.capturing || !this.client.isOpen || this.client.busy) {

@@ -765,3 +765,37 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     # No gaps: the newest pose's seq is one less than the poses received (seqs start at 0).
     assert s["lastPose"]["seq"] == s["poses"] - 1, (s["lastPose"]["seq"], s["poses"])
     assert not s["errors"], s["errors"]
+
+
+def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server, open_page):
+    """A live source resolves {skip: reason} for a frame without depth or camera image (normal
+    while ARCore re-initialises). The capture loop counts it and goes on: here a source that
+    gives every 3rd frame without depth, driving the page's own Streamer and client, as the
+    emulated AR device of issue 14 is not built yet."""
+    server = live_server()
+    page = open_page(server, "/?autostart=demo-small", **PHONE)
+    page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
+    page.page.evaluate(
+        """async () => {
+      const app = window.dronesim, replay = app.source;
+      app.streamer.stop();
+      const { Streamer } = await import('/app/js/streamer.js');
+      const flaky = {
+        kind: 'live',
+        capture: (tick, t) => (tick % 3 === 0 ? Promise.resolve({ skip: 'no depth' })
+                                              : replay.capture(tick, t)),
+      };
+      app.testStreamer = new Streamer(app.client, flaky, { fps: 15 });
+      app.testStreamer.start();
+    }"""
+    )
+    before = page.snapshot()["poses"]
+    page.wait(f"window.dronesim.seen.poses >= {before + 15}", 90, "15 more poses")
+    s = page.page.evaluate(
+        "({running: window.dronesim.testStreamer.running, "
+        "unavailable: window.dronesim.testStreamer.unavailable})"
+    )
+    page.page.evaluate("window.dronesim.testStreamer.stop()")
+    assert s["running"], "capture stopped on a frame without depth"
+    assert s["unavailable"].get("no depth", 0) >= 4, s["unavailable"]
+    assert not [e for e in page.snapshot()["errors"] if e["fatal"]]

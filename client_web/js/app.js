@@ -378,6 +378,7 @@ class App {
       counts: { ...this.client.counts },
       statusLog: this.client.statusLog.map(({ state, message }) => ({ state, message })),
       skipped: this.streamer?.skipped ?? 0,
+      unavailable: { ...(this.streamer?.unavailable ?? {}) },
       heldBack: this.streamer?.heldBack ?? false,
       heldBackMs: this.streamer?.heldBackMs ?? 0,
       inFlight: this.client.inFlight.size,

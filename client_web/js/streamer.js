@@ -22,6 +22,7 @@ export class Streamer extends EventTarget {
     this.tick = 0;
     this.capturing = false;
     this.skipped = 0; // camera frames dropped on this side
+    this.unavailable = {}; // frames the source could not give (reason -> count), e.g. "no depth"
     this.holdBack = holdBack; // a recording: wait for the server instead of dropping frames
     this.heldBack = false; // waiting for the server now
     this.heldBackMs = 0; // in all, since start
@@ -90,6 +91,13 @@ export class Streamer extends EventTarget {
       }
       if (!captured) {
         this.stop("end of the sequence");
+        return;
+      }
+      if (captured.skip) {
+        // The source had no complete frame this time (e.g. AR without depth yet): count it, go on.
+        this.unavailable[captured.skip] = (this.unavailable[captured.skip] ?? 0) + 1;
+        this.skipped += 1;
+        this.dispatchEvent(new CustomEvent("unavailable", { detail: { reason: captured.skip } }));
         return;
       }
       const seq = this.client.sendFrame(captured.fields);

@@ -96,7 +96,8 @@ export class LiveSource {
     this.session?.end();
   }
 
-  /** The next XR frame, packed: resolves {fields, bitmap, anchor}. */
+  /** The next XR frame, packed: resolves {fields, bitmap, anchor}, or {skip: reason} when this
+   * frame has no depth or no camera image. */
   capture(tick, timestamp) {
     if (!this.session) return Promise.resolve(null);
     return new Promise((resolve, reject) => (this.request = { resolve, reject, timestamp }));
@@ -135,8 +136,14 @@ export class LiveSource {
     const request = this.request;
     this.request = null;
     try {
-      const rgba = this.#readCamera(view);
       const depth = frame.getDepthInformation(view);
+      // Normal while ARCore (re)initialises: this frame has no depth or no camera image. It is
+      // skipped and counted, and capture goes on with the next one.
+      if (!depth || !view.camera) {
+        request.resolve({ skip: !depth ? "no depth" : "no camera image" });
+        return;
+      }
+      const rgba = this.#readCamera(view);
       const anchor = new THREE.Matrix4().fromArray(view.transform.matrix);
       this.#pack(rgba, depth, request.timestamp).then((packed) => request.resolve({ ...packed, anchor }), request.reject);
     } catch (exc) {

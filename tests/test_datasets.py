@@ -208,7 +208,7 @@ def test_open_dataset_sniffs_the_format(tmp_path):
     assert isinstance(open_dataset(tum), TUMDataset)
     assert isinstance(open_dataset(redwood), RedwoodDataset)
     assert isinstance(open_dataset(tum, fmt="tum", max_time_diff=0.01), TUMDataset)
-    with pytest.raises(DatasetError, match="redwood, tum"):
+    with pytest.raises(DatasetError, match="record3d, redwood, stray, tum"):
         open_dataset(tmp_path)
     with pytest.raises(DatasetError, match="unknown dataset format 'kitti'"):
         open_dataset(tum, fmt="kitti")

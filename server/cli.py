@@ -89,7 +89,11 @@ def _intrinsics_for(path: Path, fx: float, fy: float, cx: float, cy: float):
 @app.command()
 def track(
     dataset: Annotated[
-        str, typer.Argument(help="sequence folder (TUM or Redwood layout), or 'demo'")
+        str,
+        typer.Argument(
+            help="sequence: a TUM or Redwood folder, a Stray Scanner export folder, a Record3D "
+            ".r3d file, or 'demo'"
+        ),
     ],
     out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
     frames: Annotated[int | None, typer.Option(help="only the first N frames")] = None,
@@ -211,7 +215,10 @@ def serve(
 
 @app.command()
 def loadtest(
-    dataset: Annotated[str, typer.Argument(help="sequence folder (TUM or Redwood), or 'demo'")],
+    dataset: Annotated[
+        str,
+        typer.Argument(help="sequence: TUM, Redwood, Stray Scanner folder, .r3d file, or 'demo'"),
+    ],
     url: Annotated[str, typer.Option(help="the server's base URL")] = "http://127.0.0.1:8000",
     sessions: Annotated[int, typer.Option(min=1, help="concurrent clients, a session each")] = 4,
     fps: Annotated[float, typer.Option(min=0.1, help="capture rate per client")] = 15.0,

@@ -485,6 +485,7 @@ def prior_drift(gt: np.ndarray, prior: np.ndarray) -> dict[str, float]:
 PRIOR_COLUMNS = (  # (key, header, format)
     ("frames", "frames", str),
     ("ate_rmse_m", "ATE [cm]", lambda v: f"{v * 100:.2f}"),
+    ("ate_vs_none_m", "ATE - no prior [mm]", lambda v: f"{v * 1000:+.3f}"),
     ("rpe_trans_per_frame_m", "RPE/fr [mm]", lambda v: f"{v * 1000:.2f}"),
     ("rpe_rot_per_frame_deg", "RPE/fr [deg]", lambda v: f"{v:.3f}"),
     ("rpe_trans_per_second_m", "RPE/s [cm]", lambda v: f"{v * 100:.2f}"),
@@ -558,6 +559,8 @@ def benchmark_prior(name: str, path: Path, args, header: dict) -> dict:
                 r = summarise(run, metrics, len(kept))
                 r.update(drop=drop, prior=prior, method=key)
                 base = results.get(f"{drop}/none/{key}")
+                if prior != "none" and base is not None:
+                    r["ate_vs_none_m"] = r["ate_rmse_m"] - base["ate_rmse_m"]
                 if prior != "none":
                     r["targets"] = {
                         "lost": r["lost"] == 0,

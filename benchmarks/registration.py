@@ -12,6 +12,14 @@ converted to Open3D images) in an untimed pre-pass.
 Prints one table per sequence, appends it to <out>/registration.md, updates <out>/registration.json
 and writes <out>/trajectories/<run>/<method>.tum and <out>/<run>_trajectories.png, where <run> is
 the sequence name with ``_nN`` / ``_sS`` added for --frames / --stride.
+
+With --drop or --prior it measures instead our tracker on frames dropped as a busy server drops
+them, with and without the device's own pose as a prior (exact, or drifting like a phone's VIO):
+
+    python benchmarks/registration.py ../shared/data/synthetic_room0 \
+        --drop none every2 every3 burst10 --prior none gt drifting
+
+and writes <out>/registration_prior.md and <out>/registration_prior.json.
 """
 
 from __future__ import annotations
@@ -36,6 +44,7 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
@@ -59,13 +68,19 @@ sys.path.insert(0, str(REPO_ROOT))
 
 from server.datasets import RGBDFrame, open_dataset  # noqa: E402
 from server.errors import DroneSimError  # noqa: E402
+from server.evaluation.device_poses import (  # noqa: E402
+    DeviceDrift,
+    drifting_device_poses,
+    exact_device_poses,
+)
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import (  # noqa: E402
     Trajectory,
     associate,
     write_tum,  # noqa: E402
 )
-from server.geometry import Intrinsics, rotation_angle_deg  # noqa: E402
+from server.geometry import Intrinsics, invert, rotation_angle_deg  # noqa: E402
+from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.tracker import Tracker, TrackingState  # noqa: E402
 
@@ -113,18 +128,27 @@ class Clock:
 
 
 # ---------------------------------------------------------------------------------- methods
-def run_ours(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar, dense: bool) -> MethodRun:
-    """Our frame-to-keyframe tracker; sparse only or sparse + dense refinement."""
+def run_ours(
+    frames: list[RGBDFrame],
+    K: Intrinsics,
+    T0: np.ndarray,
+    bar,
+    dense: bool,
+    priors: np.ndarray | None = None,
+) -> MethodRun:
+    """Our frame-to-keyframe tracker; sparse only or sparse + dense refinement; ``priors``
+    (N, 4, 4): the device's own T_device_camera per frame, given to the tracker as its prior."""
     config = RegistrationConfig().with_overrides(solver={"dense": dense})
     tracker = Tracker(K, config, T_world_first=T0)
     run = MethodRun(poses=np.empty((len(frames), 4, 4)), weak=0)
     stages: dict[str, list[float]] = {}
     for i, frame in enumerate(frames):
+        prior = None if priors is None else priors[i]
         if i == 0:
-            result = tracker.track(frame.colour, frame.depth)  # starts the first keyframe
+            result = tracker.track(frame.colour, frame.depth, prior)  # starts the first keyframe
         else:
             with Clock(run):  # the pose, then the keyframe work the server does after sending it
-                result = tracker.track(frame.colour, frame.depth)
+                result = tracker.track(frame.colour, frame.depth, prior)
                 tracker.update_keyframe()
             run.lost += result.state is TrackingState.LOST
             run.weak += result.state is TrackingState.WEAK
@@ -413,6 +437,167 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
     return {"header": header, "sequence": str(path), "motion": motion, "methods": results}
 
 
+# ---------------------------------------------------------------------------------- device prior
+PRIORS = ("none", "gt", "drifting")
+DROPS = ("none", "every2", "every3", "burst10")
+PRIOR_TARGETS = "with a prior: 0 lost, and ATE <= the same case without a prior"
+
+
+def kept_frames(n: int, drop: str) -> np.ndarray:
+    """Indices of the frames that reach the tracker, of n: ``none`` all of them; ``everyN`` only
+    every N-th (a server N times too slow); ``burstN`` N in a row lost after every 3N received."""
+    i = np.arange(n)
+    if drop == "none":
+        return i
+    if drop.startswith("every"):
+        return i[:: int(drop[5:])]
+    if drop.startswith("burst"):
+        m = int(drop[5:])
+        return i[i % (4 * m) < 3 * m]
+    raise ValueError(f"unknown drop pattern {drop!r}")
+
+
+def drop_pattern(text: str) -> str:
+    """argparse type: none, everyN (N >= 2) or burstN (N >= 1)."""
+    ok = text == "none" or (
+        text[:5] in ("every", "burst")
+        and text[5:].isdigit()
+        and int(text[5:]) >= (2 if text.startswith("every") else 1)
+    )
+    if not ok:
+        raise argparse.ArgumentTypeError(f"{text!r}: use none, everyN (N >= 2) or burstN")
+    return text
+
+
+def prior_drift(gt: np.ndarray, prior: np.ndarray) -> dict[str, float]:
+    """How far a device pose drifted from the truth over the sequence: the prior's last pose,
+    aligned at the first, against the truth; and the path length it drifted over."""
+    T_world_device = gt[0] @ invert(prior[0])
+    E = invert(gt[-1]) @ T_world_device @ prior[-1]
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    return {
+        "path_m": path,
+        "end_drift_m": float(np.linalg.norm(E[:3, 3])),
+        "end_drift_deg": rotation_angle_deg(E),
+    }
+
+
+PRIOR_COLUMNS = (  # (key, header, format)
+    ("frames", "frames", str),
+    ("ate_rmse_m", "ATE [cm]", lambda v: f"{v * 100:.2f}"),
+    ("ate_vs_none_m", "ATE - no prior [mm]", lambda v: f"{v * 1000:+.3f}"),
+    ("rpe_trans_per_frame_m", "RPE/fr [mm]", lambda v: f"{v * 1000:.2f}"),
+    ("rpe_rot_per_frame_deg", "RPE/fr [deg]", lambda v: f"{v:.3f}"),
+    ("rpe_trans_per_second_m", "RPE/s [cm]", lambda v: f"{v * 100:.2f}"),
+    ("rpe_rot_per_second_deg", "RPE/s [deg]", lambda v: f"{v:.2f}"),
+    ("lost", "lost", str),
+    ("weak", "weak", str),
+    ("median_ms", "median ms", lambda v: f"{v:.1f}"),
+    ("p90_ms", "p90 ms", lambda v: f"{v:.1f}"),
+)
+
+
+def prior_rows(results: dict[str, dict]) -> list[list[str]]:
+    """One row per case: drop, prior, method, the columns; ✓/✗ after lost and ATE of prior rows
+    (0 lost; ATE not above the same drop and method without a prior)."""
+    rows = []
+    for r in results.values():
+        cells = [r["drop"], r["prior"], METHODS[r["method"]][0]]
+        for col, _, fmt in PRIOR_COLUMNS:
+            value = r.get(col)
+            text = "-" if value is None or not np.isfinite(value) else fmt(value)
+            target = r.get("targets", {}).get(col)
+            cells.append(text if target is None else f"{text} {'✓' if target else '✗'}")
+        rows.append(cells)
+    return rows
+
+
+def git_commit() -> str:
+    def git(*a: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *a], cwd=REPO_ROOT, capture_output=True, text=True)
+
+    head = git("rev-parse", "--short", "HEAD").stdout.strip() or "unknown"
+    dirty = git("diff", "--quiet", "HEAD", "--", "server", "benchmarks").returncode != 0
+    return head + (" + uncommitted changes" if dirty else "")
+
+
+def benchmark_prior(name: str, path: Path, args, header: dict) -> dict:
+    """Our tracker on the sequence with frames dropped, without and with a device prior."""
+    run_name = run_name_of(name, args)
+    ds, frames, _, fps = load_frames(path, args.frames, args.stride)
+    stamps = np.array([f.timestamp for f in frames])
+    gt_list = [ground_truth_pose_at(ds, t) for t in stamps]
+    if any(T is None for T in gt_list):
+        raise DroneSimError(f"{path}: a selected frame has no ground-truth pose")
+    gt = np.array(gt_list)
+    drift = DeviceDrift(seed=args.seed)
+    priors = {
+        "none": None,
+        "gt": exact_device_poses(gt, args.seed),
+        "drifting": drifting_device_poses(gt, stamps, drift),
+    }
+    drifted = prior_drift(gt, priors["drifting"])
+    methods = [m for m in args.methods if m.startswith("ours")] or ["ours_dense"]
+    results: dict[str, dict] = {}
+    for drop in args.drop:
+        keep = kept_frames(len(frames), drop)
+        kept = [frames[i] for i in keep]
+        for prior in args.prior:
+            poses = priors[prior]
+            for key in methods:
+                label = f"{run_name} {drop} prior={prior} {METHODS[key][0]}"
+                with tqdm(total=len(kept), desc=label, unit="frame") as bar:
+                    run = run_ours(
+                        kept,
+                        ds.intrinsics,
+                        gt[keep[0]],
+                        bar,
+                        dense=key == "ours_dense",
+                        priors=None if poses is None else poses[keep],
+                    )
+                metrics = evaluate(ds.ground_truth, Trajectory(stamps[keep], run.poses))
+                r = summarise(run, metrics, len(kept))
+                r.update(drop=drop, prior=prior, method=key)
+                base = results.get(f"{drop}/none/{key}")
+                if prior != "none" and base is not None:
+                    r["ate_vs_none_m"] = r["ate_rmse_m"] - base["ate_rmse_m"]
+                if prior != "none":
+                    r["targets"] = {
+                        "lost": r["lost"] == 0,
+                        "ate_rmse_m": None
+                        if base is None
+                        else bool(r["ate_rmse_m"] <= base["ate_rmse_m"]),
+                    }
+                results[f"{drop}/{prior}/{key}"] = r
+
+    title = (
+        f"{run_name}: {len(frames)} frames at {fps:.0f} Hz; drifting prior (seed {args.seed}): "
+        f"{drift.translation_fraction * 100:.0f} % of path, {drift.yaw_deg_per_s} deg/s yaw, "
+        f"noise {drift.noise_m * 1000:.0f} mm / {drift.noise_deg} deg; over the "
+        f"{drifted['path_m']:.2f} m path it ends {drifted['end_drift_m'] * 100:.1f} cm and "
+        f"{drifted['end_drift_deg']:.2f} deg off"
+    )
+    headers = ["drop", "prior", "method", *(h for _, h, _ in PRIOR_COLUMNS)]
+    rows = prior_rows(results)
+    table = Table(title=title)
+    for h in headers:
+        table.add_column(escape(h), justify="left" if h in headers[:3] else "right")
+    for cells in rows:
+        table.add_row(*(escape(c) for c in cells))
+    console.print(table)
+    console.print(f"targets: {PRIOR_TARGETS}")
+    with open(args.out / "registration_prior.md", "a") as md:
+        md.write(
+            f"\n### {run_name}\n\n{title}. Targets: {PRIOR_TARGETS}.\n\n"
+            "| " + " | ".join(headers) + " |\n"
+            "|---|---|---"
+            + "|---:" * len(PRIOR_COLUMNS)
+            + "|\n"
+            + "".join("| " + " | ".join(c) + " |\n" for c in rows)
+        )
+    return {"header": header, "sequence": str(path), "prior_drift": drifted, "cases": results}
+
+
 # ---------------------------------------------------------------------------------- CLI
 def default_sequences() -> list[tuple[str, Path]]:
     data = REPO_ROOT.parent / "shared" / "data"
@@ -465,7 +650,27 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
+    parser.add_argument(
+        "--drop",
+        nargs="+",
+        type=drop_pattern,
+        help=f"frames dropped: none, everyN (only every N-th arrives), burstN (N lost after "
+        f"every 3N); measures our tracker with and without a prior (default with --prior: "
+        f"{' '.join(DROPS)})",
+    )
+    parser.add_argument(
+        "--prior",
+        nargs="+",
+        choices=PRIORS,
+        help="the device pose given to our tracker: none, gt (exact, in another world frame), "
+        f"drifting (like a phone's VIO) (default with --drop: {' '.join(PRIORS)})",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated device pose")
     args = parser.parse_args(argv)
+    args.prior_mode = args.drop is not None or args.prior is not None
+    if args.prior_mode:
+        args.drop = args.drop or list(DROPS)
+        args.prior = [p for p in PRIORS if p in (args.prior or PRIORS)]
     if args.stride < 1 or (args.frames is not None and args.frames < 2):
         parser.error("need --stride >= 1 and --frames >= 2")
     args.methods = [m for m in METHODS if m in args.methods]  # keep the canonical order
@@ -489,10 +694,13 @@ def main(argv: list[str] | None = None) -> int:
     sequences = [(p.name, p) for p in args.sequences] or default_sequences()
 
     args.out.mkdir(parents=True, exist_ok=True)
-    md_path, json_path = args.out / "registration.md", args.out / "registration.json"
+    stem = "registration_prior" if args.prior_mode else "registration"
+    md_path, json_path = args.out / f"{stem}.md", args.out / f"{stem}.json"
+    header["commit"] = git_commit()
     with open(md_path, "a") as md:
         md.write(
             f"\n## Run {header['date']}\n\n"
+            f"- commit: {header['commit']}\n"
             f"- machine: {header['machine']} ({header['processor']}), "
             f"{header['cpu_count']} CPUs, all methods on 1 thread\n"
             f"- python {header['python']}, numpy {header['numpy']}, "
@@ -503,7 +711,8 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for name, path in sequences:
         try:
-            result = benchmark_sequence(name, path, args, header)
+            bench = benchmark_prior if args.prior_mode else benchmark_sequence
+            result = bench(name, path, args, header)
         except DroneSimError as exc:
             console.print(f"[red]{name}: skipped: {exc}[/]")
             failed += 1

@@ -99,6 +99,25 @@ class StateConfig:
 
 
 @dataclass(frozen=True)
+class PriorConfig:
+    """The device's own camera pose (e.g. ARCore/ARKit visual-inertial odometry) as a prior.
+
+    Only the prior's motion between frames is trusted (it drifts over long spans): the initial
+    guess of a frame is the last tracked pose moved by the prior's motion since that frame. The
+    fixed transform between the device's world and the map is estimated from well-tracked frames.
+    """
+
+    enabled: bool = True  # use a prior when ``track`` is given one
+    # The latest ok frames whose (map pose, prior) pairs estimate T_world_device: few enough to
+    # follow a drifting prior, enough that one poorly tracked frame does not move it.
+    alignment_frames: int = 15
+    # A prior that moved more than this since the last tracked frame is taken as a reset of the
+    # device's own tracking, not as motion: the frame falls back to the guess without a prior.
+    max_motion_m: float = 1.0
+    max_motion_deg: float = 90.0
+
+
+@dataclass(frozen=True)
 class RegistrationConfig:
     """All parameters of the registration pipeline."""
 
@@ -108,6 +127,7 @@ class RegistrationConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     state: StateConfig = field(default_factory=StateConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
 
     def __post_init__(self) -> None:
         if (
@@ -127,6 +147,12 @@ class RegistrationConfig:
             )
         if self.solver.dense_stride < 1:
             raise ConfigError("registration.solver.dense_stride must be >= 1")
+        p = self.prior
+        if p.alignment_frames < 1 or p.max_motion_m <= 0 or p.max_motion_deg <= 0:
+            raise ConfigError(
+                "registration.prior: need alignment_frames >= 1, max_motion_m > 0 and "
+                "max_motion_deg > 0"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

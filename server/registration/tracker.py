@@ -32,6 +32,7 @@ from server.registration.dense import DenseModel, refine_dense, sample_dense_poi
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
 from server.registration.preprocess import clean_depth, sample_stable_depth, to_grey
+from server.registration.prior import DeviceAlignment, prior_motion
 from server.registration.sparse import (
     NormalEquations,
     SparseSolution,
@@ -69,6 +70,7 @@ class TrackResult:
     new_keyframe: bool  # this frame became a keyframe (set by update_keyframe, or at the start)
     timings_ms: dict[str, float] = field(default_factory=dict)
     keyframe_due: bool = False  # track() left a keyframe switch or a new keyframe pending
+    prior_used: bool = False  # the initial guess came from the device's own pose
 
 
 @dataclass
@@ -105,6 +107,7 @@ class _Registration:
     with_depth: BoolArray
     points: FloatArray
     solution: SparseSolution
+    guess_from_prior: bool = False  # started from the device's pose, not constant velocity
 
     def surviving(self) -> BoolArray:
         """Corners worth following on: tracked, and not an outlier where depth was available.
@@ -118,9 +121,11 @@ class Tracker:
     """Frame-to-keyframe RGB-D odometry (FAST + pyramidal LK + Gauss-Newton on SE(3)).
 
     Feed frames in order to :meth:`track`; poses are T_world_camera with the first frame at
-    ``T_world_first`` (identity by default). Call :meth:`update_keyframe` after each ``track``
-    (once the pose is sent): otherwise the next ``track`` does it first, which gives the same
-    trajectory but leaves the earlier result's ``new_keyframe`` unknown to its caller.
+    ``T_world_first`` (identity by default). The world is the map. Call :meth:`update_keyframe`
+    after each ``track`` (once the pose is sent): otherwise the next ``track`` does it first,
+    which gives the same trajectory but leaves the earlier result's ``new_keyframe`` unknown to
+    its caller. A frame may carry the device's own pose as a prior (see ``track``);
+    ``T_world_device`` then says where the device's world lies in the map.
     """
 
     def __init__(
@@ -143,10 +148,31 @@ class Tracker:
         self.frame_count = 0
         self.keyframe_count = 0
         self.pending: _PendingKeyframe | None = None
+        self.alignment = DeviceAlignment(self.cfg.prior)
+        self.device_last: FloatArray | None = None  # the prior of the last tracked frame
+
+    @property
+    def T_world_device(self) -> FloatArray | None:
+        """The device's world frame in the map (4x4, metres), once a frame with a prior tracked
+        ok; None before. Maps a device-world point into the map: p_world = T @ p_device."""
+        return (
+            None if self.alignment.T_world_device is None else self.alignment.T_world_device.copy()
+        )
 
     # ------------------------------------------------------------------ per frame
-    def track(self, colour: GreyImage, depth: Float32Array) -> TrackResult:
+    def track(
+        self,
+        colour: GreyImage,
+        depth: Float32Array,
+        T_device_camera: FloatArray | None = None,
+    ) -> TrackResult:
         """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none).
+
+        ``T_device_camera`` (optional, 4x4, metres): the device's own estimate of this camera's
+        pose in the device's world frame (e.g. ARCore/ARKit odometry), camera axes x right,
+        y down, z forward. Its motion since the last tracked frame, applied to that frame's pose,
+        is the initial guess (instead of constant velocity) and is tried first after a loss;
+        the result stays in the map frame. A non-finite prior is ignored.
 
         Returns as soon as the pose T_world_camera is accepted; a keyframe change it calls for is
         only recorded (``keyframe_due``), for :meth:`update_keyframe`. The very first frame (and
@@ -160,19 +186,30 @@ class Tracker:
         grey = to_grey(colour)
         depth = clean_depth(depth, self.cfg.depth)
         timings = {"preprocess": _ms(t0)}
+        prior = self._check_prior(T_device_camera)
 
         if self.keyframe is None:
-            return self._start(index, grey, depth, timings)
+            return self._start(index, grey, depth, timings, prior)
 
-        # 1. Predict the pose with a constant-velocity model.
+        # 1. Predict the pose: by the device's own motion when it sends one, else with a
+        # constant-velocity model (also the fallback when the prior's guess fails).
         T_world_pred = orthonormalize(self.T_world_last @ self.velocity)
+        T_world_prior = self._prior_guess(prior)
 
         # 2-3. Track corners (from the previous frame, or from keyframes after a loss), solve.
         t = time.perf_counter()
         if self.lost:
-            found = self._relocalise(grey, depth, T_world_pred)
+            found = self._relocalise(grey, depth, T_world_pred, T_world_prior)
         else:
-            found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred, chained=True)
+            found = None
+            if T_world_prior is not None:
+                found = self._track_keyframe(self.keyframe, grey, depth, T_world_prior, True)
+                if found is None or self._judge(found.solution) is TrackingState.LOST:
+                    found = None  # a wrong prior: try the guess without it
+                else:
+                    found.guess_from_prior = True
+            if found is None:
+                found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred, True)
         timings["sparse"] = _ms(t)
         if found is None:
             return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
@@ -196,6 +233,9 @@ class Tracker:
         self.T_world_last = T_world_cur
         self.lost = False
         self.keyframe = kf
+        self.device_last = prior
+        if prior is not None and state is TrackingState.OK:
+            self.alignment.add(T_world_cur, prior)
         keep = found.surviving()
         self.tracks = _Tracks(found.ids[keep], found.uv[keep], grey)
         due = self._needs_keyframe(kf, T_kf_cur, len(self.tracks.ids))
@@ -211,6 +251,7 @@ class Tracker:
             False,
             timings,
             keyframe_due=due,
+            prior_used=found.guess_from_prior,
         )
         if due:
             self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result)
@@ -241,8 +282,42 @@ class Tracker:
         return new_kf
 
     # ------------------------------------------------------------------ stages
+    def _check_prior(self, T_device_camera: FloatArray | None) -> FloatArray | None:
+        """The prior to use for this frame, or None (none sent, disabled, or not finite)."""
+        if T_device_camera is None or not self.cfg.prior.enabled:
+            return None
+        T = np.asarray(T_device_camera, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_device_camera must be 4x4, got shape {T.shape}")
+        if not np.isfinite(T).all():
+            log.debug("non-finite device pose ignored")
+            return None
+        return orthonormalize(T)
+
+    def _prior_guess(self, prior: FloatArray | None) -> FloatArray | None:
+        """T_world_camera by the prior: its motion since the last tracked frame applied to that
+        frame's pose; or, when that frame had no prior, the prior moved into the map."""
+        if prior is None:
+            return None
+        if self.device_last is not None:
+            motion = prior_motion(self.device_last, prior, self.cfg.prior)
+            if motion is not None:
+                return orthonormalize(self.T_world_last @ motion)
+            # The device's world jumped: its alignment to the map is void.
+            log.info("device pose jumped: prior ignored, alignment reset")
+            self.alignment.reset()
+            self.device_last = None
+            return None
+        T_world_device = self.alignment.T_world_device
+        return None if T_world_device is None else orthonormalize(T_world_device @ prior)
+
     def _start(
-        self, index: int, grey: GreyImage, depth: Float32Array, timings: dict[str, float]
+        self,
+        index: int,
+        grey: GreyImage,
+        depth: Float32Array,
+        timings: dict[str, float],
+        prior: FloatArray | None,
     ) -> TrackResult:
         t = time.perf_counter()
         kf = self._new_keyframe(index, grey, depth, self.T_world_first)
@@ -254,6 +329,10 @@ class Tracker:
         if state is TrackingState.LOST:
             self.keyframe, self.lost = None, True
             self.recent.clear()
+        else:
+            self.device_last = prior
+            if prior is not None:
+                self.alignment.add(self.T_world_first, prior)
         return TrackResult(
             index,
             self.T_world_first.copy(),
@@ -308,9 +387,24 @@ class Tracker:
         return _Registration(kf, ids, uv, with_depth, Q, solution)
 
     def _relocalise(
-        self, grey: GreyImage, depth: Float32Array, T_world_pred: FloatArray
+        self,
+        grey: GreyImage,
+        depth: Float32Array,
+        T_world_pred: FloatArray,
+        T_world_prior: FloatArray | None = None,
     ) -> _Registration | None:
-        """After a loss: try the current keyframe, then recent ones, newest first."""
+        """After a loss: with a prior, its guess against the keyframes nearest to it first; then
+        the held pose against the current keyframe and recent ones, newest first."""
+        if T_world_prior is not None:
+            near = sorted(
+                self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_prior)
+            )
+            for kf in near:
+                found = self._track_keyframe(kf, grey, depth, T_world_prior, chained=False)
+                if found is not None and self._judge(found.solution) is TrackingState.OK:
+                    log.info("recovered against keyframe %d from the device pose", kf.id)
+                    found.guess_from_prior = True
+                    return found
         for kf in reversed(self.recent):
             found = self._track_keyframe(kf, grey, depth, T_world_pred, chained=False)
             if found is not None and self._judge(found.solution) is TrackingState.OK:

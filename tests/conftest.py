@@ -207,13 +207,16 @@ class Stream:
             if msg["type"] not in UNASKED:
                 return msg
 
-    async def send(self, seq: int, colour=None, depth=None, index: int | None = None) -> dict:
+    async def send(
+        self, seq: int, colour=None, depth=None, index: int | None = None, T_device_camera=None
+    ) -> dict:
         """Frame ``index`` (default: seq) of the dataset, or the given images, as ``seq`` -> its
-        pose."""
+        pose; T_device_camera: the device's own pose to send with it (4x4), or None."""
         f = self.dataset[(seq if index is None else index) % len(self.dataset)]
         colour = f.colour if colour is None else colour
         depth = f.depth if depth is None else depth
-        await self.conn.send_frame(P.make_frame(seq, f.timestamp, colour, depth))
+        frame = P.make_frame(seq, f.timestamp, colour, depth, T_device_camera=T_device_camera)
+        await self.conn.send_frame(frame)
         pose = await self.answer()
         assert pose["type"] == "pose" and pose["seq"] == seq, pose
         self.poses.append(pose)

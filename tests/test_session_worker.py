@@ -118,10 +118,10 @@ def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
     track = session.tracker.track
     calls = iter(range(100))
 
-    def fails_once(colour, depth):
+    def fails_once(colour, depth, **prior):
         if next(calls) == 1:
             raise FloatingPointError("a bug")
-        return track(colour, depth)
+        return track(colour, depth, **prior)
 
     session.tracker.track = fails_once
     try:

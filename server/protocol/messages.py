@@ -87,8 +87,11 @@ def make_frame(
     depth_format: str = "png",
     jpeg_quality: int = 80,
     depth_scale: float = 1000.0,
+    T_device_camera: ArrayLike | None = None,
 ) -> dict:
-    """A frame message: colour (H, W, 3) uint8 RGB as JPEG, depth (h, w) metres as uint16."""
+    """A frame message: colour (H, W, 3) uint8 RGB as JPEG, depth (h, w) metres as uint16;
+    T_device_camera: the device's own 4x4 camera pose in its world (metres, this protocol's
+    camera axes), or None."""
     return _message(
         "frame",
         seq=int(seq),
@@ -97,6 +100,9 @@ def make_frame(
         depth=encode_depth(depth_m, depth_format, depth_scale),
         depth_format=depth_format,
         depth_scale=float(depth_scale),
+        T_device_camera=None
+        if T_device_camera is None
+        else _floats(T_device_camera, 16, "T_device_camera"),
     )
 
 

@@ -18,6 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from server import protocol as proto
 from server.errors import ConfigError
 from server.evaluation.trajectory import write_tum
@@ -169,6 +171,9 @@ class SessionHost:
                 depth,
                 received_at=received_at,
                 decode_ms=(time.perf_counter() - t0) * 1e3,
+                T_device_camera=None
+                if message.get("T_device_camera") is None
+                else np.asarray(message["T_device_camera"], dtype=np.float64).reshape(4, 4),
             )
             self.session.submit(frame)
         except proto.ProtocolError as exc:

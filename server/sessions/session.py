@@ -272,7 +272,7 @@ class Session:
         K, tracker = self._configured()
         t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
-        result = tracker.track(frame.colour, depth)
+        result = tracker.track(frame.colour, depth, T_device_camera=frame.T_device_camera)
         timings = {
             "decode": frame.decode_ms,
             **{f"track_{k}": v for k, v in result.timings_ms.items()},

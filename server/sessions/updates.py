@@ -22,6 +22,8 @@ class FrameData:
     depth: np.ndarray
     received_at: float = field(default_factory=time.monotonic)
     decode_ms: float = 0.0
+    # The device's own camera pose in its world (4x4, metres), when the frame carried one.
+    T_device_camera: np.ndarray | None = None
 
 
 @dataclass

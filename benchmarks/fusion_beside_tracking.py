@@ -79,20 +79,21 @@ def main() -> None:
         f"{dataset.name}, {len(frames)} frames at {FPS:g} fps, a fusion every "
         f"{FUSE_PERIOD_S * 1e3:.0f} ms; commit {commit}"
     )
+
+    def beside(worker, stop) -> np.ndarray:
+        """Tracking timed while ``worker`` (a Thread or Process class) fuses until ``stop``."""
+        fusing = worker(target=fuse_until, args=(stop, frames, K, poses))
+        fusing.start()
+        try:
+            return track_at_camera_rate(frames, K)
+        finally:
+            stop.set()
+            fusing.join()
+
     results = {"alone": track_at_camera_rate(frames, K)}
-    stop = threading.Event()
-    fusing = threading.Thread(target=fuse_until, args=(stop, frames, K, poses))
-    fusing.start()
-    results["fusion in a thread"] = track_at_camera_rate(frames, K)
-    stop.set()
-    fusing.join()
+    results["fusion in a thread"] = beside(threading.Thread, threading.Event())
     ctx = mp.get_context("fork")  # our fusing thread has ended; the child only fuses
-    stop = ctx.Event()
-    fusing = ctx.Process(target=fuse_until, args=(stop, frames, K, poses))
-    fusing.start()
-    results["fusion in a process"] = track_at_camera_rate(frames, K)
-    stop.set()
-    fusing.join()
+    results["fusion in a process"] = beside(ctx.Process, ctx.Event())
     alone_p95 = np.percentile(results["alone"], 95)
     print(f"{'tracking beside':24s} {'median ms':>10s} {'p95 ms':>8s} {'max ms':>8s}")
     for name, wall in results.items():

@@ -49,6 +49,14 @@ class RGBDDataset:
         for i in range(len(self)):
             yield self[i]
 
+    def _frame_index(self, index: int) -> int:
+        """``index`` as a position in 0..len-1 (negative counts from the end, as a list's);
+        IndexError outside the sequence."""
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {n} frames")
+        return index % n
+
     @property
     def timestamps(self) -> np.ndarray:
         raise NotImplementedError

@@ -133,9 +133,7 @@ class Record3DDataset(RGBDDataset):
         return len(self._timestamps)
 
     def __getitem__(self, index: int) -> RGBDFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} out of range for {len(self)} frames")
-        index = index % len(self)
+        index = self._frame_index(index)
         jpeg = np.frombuffer(self._read(f"rgbd/{index}.jpg"), dtype=np.uint8)
         image = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
         if image is None:

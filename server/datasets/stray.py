@@ -204,9 +204,7 @@ class StrayDataset(RGBDDataset):
         return len(self._timestamps)
 
     def __getitem__(self, index: int) -> RGBDFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} out of range for {len(self)} frames")
-        index = index % len(self)
+        index = self._frame_index(index)
         colour = self._video.frame(int(self._frames[index]))
         raw = cv2.imread(str(self._depth_files[index]), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:

@@ -157,9 +157,7 @@ class ImagePairDataset(RGBDDataset):
         return len(self._timestamps)
 
     def __getitem__(self, index: int) -> RGBDFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} out of range for {len(self)} frames")
-        index = index % len(self)
+        index = self._frame_index(index)
         return RGBDFrame(
             index=index,
             timestamp=float(self._timestamps[index]),

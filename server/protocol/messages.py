@@ -159,8 +159,10 @@ def make_pose(
     timings_ms: Mapping[str, float],
     dropped: int,
     keyframe: bool | None = None,
+    failures: Mapping[str, int] | None = None,
 ) -> dict:
-    """T_world_camera: 4x4 (metres), sent row-major; state: ok / weak / lost (or TrackingState)."""
+    """T_world_camera: 4x4 (metres), sent row-major; state: ok / weak / lost (or TrackingState);
+    failures: the session's failure counts so far, by name (left out when None or empty)."""
     return _message(
         "pose",
         seq=int(seq),
@@ -171,6 +173,7 @@ def make_pose(
         timings_ms={str(k): float(v) for k, v in timings_ms.items()},
         dropped=int(dropped),
         keyframe=None if keyframe is None else bool(keyframe),
+        failures={str(k): int(v) for k, v in failures.items()} if failures else None,
     )
 
 

@@ -304,7 +304,7 @@ async def _send_updates(
 
 
 def _pose(p: PoseUpdate) -> dict:
-    pose = proto.make_pose(
+    return proto.make_pose(
         p.seq,
         p.timestamp,
         p.T_world_camera,
@@ -313,10 +313,8 @@ def _pose(p: PoseUpdate) -> dict:
         p.timings_ms,
         p.dropped,
         p.keyframe,
+        p.failures,
     )
-    if p.failures:
-        pose["failures"] = {name: int(n) for name, n in p.failures.items()}
-    return pose
 
 
 async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Outbox) -> None:

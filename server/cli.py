@@ -104,6 +104,14 @@ def track(
             help="dense point-to-plane refinement (registration.solver.dense; default: on)",
         ),
     ] = None,
+    device_prior: Annotated[
+        bool | None,
+        typer.Option(
+            "--device-prior/--no-device-prior",
+            help="an iPhone recording's own odometry as the tracker's prior "
+            "(registration.prior.enabled; default: on)",
+        ),
+    ] = None,
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
@@ -113,12 +121,19 @@ def track(
     sets: ConfigSets = None,
 ) -> None:
     """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture, metrics and
-    the configuration used (config.yaml: `--config OUT/config.yaml` runs it again)."""
+    the configuration used (config.yaml: `--config OUT/config.yaml` runs it again). A Stray
+    Scanner or Record3D recording's own odometry is each frame's prior unless
+    --no-device-prior."""
     from server.config import write_config
     from server.evaluation.metrics import format_table
     from server.pipeline import run_odometry, write_outputs
 
-    flags = {} if dense is None else {"registration": {"solver": {"dense": dense}}}
+    registration: dict = {}
+    if dense is not None:
+        registration["solver"] = {"dense": dense}
+    if device_prior is not None:
+        registration["prior"] = {"enabled": device_prior}
+    flags = {"registration": registration} if registration else {}
     config = _load_config(config_file, sets, flags)
     ds = _open(dataset, fx, fy, cx, cy, depth_scale)
     _print_config(config, "configuration")
@@ -140,6 +155,14 @@ def track(
         f"{s['p90_ms']:.1f}",
     )
     console.print(stats)
+    prior = s["device_prior"]
+    if prior["frames"]:
+        console.print(
+            f"device prior: {prior['frames']} frames carried the recording's odometry, "
+            f"{prior['guesses']} started from it"
+        )
+    elif ds.device_poses is not None:
+        console.print("device prior: off (the recording's odometry was not used)")
     if run.metrics is not None:
         console.print(
             format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth")

@@ -59,6 +59,10 @@ def run_odometry(
 
     The first pose is the ground truth's when the dataset has one (so that estimates and ground
     truth share a frame for plots), else the identity.
+
+    A phone's recording (``dataset.device_poses``, Stray Scanner, Record3D) gives every frame its
+    device pose as the tracker's prior (``Tracker.track(..., T_device_camera=...)``), as the
+    server does with a phone's frames; ``config.prior.enabled = False`` tracks without it.
     """
     mapping = mapping or MappingConfig()
     fuse_every, voxel_m = mapping.fuse_every, mapping.tsdf.voxel_m
@@ -67,10 +71,15 @@ def run_odometry(
     tracker = Tracker(dataset.intrinsics, config, ground_truth_pose_at(dataset, first.timestamp))
     world_map = PointCloudMap(voxel_m=voxel_m)
     results, stamps = [], []
+    cfg = config or RegistrationConfig()
+    use_device = cfg.prior.enabled and dataset.device_poses is not None
+    with_device_pose = 0  # frames that had a device pose to give
     bar = tqdm(range(n), desc=f"track {dataset.name}", unit="frame", disable=not progress)
     for i in bar:
         frame = first if i == 0 else dataset[i]
-        result = tracker.track(frame.colour, frame.depth)
+        T_device_camera = dataset.device_pose(i) if use_device else None
+        with_device_pose += T_device_camera is not None
+        result = tracker.track(frame.colour, frame.depth, T_device_camera=T_device_camera)
         tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
         results.append(result)
         stamps.append(frame.timestamp)
@@ -93,6 +102,12 @@ def run_odometry(
         "states": dict(Counter(r.state.value for r in results)),
         "median_ms": float(np.median(times)),
         "p90_ms": float(np.percentile(times, 90)),
+        # The phone's odometry as the prior: frames that carried it, and frames whose initial
+        # guess came from it (the rest fell back to constant velocity).
+        "device_prior": {
+            "frames": with_device_pose,
+            "guesses": sum(r.prior_used for r in results),
+        },
     }
     return run
 

@@ -1,14 +1,11 @@
 """Stray Scanner and Record3D loaders on recordings made here from synthetic_room0's first frames.
 
-The fixtures follow each app's export layout with what an iPhone would record: 256x192 LiDAR
-depth, a confidence map, and the camera's odometry in ARKit's axes (camera x right, y up, z back)
-in a y-up world. The video is MPEG-4 Part 2 (mp4v), which OpenCV writes everywhere; the app writes
-HEVC, which the loader decodes through the same FFmpeg path.
+The fixtures (tests/iphone_recordings.py) follow each app's export layout with what an iPhone
+would record: 256x192 LiDAR depth, a confidence map, and the camera's odometry in ARKit's axes.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import pickle
 import subprocess
@@ -16,17 +13,16 @@ import sys
 import zipfile
 from pathlib import Path
 
-import cv2
-import lzfse
 import numpy as np
 import pytest
+from iphone_recordings import ROOM_K, room_recording, write_r3d, write_stray
 
 from server.datasets import Record3DDataset, StrayDataset, open_dataset
 from server.errors import DatasetError
 from server.evaluation.metrics import associate_trajectories, ate
 from server.evaluation.trajectory import read_tum
-from server.geometry import Intrinsics, invert, quaternion_from_pose
-from server.pipeline import ground_truth_pose_at, run_odometry
+from server.geometry import invert
+from server.pipeline import run_odometry
 from server.registration.preprocess import resample_depth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,97 +31,12 @@ ROOM = DATA / "synthetic_room0"
 pytestmark = pytest.mark.skipif(not ROOM.is_dir(), reason=f"shared data not found at {ROOM}")
 
 FRAMES = 20
-LIDAR_SIZE = (256, 192)  # width, height
-ROOM_K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
-# The phone's world is y up: the room's z-up world turned -90 degrees about x (y <- z, z <- -y).
-ROOM_TO_PHONE_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1.0]])
-# ARKit's camera axes written out independently of the loader's constant.
-CAMERA_TO_ARKIT = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def lidar_confidence(frame: int) -> np.ndarray:
-    """A confidence map (192, 256): high, with a low strip at the left and a medium band at the
-    bottom, moving with the frame so that each frame masks different pixels."""
-    w, h = LIDAR_SIZE
-    conf = np.full((h, w), 2, dtype=np.uint8)
-    conf[:, frame : frame + 30] = 0
-    conf[150:, :] = 1
-    return conf
 
 
 @pytest.fixture(scope="module")
 def room():
-    """The first frames of synthetic_room0: colour, LiDAR-sized depth (metres), confidence,
-    T_world_camera in this project's axes and the phone's world, and ARKit-clock timestamps."""
-    ds = open_dataset(ROOM)
-    assert ds.intrinsics == ROOM_K
-    frames = [ds[i] for i in range(FRAMES)]
-    gt = np.array([ground_truth_pose_at(ds, f.timestamp) for f in frames])
-    lidar = [resample_depth(f.depth, *LIDAR_SIZE) for f in frames]
-    for d in lidar:
-        d[5:9, 100:104] = np.nan  # ARKit leaves holes; Record3D stores them as NaN
-    return {
-        "colour": [f.colour for f in frames],
-        "lidar": lidar,
-        "confidence": [lidar_confidence(i) for i in range(FRAMES)],
-        "poses": ROOM_TO_PHONE_WORLD @ gt,
-        "timestamps": np.array([f.timestamp for f in frames]) - frames[0].timestamp + 5021.25,
-    }
-
-
-def arkit_rows(poses: np.ndarray):
-    """(t, q_xyzw) of each pose after turning it to ARKit's camera axes."""
-    for T in poses @ CAMERA_TO_ARKIT:
-        yield T[:3, 3], quaternion_from_pose(T)
-
-
-def write_stray(room: dict, folder: Path) -> Path:
-    folder.mkdir()
-    (folder / "depth").mkdir()
-    (folder / "confidence").mkdir()
-    video = cv2.VideoWriter(
-        str(folder / "rgb.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (640, 480)
-    )
-    assert video.isOpened(), "OpenCV cannot write mp4v here"
-    for i, colour in enumerate(room["colour"]):
-        video.write(cv2.cvtColor(colour, cv2.COLOR_RGB2BGR))
-        mm = np.rint(np.nan_to_num(room["lidar"][i]) * 1000.0).astype(np.uint16)
-        cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), mm)
-        cv2.imwrite(str(folder / "confidence" / f"{i:06d}.png"), room["confidence"][i])
-    video.release()
-    K = ROOM_K.matrix  # the video has the room's size, so its matrix unscaled
-    (folder / "camera_matrix.csv").write_text("\n".join(",".join(f"{v}" for v in r) for r in K))
-    rows = ["timestamp, frame, x, y, z, qx, qy, qz, qw"]
-    for i, (t, q) in enumerate(arkit_rows(room["poses"])):
-        values = [*t, *q]
-        rows.append(f"{room['timestamps'][i]:.6f}, {i}, " + ", ".join(f"{v:.12f}" for v in values))
-    (folder / "odometry.csv").write_text("\n".join(rows) + "\n")
-    return folder
-
-
-def write_r3d(room: dict, path: Path) -> Path:
-    K = ROOM_K.matrix
-    metadata = {
-        "w": 640,
-        "h": 480,
-        "K": K.T.reshape(-1).tolist(),  # column-major
-        "dw": LIDAR_SIZE[0],
-        "dh": LIDAR_SIZE[1],
-        "fps": 30,
-        "poses": [[*q, *t] for t, q in arkit_rows(room["poses"])],
-        "initPose": [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
-        "cameraType": 1,
-    }
-    with zipfile.ZipFile(path, "w") as z:
-        z.writestr("metadata", json.dumps(metadata))
-        for i, colour in enumerate(room["colour"]):
-            ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(colour, cv2.COLOR_RGB2BGR))
-            assert ok
-            z.writestr(f"rgbd/{i}.jpg", jpg.tobytes())
-            depth = room["lidar"][i].astype(np.float32)
-            z.writestr(f"rgbd/{i}.depth", lzfse.compress(depth.tobytes()))
-            z.writestr(f"rgbd/{i}.conf", lzfse.compress(room["confidence"][i].tobytes()))
-    return path
+    """The first frames of synthetic_room0 as a phone records them (iphone_recordings)."""
+    return room_recording(ROOM, list(range(FRAMES)))
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,9 @@ class RGBDDataset:
     """A sequence of RGB-D frames with intrinsics and, when known, ground truth.
 
     Subclasses fill ``name``, ``path``, ``intrinsics``, ``depth_scale`` and ``ground_truth`` and
-    implement ``__len__`` and ``__getitem__``.
+    implement ``__len__`` and ``__getitem__``. Recordings made by a phone also fill
+    ``device_poses``: the phone's own odometry, T_world_camera (metres, this project's camera
+    axes, the phone's world frame), one per frame with the frames' timestamps.
     """
 
     name: str
@@ -38,6 +40,7 @@ class RGBDDataset:
     intrinsics: Intrinsics
     depth_scale: float
     ground_truth: Trajectory | None = None
+    device_poses: Trajectory | None = None
 
     def __len__(self) -> int:
         raise NotImplementedError
@@ -60,3 +63,19 @@ class RGBDDataset:
     @property
     def timestamps(self) -> np.ndarray:
         raise NotImplementedError
+
+    def device_pose(self, index: int, max_diff_s: float = 0.02) -> np.ndarray | None:
+        """The phone's own T_world_camera (4x4, metres, its world frame) for frame ``index``,
+        or None when the dataset has no device poses or none within ``max_diff_s`` seconds of
+        the frame's timestamp. One pose per frame (the iPhone loaders) is matched by index."""
+        poses = self.device_poses
+        if poses is None or len(poses) == 0:
+            return None
+        index = self._frame_index(index)
+        if len(poses) == len(self):
+            return np.asarray(poses.poses[index], dtype=np.float64)
+        t = float(self.timestamps[index])
+        nearest = int(np.argmin(np.abs(poses.timestamps - t)))
+        if abs(float(poses.timestamps[nearest]) - t) > max_diff_s:
+            return None
+        return np.asarray(poses.poses[nearest], dtype=np.float64)

@@ -23,6 +23,7 @@ from server.evaluation.metrics import associate_trajectories, ate
 from server.evaluation.trajectory import read_tum
 from server.geometry import invert
 from server.pipeline import run_odometry
+from server.registration.config import RegistrationConfig
 from server.registration.preprocess import resample_depth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -198,3 +199,40 @@ def test_track_command_reads_a_record3d_file(r3d_file, tmp_path):
     trajectory = read_tum(out / "trajectory.tum")
     np.testing.assert_allclose(trajectory.timestamps, np.arange(8) / 30.0, atol=1e-6)
     assert "room_scan" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    "video_size",
+    [(1920, 1440), (1280, 960)],
+    ids=["full-resolution video", "video re-encoded smaller"],
+)
+def test_stray_frames_and_intrinsics_at_the_working_size(room, tmp_path, video_size):
+    """The app writes camera_matrix.csv for the camera's 1920x1440 and its video may be that
+    size (or re-encoded smaller) while the depth is 256x192: frames come at 640x480, with the
+    matrix scaled to them from the size its principal point tells."""
+    folder = write_stray(room, tmp_path / "big", video_size=video_size, matrix_size=(1920, 1440))
+    ds = open_dataset(folder)
+    assert ds.size == (640, 480)
+    K = ds.intrinsics
+    assert (K.width, K.height) == (640, 480)
+    np.testing.assert_allclose([K.fx, K.fy, K.cx, K.cy], [525.0, 525.0, 319.5, 239.5], atol=1e-6)
+    frame = ds[3]
+    assert frame.colour.shape == (480, 640, 3) and frame.depth.shape == (480, 640)
+    assert np.abs(frame.colour.astype(float) - room["colour"][3]).mean() < 8.0
+    np.testing.assert_allclose(frame.depth, expected_depth(room, 3, 1), atol=0.0005 + 1e-6)
+    # Geometry holds only with the right intrinsics: track without the prior.
+    off = RegistrationConfig().with_overrides(prior={"enabled": False})
+    run = run_odometry(ds, off, max_frames=12, progress=False)
+    assert "lost" not in run.summary["states"]
+    gt, est = associate_trajectories(ds.device_poses, run.trajectory)
+    assert ate(gt, est)["rmse"] < 0.01
+
+
+def test_stray_refuses_a_camera_matrix_or_depth_of_another_shape(room, tmp_path):
+    folder = write_stray(room, tmp_path / "scan")
+    (folder / "camera_matrix.csv").write_text("525,0,600\n0,525,100\n0,0,1\n")
+    with pytest.raises(DatasetError, match="principal point"):
+        open_dataset(folder)
+    wide = write_stray(room, tmp_path / "wide", video_size=(640, 360))
+    with pytest.raises(DatasetError, match="same field of view"):
+        open_dataset(wide)

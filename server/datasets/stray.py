@@ -4,12 +4,20 @@ Layout (Stray Scanner's documented export format):
     rgb.mp4            the colour video (HEVC in the app; any codec OpenCV's FFmpeg decodes)
     depth/NNNNNN.png   uint16 millimetres, 256x192 on LiDAR devices, one per video frame
     confidence/NNNNNN.png  uint8 ARKit confidence, 0 low, 1 medium, 2 high (optional)
-    camera_matrix.csv  the 3x3 intrinsic matrix, comma separated, for the video's resolution
+    camera_matrix.csv  the 3x3 intrinsic matrix, comma separated, for the camera's full
+                       resolution (1920x1440; the video's size, unless it was re-encoded)
     odometry.csv       ``timestamp, frame, x, y, z, qx, qy, qz, qw`` per frame: ARKit's
                        T_world_camera (seconds, metres, unit quaternion; camera x right, y up,
                        z backwards)
 The odometry becomes ``device_poses`` in this project's camera axes (see server.datasets.arkit);
-there is no ground truth. Depth is masked by confidence and resampled to the video's size.
+there is no ground truth.
+
+Frames come at a working size: the video's, divided by the smallest whole number that brings
+its width to ``max_width`` (640) or below (1920x1440 -> 640x480: the tracker's and the wire's
+usual size; the 256x192 depth holds no more detail than that). Colour is resized to it (area
+filter), depth masked by confidence and resampled to it, and the intrinsics are scaled from the
+size camera_matrix.csv was written for (told by its principal point, which sits near the
+image's centre) to it.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ from __future__ import annotations
 import csv
 import logging
 import threading
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -24,13 +33,16 @@ import numpy as np
 
 from server.datasets.arkit import DEFAULT_MIN_CONFIDENCE, camera_poses_from_arkit, lidar_depth
 from server.datasets.base import RGBDDataset, RGBDFrame
-from server.errors import DatasetError, DroneSimError
+from server.errors import DatasetError
 from server.evaluation.trajectory import Trajectory
 from server.geometry import Intrinsics, pose_from_quaternion
 
 logger = logging.getLogger(__name__)
 
 STRAY_DEPTH_SCALE = 1000.0  # depth PNG units (millimetres) per metre
+DEFAULT_MAX_WIDTH = 640  # widest frame the loader returns, px (see the module's docstring)
+# Depth and video must show the same field of view: their width/height ratios may differ by this.
+MAX_ASPECT_DIFFERENCE = 0.02
 ODOMETRY_COLUMNS = ("timestamp", "frame", "x", "y", "z", "qx", "qy", "qz", "qw")
 
 
@@ -43,9 +55,9 @@ def is_stray_folder(path: Path) -> bool:
     )
 
 
-def read_camera_matrix(path: Path, width: int, height: int) -> Intrinsics:
-    """Read ``camera_matrix.csv`` (3 rows of 3 comma-separated numbers, pixels) for an image of
-    ``width`` x ``height`` pixels."""
+def read_camera_matrix(path: Path) -> np.ndarray:
+    """Read ``camera_matrix.csv``: 3 rows of 3 comma-separated numbers -> K (3, 3), pixels of
+    the image size it was written for (which the file does not say; see ``matrix_size``)."""
     try:
         rows = [
             [float(v) for v in line.split(",")]
@@ -53,11 +65,44 @@ def read_camera_matrix(path: Path, width: int, height: int) -> Intrinsics:
             if line.strip()
         ]
         K = np.array(rows)
-        if K.shape != (3, 3):
-            raise ValueError(f"expected 3 rows of 3 numbers, got shape {K.shape}")
-        return Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
-    except (OSError, ValueError, DroneSimError) as exc:
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"expected 3 rows of 3 numbers, positive focal lengths; got {rows}")
+        return K
+    except (OSError, ValueError) as exc:
         raise DatasetError(f"{path}: expected a 3x3 comma-separated camera matrix: {exc}") from exc
+
+
+def matrix_size(K: np.ndarray, width: int, height: int) -> tuple[int, int]:
+    """The image size (px) a camera matrix was written for, given a video of ``width`` x
+    ``height`` of the same camera: the video's size times the simple ratio (1, 3/2, 3, ...)
+    that puts the principal point nearest the image's centre. The app writes the matrix for the
+    camera's full resolution, and a recording may have been re-encoded smaller since.
+
+    Raises DatasetError when the principal point fits no such size (not this video's camera)."""
+    ratio_x = (K[0, 2] + 0.5) / (width / 2.0)
+    ratio_y = (K[1, 2] + 0.5) / (height / 2.0)
+    ratio = Fraction((ratio_x + ratio_y) / 2.0).limit_denominator(4)
+    if ratio <= 0 or max(abs(ratio_x / ratio - 1), abs(ratio_y / ratio - 1)) > 0.1:
+        raise DatasetError(
+            f"camera_matrix.csv's principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) fits no image "
+            f"size of the video's shape ({width}x{height}): not this recording's camera"
+        )
+    return round(width * ratio), round(height * ratio)
+
+
+def working_size(width: int, height: int, max_width: int) -> tuple[int, int]:
+    """The video's size divided by the smallest whole number that brings the width to
+    ``max_width`` or below (px)."""
+    divisor = max(1, -(-width // max_width))
+    return round(width / divisor), round(height / divisor)
+
+
+def depth_png_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a depth PNG, px."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.ndim != 2:
+        raise DatasetError(f"{path}: expected a 1-channel uint16 PNG")
+    return raw.shape[1], raw.shape[0]
 
 
 def read_odometry(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -146,6 +191,8 @@ class StrayDataset(RGBDDataset):
 
     path: the folder. intrinsics: overrides camera_matrix.csv. depth_scale: depth PNG units per
     metre (1000). min_confidence: ARKit confidence (0 low, 1 medium, 2 high) a depth pixel needs.
+    max_width: widest frame returned, px (the video is scaled down by a whole number to fit).
+    ``size``: (width, height) of the frames returned, px; ``intrinsics`` are for it.
     ``device_poses``: the phone's odometry, T_world_camera in this project's camera axes and
     ARKit's world frame, one per frame.
     """
@@ -156,6 +203,7 @@ class StrayDataset(RGBDDataset):
         intrinsics: Intrinsics | None = None,
         depth_scale: float | None = None,
         min_confidence: int = DEFAULT_MIN_CONFIDENCE,
+        max_width: int = DEFAULT_MAX_WIDTH,
     ):
         self.path = Path(path)
         self.name = self.path.name
@@ -166,19 +214,33 @@ class StrayDataset(RGBDDataset):
         self.depth_scale = depth_scale or STRAY_DEPTH_SCALE
         self.min_confidence = min_confidence
         self._video = VideoReader(self.path / "rgb.mp4")
+        video = (self._video.width, self._video.height)
+        self.size = working_size(*video, max_width)
         if intrinsics is not None:
-            self.intrinsics = intrinsics
+            source = intrinsics  # at the size it says
         else:
-            self.intrinsics = read_camera_matrix(
-                self.path / "camera_matrix.csv", self._video.width, self._video.height
-            )
-        if (self.intrinsics.width, self.intrinsics.height) != (
-            self._video.width,
-            self._video.height,
-        ):
+            K = read_camera_matrix(self.path / "camera_matrix.csv")
+            w, h = matrix_size(K, *video)
+            source = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h)
+        if abs(source.width / source.height / (video[0] / video[1]) - 1) > MAX_ASPECT_DIFFERENCE:
             raise DatasetError(
-                f"{self.path}: rgb.mp4 is {self._video.width}x{self._video.height} but the "
-                f"intrinsics say {self.intrinsics.width}x{self.intrinsics.height}"
+                f"{self.path}: rgb.mp4 is {video[0]}x{video[1]} but the intrinsics are for "
+                f"{source.width}x{source.height}, another shape"
+            )
+        self.intrinsics = source.scaled(self.size[0] / source.width)
+        if self.intrinsics.width != self.size[0] or self.intrinsics.height != self.size[1]:
+            raise DatasetError(
+                f"{self.path}: intrinsics for {source.width}x{source.height} do not scale to "
+                f"frames of {self.size[0]}x{self.size[1]}"
+            )
+        if self.size != video or source.width != video[0]:
+            logger.info(
+                "%s: video %dx%d, camera matrix for %dx%d, frames and intrinsics at %dx%d",
+                self.name,
+                *video,
+                source.width,
+                source.height,
+                *self.size,
             )
 
         stamps, frames, arkit_poses = read_odometry(self.path / "odometry.csv")
@@ -189,6 +251,12 @@ class StrayDataset(RGBDDataset):
         if missing:
             raise DatasetError(
                 f"{self.path}: odometry.csv lists frames without depth: {missing[:5]}"
+            )
+        depth_size = depth_png_size(self._depth_files[0])
+        if abs(depth_size[0] / depth_size[1] / (video[0] / video[1]) - 1) > MAX_ASPECT_DIFFERENCE:
+            raise DatasetError(
+                f"{self.path}: depth is {depth_size[0]}x{depth_size[1]} and rgb.mp4 "
+                f"{video[0]}x{video[1]}: not the same field of view"
             )
         confidence_dir = self.path / "confidence"
         self._confidence_files: list[Path] | None = None
@@ -206,6 +274,8 @@ class StrayDataset(RGBDDataset):
     def __getitem__(self, index: int) -> RGBDFrame:
         index = self._frame_index(index)
         colour = self._video.frame(int(self._frames[index]))
+        if (colour.shape[1], colour.shape[0]) != self.size:
+            colour = cv2.resize(colour, self.size, interpolation=cv2.INTER_AREA)
         raw = cv2.imread(str(self._depth_files[index]), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise DatasetError(f"{self._depth_files[index]}: expected a 1-channel uint16 PNG")

@@ -101,6 +101,8 @@ async def replay(
             frame.depth,
             depth_format=depth_format,
             depth_scale=1000.0,
+            # A phone's recording sends its own odometry, as the phone would live.
+            T_device_camera=dataset.device_pose(frame.index),
         )
 
     def encode_all() -> dict[int, dict]:

@@ -107,6 +107,8 @@ class Session:
         self._trajectory: list[tuple[float, np.ndarray]] = []
         self._states = {s.value: 0 for s in TrackingState}
         self.received = self.processed = self.dropped = 0
+        # Frames that carried the device's own pose, and those whose guess started from it.
+        self._device_pose = {"frames": 0, "guesses": 0}
         self.failures = Failures()  # guarded by _lock; flight_errors is the drone's own count
         self.failure: str | None = None  # why the session could not go on (see fail)
         self._last_seq = -1
@@ -289,6 +291,8 @@ class Session:
             self._trajectory.append((frame.timestamp, result.T_world_camera))
             self.processed += 1
             self._states[result.state.value] += 1
+            self._device_pose["frames"] += frame.T_device_camera is not None
+            self._device_pose["guesses"] += result.prior_used
             dropped, processed = self.dropped, self.processed
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
@@ -493,6 +497,7 @@ class Session:
                 "frames_failed": failures["frames_failed"],
                 "fusion_skipped": self.fusion_skipped,
                 "tracking_states": dict(self._states),
+                "device_pose": dict(self._device_pose),
                 "trajectory_poses": len(self._trajectory),
                 "map": map_stats,
                 "fusion_failed": failures["fusions_failed"],  # the name before failures existed

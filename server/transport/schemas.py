@@ -135,6 +135,17 @@ class WorkerInfo(_Body):
     node_ip: str | None = Field(None, description="Ray: that node's address")
 
 
+class DevicePoseUse(_Body):
+    """How the tracker used the phone's own pose (frame.T_device_camera, PROTOCOL.md)."""
+
+    frames: int = Field(description="processed frames that carried T_device_camera")
+    guesses: int = Field(
+        description="of those, frames whose initial guess came from the device pose's motion "
+        "(the rest fell back to constant velocity: the first frame, a device pose that jumped, "
+        "or registration.prior.enabled false)"
+    )
+
+
 class SessionStatus(_Body):
     """``GET /api/sessions/{id}``: a live session's figures now, or a closed session's as its
     final snapshot saved them."""
@@ -167,6 +178,11 @@ class SessionStatus(_Body):
         description="processed frames by tracking state: ok, weak, lost"
     )
     trajectory_poses: int = Field(description="lines of trajectory.tum: one per processed frame")
+    device_pose: DevicePoseUse | None = Field(
+        None,
+        description="the phone's own pose as the tracker's prior (absent in the snapshots of "
+        "sessions saved before it was counted)",
+    )
     map: MapStats = Field(description="the TSDF map's figures")
     intrinsics: Intrinsics | None = Field(description="the hello's camera; null before a hello")
     drone: DroneSummary | None = Field(

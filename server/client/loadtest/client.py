@@ -107,7 +107,13 @@ class _Client:
         if status:
             r.server_status = {
                 k: status.get(k)
-                for k in ("frames_received", "frames_processed", "frames_dropped", "fusion_skipped")
+                for k in (
+                    "frames_received",
+                    "frames_processed",
+                    "frames_dropped",
+                    "fusion_skipped",
+                    "device_pose",
+                )
             }
             r.server_dropped = max(r.server_dropped, status.get("frames_dropped") or 0)
         if not self.cfg.keep_sessions:

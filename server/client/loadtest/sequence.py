@@ -27,7 +27,8 @@ def ping_pong_index(k: int, n: int) -> int:
 
 @dataclass
 class EncodedSequence:
-    """A sequence encoded once for the wire: frame messages without seq and timestamp."""
+    """A sequence encoded once for the wire: frame messages without seq and timestamp. A phone's
+    recording (``dataset.device_poses``) gives each frame its ``T_device_camera``."""
 
     name: str
     intrinsics: tuple[float, float, float, float]  # fx, fy, cx, cy of the colour image, px
@@ -48,7 +49,14 @@ class EncodedSequence:
 
         def encode(i: int) -> dict:
             frame = dataset[i]
-            message = proto.make_frame(0, 0.0, frame.colour, frame.depth, depth_format=depth_format)
+            message = proto.make_frame(
+                0,
+                0.0,
+                frame.colour,
+                frame.depth,
+                depth_format=depth_format,
+                T_device_camera=dataset.device_pose(i),
+            )
             del message["seq"], message["timestamp"]
             return message
 

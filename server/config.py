@@ -62,6 +62,8 @@ class ServerConfig(BaseModel):
     max_sessions: int = Field(default=16, ge=1)  # live sessions at once; more get 503
     # Refused before decoding; at most uvicorn's ws_max_size (16 MiB), which refuses larger first.
     max_message_bytes: int = Field(default=4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
+    # Largest iPhone recording the page may upload (POST /api/recordings), megabytes.
+    max_upload_mb: float = Field(default=1000.0, gt=0)
     session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
     snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
     drone_state_hz: float = Field(default=20.0, gt=0, le=60)  # drone_state messages per second

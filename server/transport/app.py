@@ -21,8 +21,9 @@ from server.sessions import SessionError, SessionManager
 from server.sessions.config import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import warm_up
-from server.transport import routes_client, routes_sessions, websocket
+from server.transport import routes_client, routes_recordings, routes_sessions, websocket
 from server.transport.deps import RateLimiter
+from server.transport.recordings import RecordingError, RecordingStore
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ def create_app(config: Config | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         restored = manager.load_saved()
+        app.state.recordings.clean()  # an upload cut off by the last stop
         log.info("data dir %s: %d saved sessions", settings.data_dir.resolve(), restored)
         # The workers' forkserver imports the numerical stack once (seconds): before the server
         # says it is up, so that creating a session never waits for it.
@@ -96,6 +98,9 @@ def create_app(config: Config | None = None) -> FastAPI:
     app.state.connections = {}  # session id -> its open WebSocket (websocket._Connection)
     app.state.demo = None
     app.state.create_limiter = RateLimiter(settings.create_rate_per_min, settings.create_burst)
+    app.state.recordings = RecordingStore(
+        settings.data_dir / "recordings", int(settings.max_upload_mb * 1e6)
+    )
     for name in ("uvicorn.error", "uvicorn.access"):
         logger = logging.getLogger(name)
         if not any(isinstance(f, RedactTokens) for f in logger.filters):
@@ -110,6 +115,7 @@ def create_app(config: Config | None = None) -> FastAPI:
     app.include_router(routes_sessions.router)
     app.include_router(websocket.router)
     app.include_router(routes_client.router)
+    app.include_router(routes_recordings.router)
 
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:
@@ -118,6 +124,12 @@ def create_app(config: Config | None = None) -> FastAPI:
             {"error": {"code": exc.code, "message": str(exc)}},
             status_code=_STATUS.get(exc.code, 400),
             headers={"Retry-After": str(math.ceil(retry))} if retry else None,
+        )
+
+    @app.exception_handler(RecordingError)
+    async def recording_error(request: Request, exc: RecordingError) -> JSONResponse:
+        return JSONResponse(
+            {"error": {"code": exc.code, "message": str(exc)}}, status_code=exc.status
         )
 
     @app.exception_handler(StoreError)

@@ -1,0 +1,151 @@
+"""Uploaded iPhone recordings, converted for the page's replay and kept under
+``<data_dir>/recordings/<id>/``.
+
+An upload (a Record3D ``.r3d`` or a zipped Stray Scanner export) is received into
+``.incoming/`` with its size checked as it arrives, converted (``server.datasets.archives`` and
+``replay_export``) into ``.staging-<id>/``, and renamed to ``<id>/`` only when whole; any
+failure removes what it wrote, so an error leaves nothing behind. Each recording is read with the
+token its upload was answered with, as a session is: the store keeps only the token's SHA-256,
+and an unknown id and a wrong token get the same answer.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import secrets
+import shutil
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from server.datasets.archives import UnknownRecording, open_recording_archive
+from server.datasets.replay_export import export_replay
+from server.errors import DatasetError, DroneSimError
+from server.sessions.store import hash_token
+
+log = logging.getLogger(__name__)
+
+# An unpacked Stray export may be this many times larger than its zip (depth PNGs barely
+# compress further; a zip bomb would be far beyond it).
+MAX_UNPACK_FACTOR = 4
+_ID_CHARS = set("0123456789abcdef")
+_NO_RECORDING_HASH = hash_token(secrets.token_urlsafe(32))  # compared against for unknown ids
+
+
+class RecordingError(DroneSimError):
+    """An upload or a request for a recording that cannot be honoured: ``code`` names the reason
+    for the client, ``status`` is the HTTP status it is answered with."""
+
+    def __init__(self, code: str, message: str, status: int) -> None:
+        super().__init__(message)
+        self.code, self.status = code, status
+
+
+def recording_name(filename: str | None) -> str:
+    """A name to show for an upload: its file name without folders and suffix, printable
+    characters only, at most 64 ('recording' when nothing is left)."""
+    stem = (filename or "").replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0]
+    cleaned = "".join(c for c in stem if c.isprintable())[:64].strip()
+    return cleaned or "recording"
+
+
+class RecordingStore:
+    """The recordings under ``root``; uploads of at most ``max_upload_bytes``."""
+
+    def __init__(self, root: Path, max_upload_bytes: int) -> None:
+        self.root = root
+        self.max_upload_bytes = max_upload_bytes
+
+    def clean(self) -> None:
+        """Remove what an interrupted upload or conversion left (at start-up)."""
+        if not self.root.is_dir():
+            return
+        for leftover in [self.root / ".incoming", *self.root.glob(".staging-*")]:
+            shutil.rmtree(leftover, ignore_errors=True)
+
+    def too_large(self, size: int) -> RecordingError:
+        return RecordingError(
+            "upload_too_large",
+            f"the upload is {size / 1e6:.1f} MB or more; this server takes at most "
+            f"{self.max_upload_bytes / 1e6:.1f} MB (server.max_upload_mb)",
+            413,
+        )
+
+    async def receive(self, body: AsyncIterator[bytes]) -> Path:
+        """Write an upload's bytes to a file of its own under ``.incoming/``; refuse it (and
+        remove the part written) once it passes ``max_upload_bytes``."""
+        incoming = self.root / ".incoming"
+        incoming.mkdir(parents=True, exist_ok=True)
+        path = incoming / f"{secrets.token_hex(8)}.upload"
+        size = 0
+        try:
+            with path.open("wb") as f:
+                async for chunk in body:
+                    size += len(chunk)
+                    if size > self.max_upload_bytes:
+                        raise self.too_large(size)
+                    f.write(chunk)
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
+        if size == 0:
+            path.unlink(missing_ok=True)
+            raise RecordingError(
+                "unsupported_recording", "the upload is empty: send the file as the body", 415
+            )
+        return path
+
+    def convert(self, upload: Path, name: str) -> tuple[str, str, dict]:
+        """Convert the upload at ``upload`` (removed in any case) into a recording called
+        ``name`` -> (id, token, index with file names). RecordingError 415 for a file that is
+        no recording, 422 for one that cannot be read."""
+        recording_id = secrets.token_hex(8)
+        token = secrets.token_urlsafe(32)
+        staging = self.root / f".staging-{recording_id}"
+        unpacked = self.root / ".incoming" / f"{recording_id}.unpacked"
+        try:
+            dataset = open_recording_archive(
+                upload, unpacked, MAX_UNPACK_FACTOR * self.max_upload_bytes
+            )
+            index = export_replay(dataset, staging) | {"name": name}
+            (staging / "index.json").write_text(json.dumps(index))
+            meta = {"id": recording_id, "token_sha256": hash_token(token), "name": index["name"]}
+            (staging / "meta.json").write_text(json.dumps(meta))
+            staging.rename(self.root / recording_id)  # whole, or not there at all
+        except UnknownRecording as exc:
+            raise RecordingError("unsupported_recording", str(exc), 415) from exc
+        except DatasetError as exc:
+            raise RecordingError("bad_recording", f"cannot read the recording: {exc}", 422) from exc
+        finally:
+            upload.unlink(missing_ok=True)
+            shutil.rmtree(unpacked, ignore_errors=True)
+            shutil.rmtree(staging, ignore_errors=True)
+        log.info("recording %s: %s, %d frames", recording_id, index["name"], len(index["frames"]))
+        return recording_id, token, index
+
+    def folder(self, recording_id: str, token: str | None) -> Path:
+        """The folder of the recording ``token`` opens. No token: 401; an unknown id or a wrong
+        token: the same 404 after the same work."""
+        if token is None:
+            raise RecordingError(
+                "unauthorized", "send the upload's token: Authorization: Bearer <token>", 401
+            )
+        expected, folder = _NO_RECORDING_HASH, None
+        if len(recording_id) == 16 and set(recording_id) <= _ID_CHARS:
+            candidate = self.root / recording_id
+            try:
+                meta = json.loads((candidate / "meta.json").read_text())
+                expected, folder = str(meta["token_sha256"]), candidate
+            except (OSError, ValueError, KeyError):
+                pass
+        if hmac.compare_digest(hash_token(token), expected) and folder is not None:
+            return folder
+        raise RecordingError("not_found", "no recording with this id for this token", 404)
+
+    def index(self, folder: Path) -> dict:
+        index: dict = json.loads((folder / "index.json").read_text())
+        return index
+
+    def delete(self, folder: Path) -> None:
+        shutil.rmtree(folder)

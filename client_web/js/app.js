@@ -54,9 +54,10 @@ class App {
 
   /**
    * Start streaming from a capture mode into a session.
-   * @param {{mode?: "demo"|"folder"|"live", fps?: number, fresh?: boolean, files?: FileList}} options
+   * @param {{mode?: "demo"|"demo-small"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
+   *   files?: FileList, recording?: File}} options
    */
-  async start({ mode = "demo", fps = 15, fresh = false, files = null } = {}) {
+  async start({ mode = "demo", fps = 15, fresh = false, files = null, recording = null } = {}) {
     this.stopStreaming();
     this.source?.stop?.();
     const button = $("#btn-stream");
@@ -70,9 +71,11 @@ class App {
         this.setView("ar"); // the camera fills the screen; the Map button overlays the map
         source.info = await source.start();
       } else {
-        if (mode !== "folder") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
-        const sequence = mode === "folder" ? await ReplaySequence.fromFiles(files)
-          : await ReplaySequence.fromServer(mode === "demo-small" ? "/api/demo?preset=small" : "/api/demo");
+        if (mode === "demo" || mode === "demo-small") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
+        let sequence;
+        if (mode === "folder") sequence = await ReplaySequence.fromFiles(files);
+        else if (mode === "iphone") sequence = await this.#uploadRecording(recording);
+        else sequence = await ReplaySequence.fromServer(mode === "demo-small" ? "/api/demo?preset=small" : "/api/demo");
         source = new ReplaySource(sequence);
         source.prefetch(0);
       }
@@ -108,6 +111,36 @@ class App {
       throw exc;
     } finally {
       button.disabled = false;
+    }
+  }
+
+  /** Upload an iPhone recording for the server to convert, saying how far it got. */
+  async #uploadRecording(file) {
+    if (!file) throw new Error("pick a recording first (.r3d, or a Stray Scanner export zipped)");
+    const status = $("#recording-status");
+    const say = (text) => {
+      status.textContent = text;
+      this.hud.toast(text, "info", 3000);
+    };
+    say(`uploading ${file.name} (${(file.size / 1e6).toFixed(1)} MB)…`);
+    let shown = -1;
+    try {
+      const sequence = await ReplaySequence.fromUpload(file, (stage, fraction) => {
+        const percent = Math.floor(fraction * 100);
+        if (stage === "upload" && percent >= shown + 10) {
+          shown = percent;
+          status.textContent = `uploading ${file.name}: ${percent} %`;
+        } else if (stage === "convert") {
+          status.textContent = fraction < 1 ? "converting on the server…" : "converted";
+        }
+      });
+      const posed = sequence.frames.filter((f) => f.T_device_camera).length;
+      say(`${sequence.name}: ${sequence.length} frames, ${posed} with the phone's pose`);
+      this.recordingStatus = status.textContent;
+      return sequence;
+    } catch (exc) {
+      status.textContent = exc.message;
+      throw exc;
     }
   }
 
@@ -314,7 +347,7 @@ class App {
     const form = $("#setup-form");
     const data = new FormData(form);
     return { mode: data.get("mode"), fps: Number(data.get("fps")), fresh: data.get("session") === "new",
-      files: $("#folder-input").files };
+      files: $("#folder-input").files, recording: $("#recording-input").files?.[0] ?? null };
   }
 
   #openDialog() {
@@ -344,6 +377,11 @@ class App {
     $("#folder-input").addEventListener("change", () => {
       document.querySelector('input[name="mode"][value="folder"]').checked = true;
     });
+    $("#recording-input").addEventListener("change", () => {
+      document.querySelector('input[name="mode"][value="iphone"]').checked = true;
+      const file = $("#recording-input").files?.[0];
+      $("#recording-status").textContent = file ? `${file.name}: Start uploads it` : "";
+    });
     dialog.addEventListener("close", async () => {
       if (dialog.returnValue === "end") {
         this.stopStreaming();
@@ -356,6 +394,10 @@ class App {
         const choice = this.#dialogChoice();
         if (choice.mode === "folder" && !choice.files?.length) {
           this.hud.toast("pick a folder first", "warn");
+          return;
+        }
+        if (choice.mode === "iphone" && !choice.recording) {
+          this.hud.toast("pick a recording first (.r3d, or a Stray Scanner export zipped)", "warn");
           return;
         }
         try {
@@ -384,6 +426,7 @@ class App {
       inFlight: this.client.inFlight.size,
       latencyMs: this.client.latencyMs,
       hello: this.hello ?? null,
+      recordingStatus: $("#recording-status")?.textContent ?? "",
       ...this.seen,
       ar: { ...this.ar.lastDraw, stage: { left: rect.left, top: rect.top, width: rect.width, height: rect.height },
         intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },

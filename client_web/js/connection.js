@@ -38,7 +38,8 @@ export class SessionClient extends EventTarget {
     this.pending = []; // commands waiting for the connection
     this.attempt = 0;
     this.nextCommandId = 1;
-    this.counts = { sent: 0, poses: 0, errors: 0, reconnects: 0, bytesSent: 0, maxInFlight: 0 };
+    // withDevicePose: frames sent with the device's own pose (T_device_camera).
+    this.counts = { sent: 0, poses: 0, errors: 0, reconnects: 0, bytesSent: 0, maxInFlight: 0, withDevicePose: 0 };
     this.statusLog = []; // [{state, message, at}] for the HUD's history and the tests
     this.saved = this.#load();
   }
@@ -231,7 +232,7 @@ export class SessionClient extends EventTarget {
 
   /**
    * Send a frame if the socket is open and fewer than max_in_flight frames await answers.
-   * @param {object} fields timestamp, colour, depth, depthFormat, depthScale (see Protocol.frame)
+   * @param {object} fields timestamp, colour, depth, depthFormat, depthScale, deviceCamera (see Protocol.frame)
    * @returns {number|null} the frame's seq, or null when it was not sent
    */
   sendFrame(fields) {
@@ -245,6 +246,7 @@ export class SessionClient extends EventTarget {
     this.counts.maxInFlight = Math.max(this.counts.maxInFlight, this.inFlight.size);
     this.#send(message);
     this.counts.sent += 1;
+    if (message.T_device_camera) this.counts.withDevicePose += 1;
     return seq;
   }
 

@@ -228,10 +228,13 @@ export class Protocol {
    * @param {Uint8Array} p.depth uint16 depth as depthFormat says
    * @param {"png"|"zlib"} p.depthFormat
    * @param {number} [p.depthScale] units per metre, when not the hello's
+   * @param {number[]} [p.deviceCamera] T_device_camera: the device's own camera pose in its world,
+   *   16 numbers, row-major, metres, this protocol's camera axes (x right, y down, z forward)
    */
-  frame({ seq, timestamp, colour, depth, depthFormat, depthScale }) {
+  frame({ seq, timestamp, colour, depth, depthFormat, depthScale, deviceCamera }) {
     const message = { type: "frame", seq, timestamp, colour, depth, depth_format: depthFormat };
     if (depthScale !== undefined) message.depth_scale = depthScale;
+    if (deviceCamera) message.T_device_camera = Array.from(deviceCamera, Number);
     return this.validate(message, CLIENT_TO_SERVER, { strict: true });
   }
 

@@ -1,7 +1,9 @@
 // Replay source: an RGB-D sequence streamed as if a camera captured it now. Frames come from
-// the server's bundled demo (/api/demo) or from a TUM-layout folder the user picks (rgb.txt,
-// depth.txt, optional intrinsics.json). Colour goes out as JPEG (a PNG colour image is
-// re-encoded), depth as the sequence's 16-bit PNG with its depth scale.
+// the server's bundled demo (/api/demo), from an iPhone recording uploaded to the server
+// (/api/recordings: Stray Scanner or Record3D, converted there), or from a TUM-layout folder the
+// user picks (rgb.txt, depth.txt, optional intrinsics.json). Colour goes out as JPEG (a PNG
+// colour image is re-encoded), depth as the sequence's 16-bit PNG with its depth scale, and a
+// recording's own phone pose as T_device_camera.
 
 import { encodeJpeg } from "../packing.js";
 
@@ -65,13 +67,15 @@ export class ReplaySequence {
     return this.frames.length;
   }
 
-  /** The server's bundled demo sequence (generated on the server's first use: may take a while). */
-  static async fromServer(url = "/api/demo") {
-    const response = await fetch(url);
-    if (!response.ok) throw new Error(`cannot load the demo sequence: HTTP ${response.status}`);
+  /** A sequence the server serves: the bundled demo (generated on the server's first use: may
+   * take a while), or an uploaded recording, whose index and files need its token. */
+  static async fromServer(url = "/api/demo", { token = null } = {}) {
+    const headers = token ? { Authorization: `Bearer ${token}` } : {};
+    const response = await fetch(url, { headers });
+    if (!response.ok) throw new Error(`cannot load the sequence ${url}: HTTP ${response.status}`);
     const index = await response.json();
     const get = async (path) => {
-      const r = await fetch(path);
+      const r = await fetch(path, { headers });
       if (!r.ok) throw new Error(`${path}: HTTP ${r.status}`);
       return new Uint8Array(await r.arrayBuffer());
     };
@@ -80,6 +84,32 @@ export class ReplaySequence {
       depthScale: index.depth_scale, gravity: index.gravity, fps: index.fps, frames: index.frames,
       read: async (frame) => Promise.all([get(frame.colour), get(frame.depth)]),
     });
+  }
+
+  /**
+   * An iPhone recording (a Record3D .r3d, or a Stray Scanner export zipped) uploaded to the
+   * server, which converts it; then read back like the demo. XMLHttpRequest, as fetch cannot
+   * report an upload's progress.
+   * @param {File} file
+   * @param {(stage: "upload"|"convert", fraction: number) => void} onProgress
+   */
+  static async fromUpload(file, onProgress = () => {}) {
+    const created = await new Promise((resolve, reject) => {
+      const xhr = new XMLHttpRequest();
+      xhr.open("POST", `/api/recordings?name=${encodeURIComponent(file.name)}`);
+      xhr.setRequestHeader("Content-Type", "application/octet-stream");
+      xhr.responseType = "json";
+      xhr.upload.onprogress = (e) => onProgress("upload", e.lengthComputable ? e.loaded / e.total : 0);
+      xhr.upload.onload = () => onProgress("convert", 0);
+      xhr.onload = () => {
+        if (xhr.status === 201) resolve(xhr.response);
+        else reject(new Error(`upload refused (HTTP ${xhr.status}): ${xhr.response?.error?.message ?? "no reason given"}`));
+      };
+      xhr.onerror = () => reject(new Error("upload failed: the connection broke"));
+      xhr.send(file);
+    });
+    onProgress("convert", 1);
+    return ReplaySequence.fromServer(created.index, { token: created.token });
   }
 
   /** A TUM-layout folder from an <input type=file webkitdirectory> (a FileList). */
@@ -194,11 +224,11 @@ export class ReplaySource {
     const [colour, depth] = await this.#load(index);
     this.prefetch(tick + 1);
     const bitmap = await createImageBitmap(new Blob([colour], { type: "image/jpeg" }));
-    return {
-      index,
-      bitmap,
-      fields: { timestamp, colour, depth, depthFormat: "png", depthScale: this.sequence.depthScale },
-    };
+    const fields = { timestamp, colour, depth, depthFormat: "png", depthScale: this.sequence.depthScale };
+    // A phone's recording carries the phone's own pose: the server's tracker starts from it.
+    const pose = this.sequence.frames[index].T_device_camera;
+    if (pose) fields.deviceCamera = pose;
+    return { index, bitmap, fields };
   }
 
   stop() {

@@ -166,6 +166,13 @@ PACKING_JS = """async () => {
   const turn = [0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1, 0, 1, 0, 0, 1]; // (u, v) -> (1 - v, u)
   out.resampleTurned = Array.from(P.resampleDepth(src, 3, 2, 2, 3, turn));
   out.depthSizePortrait = P.depthSizeFor([480, 640], 256, 192);
+  // a 20:9 portrait view with ARCore's 160x90 landscape buffer: depth at the colour's aspect
+  out.depthSizePhone = P.depthSizeFor([288, 640], 160, 90);
+  out.depthSizeLandscape = P.depthSizeFor([640, 288], 160, 90);
+  // T_device_camera from an XR view pose: GL camera (y up, z back) -> OpenCV axes, row-major
+  const pose = new THREE.Matrix4().makeRotationY(0.3).setPosition(0.5, 1.5, -2);
+  out.viewPose = Array.from(pose.elements);
+  out.deviceCamera = P.deviceCameraFromView(pose.elements);
   return out;
 }"""
 
@@ -236,6 +243,15 @@ def test_live_mode_frame_packing_in_the_browser(live_server, open_page):
     # view (u, v) -> buffer (1 - v, u): the view's top row is the buffer's right column, upwards
     assert out["resampleTurned"] == [3, 6, 2, 5, 1, 4]
     assert out["depthSizePortrait"] == [192, 256]
+    # the protocol's hello check: depth and colour aspects within max_aspect_difference
+    assert out["depthSizePhone"] == [72, 160] and out["depthSizeLandscape"] == [160, 72]
+    for colour_size, depth_size in (([288, 640], [72, 160]), ([640, 288], [160, 72])):
+        w, h = colour_size
+        hello = proto.make_hello("web", (585, 585, w / 2, h / 2), colour_size, depth_size)
+        proto.validate(hello, proto.CLIENT_TO_SERVER, strict=True)
+    T_gl = np.array(out["viewPose"]).reshape(4, 4).T  # column-major -> matrix
+    T_cv = np.array(out["deviceCamera"]).reshape(4, 4)  # row-major
+    np.testing.assert_allclose(T_cv, T_gl @ np.diag([1.0, -1.0, -1.0, 1.0]), atol=1e-6)
     assert not page.errors, page.errors
 
 

@@ -121,11 +121,15 @@ export function resampleDepth(src, srcW, srcH, outW, outH, matrix = null) {
   return out;
 }
 
-/** The depth image size (w, h) for a buffer of n1 x n2 samples, oriented as the colour image
- * (landscape colour: the longer side across), so that the aspect ratios agree. */
+/** The depth image size (w, h) to send for a depth buffer of n1 x n2 samples: the colour
+ * image's aspect ratio (the protocol requires it: same field of view), with the buffer's longer
+ * side along the colour's longer side. A phone's depth buffer often has another aspect than its
+ * screen (ARCore: 160x90 landscape for a 1080x2400 portrait view); resampleDepth fills it
+ * through normDepthBufferFromNormView. */
 export function depthSizeFor(colourSize, n1, n2) {
-  const [long, short] = [Math.max(n1, n2), Math.min(n1, n2)];
-  return colourSize[0] >= colourSize[1] ? [long, short] : [short, long];
+  const [cw, ch] = colourSize;
+  const long = Math.max(n1, n2);
+  return cw >= ch ? [long, Math.max(1, Math.round((long * ch) / cw))] : [Math.max(1, Math.round((long * cw) / ch)), long];
 }
 
 /**
@@ -161,6 +165,21 @@ export function scaleIntrinsics([fx, fy, cx, cy], from, to) {
   const sx = to[0] / from[0];
   const sy = to[1] / from[1];
   return [fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5];
+}
+
+/**
+ * The frame message's T_device_camera from a WebXR view pose: the camera-to-space matrix of a GL
+ * camera (x right, y up, z backward), column-major, times diag(1, -1, -1, 1) on the right for
+ * this protocol's camera axes (x right, y down, z forward), written row-major.
+ * @param {Float32Array|number[]} cameraToSpace XRView.transform.matrix
+ * @returns {number[]} 16 numbers, row-major, metres
+ */
+export function deviceCameraFromView(cameraToSpace) {
+  const out = new Array(16);
+  for (let r = 0; r < 4; r++) {
+    for (let c = 0; c < 4; c++) out[r * 4 + c] = cameraToSpace[c * 4 + r] * (c === 1 || c === 2 ? -1 : 1);
+  }
+  return out;
 }
 
 /**

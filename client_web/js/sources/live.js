@@ -7,8 +7,8 @@
 
 import * as THREE from "three";
 import {
-  DEPTH_SCALE_MM, depthSizeFor, encodeJpeg, flipRows, gravityInCamera, intrinsicsFromProjection, packDepth,
-  resampleDepth, scaleIntrinsics,
+  DEPTH_SCALE_MM, depthSizeFor, deviceCameraFromView, encodeJpeg, flipRows, gravityInCamera, intrinsicsFromProjection,
+  packDepth, resampleDepth, scaleIntrinsics,
 } from "../packing.js";
 
 const COLOUR_LONG_SIDE = 640; // colour sent at 640 px on the long side (see PROTOCOL.md, bandwidth)
@@ -44,7 +44,7 @@ export class LiveSource {
     this.arView = arView;
     this.overlayRoot = overlayRoot;
     this.anchors = new Map(); // seq -> Matrix4 (XR pose of the frame's GL camera)
-    this.request = null; // {resolve, reject, timestamp} of the next capture
+    this.request = null; // {resolve, reject} of the next capture
     this.onEnd = null;
   }
 
@@ -100,7 +100,7 @@ export class LiveSource {
    * frame has no depth or no camera image. */
   capture(tick, timestamp) {
     if (!this.session) return Promise.resolve(null);
-    return new Promise((resolve, reject) => (this.request = { resolve, reject, timestamp }));
+    return new Promise((resolve, reject) => (this.request = { resolve, reject }));
   }
 
   /** Remember the anchor of a sent frame under its seq (the overlay of that frame uses it). */
@@ -110,6 +110,8 @@ export class LiveSource {
   }
 
   #onFrame(time, frame) {
+    // three's loop also runs on the window's animation frames (no XR frame): nothing to do then.
+    if (!frame) return;
     const pose = frame.getViewerPose(this.space);
     this.arView.render(1 / 60);
     if (!pose) return;
@@ -145,7 +147,11 @@ export class LiveSource {
       }
       const rgba = this.#readCamera(view);
       const anchor = new THREE.Matrix4().fromArray(view.transform.matrix);
-      this.#pack(rgba, depth, request.timestamp).then((packed) => request.resolve({ ...packed, anchor }), request.reject);
+      // Stamped with the XR frame's time (when its camera image was taken), not the request's;
+      // the phone's own pose of this image goes along as the tracker's prior.
+      const deviceCamera = deviceCameraFromView(view.transform.matrix);
+      this.#pack(rgba, depth, time / 1000).then(
+        (packed) => request.resolve({ ...packed, fields: { ...packed.fields, deviceCamera }, anchor }), request.reject);
     } catch (exc) {
       request.reject(exc);
     }

@@ -115,6 +115,9 @@ class PriorConfig:
     # device's own tracking, not as motion: the frame falls back to the guess without a prior.
     max_motion_m: float = 1.0
     max_motion_deg: float = 90.0
+    # When no keyframe registers a frame, start a new keyframe at the prior's pose rather than
+    # stay lost (see Tracker._resume_from_prior).
+    resume_after_loss: bool = True
 
 
 @dataclass(frozen=True)

@@ -211,11 +211,15 @@ class Tracker:
             if found is None:
                 found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred, True)
         timings["sparse"] = _ms(t)
+        state = None if found is None else self._judge(found.solution)
+        if state in (None, TrackingState.LOST) and prior is not None and T_world_prior is not None:
+            resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
+            if resumed is not None:
+                return resumed
         if found is None:
             return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
         kf, solution = found.kf, found.solution
-        state = self._judge(solution)
-        if state is TrackingState.LOST:
+        if state is None or state is TrackingState.LOST:
             return self._lose(
                 index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition
             )
@@ -449,6 +453,49 @@ class Tracker:
             return TrackingState.WEAK
         return TrackingState.OK
 
+    def _resume_from_prior(
+        self,
+        index: int,
+        grey: GreyImage,
+        depth: Float32Array,
+        timings: dict[str, float],
+        prior: FloatArray,
+        T_world_prior: FloatArray,
+    ) -> TrackResult | None:
+        """No keyframe registers this view (a gap in the frames, fast motion, blur), but the
+        device still knows where it is: a new keyframe at the prior's pose lets tracking go on in
+        the map. The device's drift since the last tracked frame (millimetres over a short gap)
+        enters the map with it; staying lost until the user comes back to a mapped view would
+        lose the rest of the session. The pose is WEAK. None (stay lost) when resuming is off or
+        this frame cannot anchor tracking (too little texture or depth)."""
+        if not self.cfg.prior.resume_after_loss:
+            return None
+        t = time.perf_counter()
+        kf = make_keyframe(self.keyframe_count, index, T_world_prior, grey, depth, self.K, self.cfg)
+        if len(kf.points) < self.cfg.state.ok_inliers:
+            return None
+        self._adopt_keyframe(kf, grey)
+        timings["keyframe"] = _ms(t)
+        timings["total"] = sum(timings.values())
+        if not self.lost:
+            log.info("frame %d: no keyframe registers it; resumed from the device pose", index)
+        self.velocity = np.eye(4)
+        self.T_world_last = T_world_prior.copy()
+        self.lost = False
+        self.device_last = prior
+        return TrackResult(
+            index,
+            T_world_prior.copy(),
+            TrackingState.WEAK,
+            len(kf.points),
+            0.0,
+            1.0,
+            kf.id,
+            True,
+            timings,
+            prior_used=True,
+        )
+
     def _lose(
         self,
         index: int,
@@ -520,11 +567,15 @@ class Tracker:
         kf = make_keyframe(
             self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg
         )
+        self._adopt_keyframe(kf, grey)
+        return kf
+
+    def _adopt_keyframe(self, kf: Keyframe, grey: GreyImage) -> None:
+        """Make kf the keyframe the next frames track against."""
         self.keyframe_count += 1
         self.keyframe = kf
         self.recent.append(kf)
         self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
-        return kf
 
 
 def _pose_distance(T_a: FloatArray, T_b: FloatArray) -> float:

@@ -71,8 +71,10 @@ def demo_ready() -> Path:
 class Page:
     """A page of the app in its own browser context, with its console errors collected."""
 
-    def __init__(self, browser, server, path: str = "/", **context) -> None:
+    def __init__(self, browser, server, path: str = "/", init=None, **context) -> None:
         self.context = browser.new_context(**context)
+        if init is not None:
+            init(self.context)  # e.g. an emulated device's scripts, before the page loads
         self.page = self.context.new_page()
         self.errors: list[str] = []
         self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
@@ -122,11 +124,12 @@ class Page:
 
 @pytest.fixture
 def open_page(chromium, demo_ready):
-    """open_page(server, path="/", **context) -> Page; closed after the test."""
+    """open_page(server, path="/", init=None, **context) -> Page; closed after the test.
+    init(context) runs before the page loads (e.g. tests/webxr_device.install)."""
     pages = []
 
-    def open_(server, path: str = "/", **context) -> Page:
-        page = Page(chromium, server, path, **context)
+    def open_(server, path: str = "/", init=None, **context) -> Page:
+        page = Page(chromium, server, path, init, **context)
         pages.append(page)
         return page
 

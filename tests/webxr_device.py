@@ -1,0 +1,291 @@
+"""The emulated WebXR AR device of the browser tests (tests/webxr/emulated_ar_device.js), fed
+from a recorded RGB-D sequence as a phone with ARCore would see the same room.
+
+A device profile says what the phone gives the page: its view (the screen, and the camera
+image, in pixels), whether it is held in portrait (the landscape sensor turned a quarter turn
+into the view), the depth buffer's size and format. The sequence's camera is the phone's
+sensor: its images are turned and cropped to the view's aspect, as ARCore crops the camera to
+the screen; depth is cropped to the depth buffer's aspect (ARCore's depth covers a 16:9 or 4:3
+crop of the sensor) and subsampled to the buffer's size, in the sensor's landscape orientation.
+normDepthBufferFromNormView maps one onto the other. Viewer poses are the ground truth with a
+phone's visual-inertial drift and noise (server.evaluation.device_poses), in a gravity-aligned
+space whose up is the first frame's camera up (the sequences here are filmed upright).
+
+``prepare`` writes the frames as files and returns the device's configuration (for the page) and
+the truth (for the test); ``FileServer`` serves the files on loopback; ``install`` puts the
+device into a browser context before its first page loads.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from server.datasets.base import RGBDDataset
+from server.evaluation.device_poses import DeviceDrift, device_world, drifting_device_poses
+from server.geometry import Intrinsics
+
+EMULATOR_JS = Path(__file__).parent / "webxr" / "emulated_ar_device.js"
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes <-> WebXR/GL (y up, z back)
+NEAR_M, FAR_M = 0.1, 1000.0  # Chrome's default depthNear / depthFar
+
+
+@dataclass(frozen=True)
+class DeviceProfile:
+    """What an AR phone or tablet gives a page."""
+
+    name: str
+    view_size: tuple[int, int]  # the XR view and its camera image, (width, height) px
+    portrait: bool  # sensor turned a quarter turn clockwise into the view
+    depth_size: tuple[int, int]  # ARCore's depth buffer, sensor orientation (landscape), px
+    depth_format: str = "luminance-alpha"  # or "float32"
+    fps: float = 30.0  # camera rate
+    display_hz: float = 30.0  # XR frames per second
+    empty_depth_s: float = 1.0  # depth from motion: all zero for this long after the start
+    missing_depth_every: int = 37  # every n-th camera frame comes without depth information
+    missing_camera_every: int = 53  # every n-th without a camera image (0: never)
+    features: tuple[str, ...] = ("depth-sensing", "camera-access")
+    # The camera image and XR framebuffer at this fraction of the view's pixels: software WebGL
+    # on two cores cannot fill 1080x2400 at 30 Hz beside a tracking server. The projection
+    # matrix, aspect ratios and depth mapping are the full-size view's; only pixels are fewer.
+    pixel_scale: float = 0.25
+
+
+PROFILES = {
+    p.name: p
+    for p in (
+        DeviceProfile("phone-portrait", (1080, 2400), True, (160, 90)),
+        DeviceProfile("phone-landscape", (2400, 1080), False, (160, 90), depth_format="float32"),
+        DeviceProfile("tablet-4x3", (1536, 2048), True, (160, 120)),
+    )
+}
+
+
+def _centre_crop(size: tuple[float, float], aspect: float) -> tuple[float, float, float, float]:
+    """(x0, y0, w, h): the largest centred crop of a w x h image with width/height = aspect."""
+    w, h = size
+    if w / h > aspect:
+        cw, ch = h * aspect, h
+    else:
+        cw, ch = w, w / aspect
+    return (w - cw) / 2, (h - ch) / 2, cw, ch
+
+
+@dataclass
+class PreparedDevice:
+    """The device's configuration (JSON for the page, less ``base``) and the truth."""
+
+    config: dict
+    T_world_view: np.ndarray  # (N, 4, 4) true camera poses of the view, OpenCV axes, metres
+    K_view: Intrinsics  # the view's camera at the XR framebuffer's size (view_size x pixel_scale)
+    stamps: np.ndarray  # (N,) the recording's timestamps, seconds
+    sensor_crop: tuple[float, float, float, float]  # view's crop of the (turned) sensor image
+
+
+def _view_of_sensor(K: Intrinsics, profile: DeviceProfile):
+    """The sensor -> view mapping: (view intrinsics, crop, R_sensor_view, the affine map from
+    view pixels (edge coordinates: 0..W) to sensor pixels, as a 3x3)."""
+    sw, sh = K.width, K.height
+    # Edge coordinates (pixel centres at +0.5) make crops and scales plain affine maps.
+    fx, fy, cx, cy = K.fx, K.fy, K.cx + 0.5, K.cy + 0.5
+    if profile.portrait:
+        # Turned clockwise: view x = sh - sensor y, view y = sensor x; camera X_v = -Y_s, Y_v = X_s.
+        turned = (sh, sw)
+        fxv, fyv, cxv, cyv = fy, fx, sh - cy, cx
+        R_sensor_view = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        sensor_from_turned = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, sh], [0.0, 0.0, 1.0]])
+    else:
+        turned = (sw, sh)
+        fxv, fyv, cxv, cyv = fx, fy, cx, cy
+        R_sensor_view = np.eye(3)
+        sensor_from_turned = np.eye(3)
+    W, H = profile.view_size
+    crop = _centre_crop(turned, W / H)
+    s = W / crop[2]
+    K_view = Intrinsics(
+        fxv * s, fyv * s, (cxv - crop[0]) * s - 0.5, (cyv - crop[1]) * s - 0.5, W, H
+    )
+    turned_from_view = np.array([[1 / s, 0, crop[0]], [0, 1 / s, crop[1]], [0, 0, 1.0]])
+    return K_view, crop, R_sensor_view, sensor_from_turned @ turned_from_view
+
+
+def projection_matrix(K: Intrinsics) -> list[float]:
+    """The view's WebXR projection matrix (column-major, OpenGL clip space) for intrinsics K
+    (pixel centres at integers), as the page's intrinsicsFromProjection inverts it."""
+    W, H = K.width, K.height
+    p = np.zeros(16)
+    p[0] = 2 * K.fx / W
+    p[5] = 2 * K.fy / H
+    p[8] = 1 - (2 * K.cx + 1) / W
+    p[9] = (2 * K.cy + 1) / H - 1
+    p[10] = -(FAR_M + NEAR_M) / (FAR_M - NEAR_M)
+    p[11] = -1
+    p[14] = -2 * FAR_M * NEAR_M / (FAR_M - NEAR_M)
+    return p.tolist()
+
+
+def gravity_aligned(T_world_camera: np.ndarray) -> np.ndarray:
+    """T_local_world: a y-up space at the first camera, up = that camera's up (-y in OpenCV
+    axes), -z its optical axis made level; as ARCore's "local" space starts."""
+    R0, p0 = T_world_camera[0, :3, :3], T_world_camera[0, :3, 3]
+    up = -R0[:, 1]
+    back = -R0[:, 2] + 0.0
+    back -= up * (back @ up)
+    back /= np.linalg.norm(back)
+    x = np.cross(up, back)
+    T_world_local = np.eye(4)
+    T_world_local[:3, :3] = np.column_stack([x, up, back])
+    T_world_local[:3, 3] = p0
+    return np.linalg.inv(T_world_local)
+
+
+def prepare(
+    dataset: RGBDDataset,
+    profile: DeviceProfile,
+    out: Path,
+    max_frames: int | None = None,
+    drift: DeviceDrift | None = None,
+) -> PreparedDevice:
+    """Write the sequence's frames as the device shows them into ``out``: colour.bin (the JPEGs
+    of the sensor's crop end to end, offsets in the configuration) and depth.bin (each frame's
+    depth buffer, raw little-endian values); return the device's configuration and the truth."""
+    assert dataset.ground_truth is not None, "the emulated device needs ground-truth poses"
+    n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
+    K = dataset.intrinsics
+    K_view, crop, R_sensor_view, sensor_from_view = _view_of_sensor(K, profile)
+    W, H = profile.view_size
+
+    # The depth buffer covers a centred crop of the sensor with its own aspect.
+    dw, dh = profile.depth_size
+    dcrop = _centre_crop((K.width, K.height), dw / dh)
+    # normDepthBufferFromNormView: view (0..1) -> view px -> sensor px -> buffer (0..1).
+    view_px = np.diag([W, H, 1.0])
+    buffer_norm = np.array(
+        [
+            [1 / dcrop[2], 0, -dcrop[0] / dcrop[2]],
+            [0, 1 / dcrop[3], -dcrop[1] / dcrop[3]],
+            [0, 0, 1],
+        ]
+    )
+    A = buffer_norm @ sensor_from_view @ view_px
+    norm = np.eye(4)
+    norm[:2, :2], norm[:2, 3] = A[:2, :2], A[:2, 2]
+
+    out.mkdir(parents=True, exist_ok=True)
+    offsets = [0]
+    x0, y0, cw, ch = (int(round(v)) for v in crop)
+    dx0, dy0, dcw, dch = (int(round(v)) for v in dcrop)
+    jpegs: list[bytes] = []
+    depths: list[bytes] = []
+    for i in range(n):
+        frame = dataset[i]
+        colour = frame.colour
+        if profile.portrait:
+            colour = cv2.rotate(colour, cv2.ROTATE_90_CLOCKWISE)
+        colour = np.ascontiguousarray(colour[y0 : y0 + ch, x0 : x0 + cw])
+        ok, jpeg = cv2.imencode(".jpg", colour[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
+        assert ok
+        jpegs.append(jpeg.tobytes())
+        offsets.append(offsets[-1] + len(jpegs[-1]))
+        depth = frame.depth[dy0 : dy0 + dch, dx0 : dx0 + dcw]
+        depth = cv2.resize(depth, (dw, dh), interpolation=cv2.INTER_NEAREST)
+        if profile.depth_format == "float32":
+            raw = depth.astype("<f4")
+        else:
+            raw = np.clip(np.round(depth * 1000.0), 0, 65535).astype("<u2")
+        depths.append(raw.tobytes())
+    (out / "colour.bin").write_bytes(b"".join(jpegs))
+    (out / "depth.bin").write_bytes(b"".join(depths))
+
+    gt = dataset.ground_truth
+    stamps = dataset.timestamps[:n]
+    T_world_sensor = np.stack([gt.poses[_nearest(gt.timestamps, t)] for t in stamps])
+    S = np.eye(4)
+    S[:3, :3] = R_sensor_view
+    T_world_view = T_world_sensor @ S
+    # The phone's odometry: drift and noise in a gravity-aligned frame (drifting_device_poses
+    # yaws about y), then that frame's origin at the first camera, as ARCore's local space.
+    T_local_world = gravity_aligned(T_world_sensor)
+    T_local_view = T_local_world @ T_world_view
+    drift = drift or DeviceDrift()
+    T_vio = np.linalg.inv(device_world(drift.seed)) @ drifting_device_poses(
+        T_local_view, stamps, drift
+    )
+    poses_gl = [(T @ GL_FROM_CV).T.reshape(-1).tolist() for T in T_vio]  # column-major
+
+    pw, ph = (round(v * profile.pixel_scale) for v in profile.view_size)
+    config = {
+        "profile": profile.name,
+        "frames": n,
+        "colourOffsets": offsets,
+        "fps": profile.fps,
+        "displayHz": profile.display_hz,
+        "viewSize": [pw, ph],
+        "projection": projection_matrix(K_view),
+        "poses": poses_gl,
+        "depthSize": [dw, dh],
+        "depthFormat": profile.depth_format,
+        "normDepthBufferFromNormView": norm.T.reshape(-1).tolist(),
+        "emptyDepthS": profile.empty_depth_s,
+        "missingDepth": _every(n, profile.missing_depth_every, 5),
+        "missingCamera": _every(n, profile.missing_camera_every, 11),
+        "features": list(profile.features),
+    }
+    K_pixels = Intrinsics(
+        (K_view.fx * pw / W),
+        (K_view.fy * ph / H),
+        (K_view.cx + 0.5) * pw / W - 0.5,
+        (K_view.cy + 0.5) * ph / H - 0.5,
+        pw,
+        ph,
+    )
+    return PreparedDevice(config, T_world_view, K_pixels, stamps, crop)
+
+
+def _every(n: int, every: int, start: int) -> list[int]:
+    return list(range(start, n, every)) if every > 0 else []
+
+
+def _nearest(stamps: np.ndarray, t: float) -> int:
+    return int(np.argmin(np.abs(stamps - t)))
+
+
+class FileServer:
+    """A folder served over HTTP on 127.0.0.1 with CORS (the page's origin is the app server's),
+    in a thread: the device's recording."""
+
+    def __init__(self, root: Path) -> None:
+        handler = functools.partial(_CorsHandler, directory=str(root))
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+class _CorsHandler(http.server.SimpleHTTPRequestHandler):
+    def end_headers(self) -> None:
+        self.send_header("Access-Control-Allow-Origin", "*")
+        self.send_header("Cache-Control", "no-store")
+        super().end_headers()
+
+    def log_message(self, *args) -> None:  # quiet: hundreds of frames
+        pass
+
+
+def install(context, config: dict, base_url: str) -> None:
+    """Give a Playwright browser context the emulated device (before any page loads)."""
+    context.add_init_script(
+        script=f"window.__xrDeviceConfig = {json.dumps({**config, 'base': base_url})};"
+    )
+    context.add_init_script(path=str(EMULATOR_JS))

@@ -239,7 +239,7 @@ class App {
     const s = this.seen;
     s.poses += 1;
     s.states[pose.state] = (s.states[pose.state] ?? 0) + 1;
-    s.lastPose = { seq: pose.seq, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera };
+    s.lastPose = { seq: pose.seq, timestamp: pose.timestamp, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera };
     s.serverDropped = pose.dropped;
     s.serverFailures = pose.failures ?? {};
     this.hud.pose(pose);

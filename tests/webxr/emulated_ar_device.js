@@ -280,6 +280,7 @@
       this.session = null;
       this.log = []; // [time ms, recording frame] of every XR frame
       this.state = { frameIndex: 0, frames: 0, stalls: 0, depthRequests: 0, cameraUploads: 0, uploadMs: 0, callbackMs: 0, sessions: 0, held: false };
+      this.afterFrame = []; // one-shot callbacks right after the next frame's callbacks
       this.heldMs = 0;
       this.heldSince = null;
       this.missingSets = { depth: new Set(config.missingDepth), camera: new Set(config.missingCamera) };
@@ -311,6 +312,7 @@
         this.state.frames += 1;
         this.log.push([time, index]);
         session._frame(time, index);
+        for (const callback of this.afterFrame.splice(0)) callback(index);
         this.state.callbackMs += performance.now() - time;
       };
       this.timer = setTimeout(tick, 1000 / config.displayHz);
@@ -502,5 +504,6 @@
   for (const proto of [WebGLRenderingContext.prototype, WebGL2RenderingContext.prototype]) {
     proto.makeXRCompatible = async function () {};
   }
-  window.__xrDevice = { state: device.state, log: device.log, readLayer: () => device.readLayer(), hold: (on) => device.hold(on), recording: device.recording };
+  window.__xrDevice = { state: device.state, log: device.log, readLayer: () => device.readLayer(), hold: (on) => device.hold(on),
+    afterNextFrame: (callback) => device.afterFrame.push(callback), recording: device.recording };
 })();

@@ -786,8 +786,8 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
 def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server, open_page):
     """A live source resolves {skip: reason} for a frame without depth or camera image (normal
     while ARCore re-initialises). The capture loop counts it and goes on: here a source that
-    gives every 3rd frame without depth, driving the page's own Streamer and client, as the
-    emulated AR device of issue 14 is not built yet."""
+    gives every 3rd frame without depth, driving the page's own Streamer and client (the live
+    source on an emulated AR device: tests/test_webxr_live.py)."""
     server = live_server()
     page = open_page(server, "/?autostart=demo-small", **PHONE)
     page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
@@ -806,7 +806,12 @@ def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server
     }"""
     )
     before = page.snapshot()["poses"]
-    page.wait(f"window.dronesim.seen.poses >= {before + 15}", 90, "15 more poses")
+    page.wait(
+        f"window.dronesim.seen.poses >= {before + 15}"
+        " && (window.dronesim.testStreamer.unavailable['no depth'] ?? 0) >= 4",
+        90,
+        "15 more poses and 4 frames without depth",
+    )
     s = page.page.evaluate(
         "({running: window.dronesim.testStreamer.running, "
         "unavailable: window.dronesim.testStreamer.unavailable})"

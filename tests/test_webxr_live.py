@@ -13,7 +13,12 @@ layer is read back right after that XR frame: the drone's paint must be centred 
 server's drone pose projects, from the shown frame's XR pose (the anchor) into the current
 frame's, through the device's true camera (within 15 % of the drone's size). The phones' narrow
 views rarely hold the whole drone (it spans 0.46 m and spawns 0.8 m away); the tablet's does
-now and then: the check runs when it can and is not required to.
+now and then. At the end, the phone held still, the drone is sent onto the view's axis (or the
+nearest point the server accepts) and checked again; when the view's border cuts the drone, its
+paint must gather round its pose's pixel instead. Every check made must pass; on the tablet at
+least one must be made. On the phones none may be: near their narrow views' axes the server
+often finds no reachable point in view (in 6 runs here the portrait phone was checked in 2,
+the landscape one in 3, 0.6-9.2 px off).
 
 What stays unverified: a real phone's WebXR (timing, ARCore's own depth and pose quality, the
 compositor) and the full-resolution pixels (the device renders at a quarter of them, see
@@ -150,7 +155,6 @@ def test_live_ar_streams_a_room_from_an_emulated_phone(
             if check is not None:
                 drone_checks.append(check)
         page.page.wait_for_timeout(500)
-    print(f"{profile}: drone checks {[round(c, 1) for c in drone_checks]}")
     page.page.wait_for_timeout(1500)  # the last frames' poses
     s = page.snapshot()
     state = page.page.evaluate("window.__xrDevice.state")
@@ -167,6 +171,16 @@ def test_live_ar_streams_a_room_from_an_emulated_phone(
     # Depth from motion was empty at first: warnings, never fatal.
     bad_depth = [e for e in s["errors"] if e["name"] == "bad_depth"]
     assert bad_depth and not [e for e in s["errors"] if e["fatal"]], s["errors"][:3]
+
+    # Held still at the end: the drone is sent onto the view's axis, and drawn where it is.
+    # Required on the tablet, whose view holds the drone; the phones' views are so narrow that
+    # the server's reachable points near their axis are often out of them.
+    end_check, tried = _drone_sent_into_view(page, device)
+    if end_check is not None:
+        drone_checks.append(end_check)
+    print(f"{profile}: drone checks {[round(c, 1) for c in drone_checks]} px; at the end {tried}")
+    if profile == "tablet-4x3":
+        assert drone_checks, f"the drone never showed wholly in the tablet's view: {tried}"
 
     error, n = _trajectory_error(page, device)
     print(f"{profile}: ATE {100 * error:.1f} cm over {n} poses; offline {100 * offline_ate:.1f} cm")
@@ -195,7 +209,7 @@ DRONE_IN_LAYER_JS = """() => new Promise((resolve) => {
 })"""
 
 
-def _drone_in_layer(page, device: PreparedDevice) -> float | None:
+def _drone_in_layer(page, device: PreparedDevice, clipped: bool = False) -> float | None:
     """Where the overlay drew the drone against where its pose projects, px (None when the
     drone is not wholly in view). The server's drone pose is in the camera of the frame shown;
     the page anchors it at that frame's XR pose and three draws it from the current XR frame's
@@ -225,12 +239,27 @@ def _drone_in_layer(page, device: PreparedDevice) -> float | None:
     )
     rgb = cv2.cvtColor(rgba, cv2.COLOR_BGRA2RGB)
     mask = drone_mask(rgb) & (rgba[..., 3] > 0)
-    if mask.sum() < 30 or mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
+    size = 0.46 * K.fx / z  # the drone's span across the rotors, px
+    cut = mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()
+    inside = 0 <= u < K.width and 0 <= v < K.height
+    if mask.sum() < 30 or (cut and not (clipped and inside)):
         return None  # not in view, or cut by the view's border (its centroid would be off)
     ys, xs = np.nonzero(mask)
-    error = float(np.hypot(xs.mean() - u, ys.mean() - v))
-    size = 0.46 * K.fx / z  # the drone's span across the rotors, px
-    shot = rgb.copy()
+    if cut:
+        # Cut by the border: the paint must gather round (u, v) (the body is painted at its
+        # centre): the nearest paint pixel is the error, and none lies beyond the drone's span.
+        distance = np.hypot(xs - u, ys - v)
+        error = float(distance.min())
+        assert np.quantile(distance, 0.98) <= 0.75 * size, (
+            f"drone paint strays {np.quantile(distance, 0.98):.0f} px from its pose's pixel"
+        )
+    else:
+        error = float(np.hypot(xs.mean() - u, ys.mean() - v))
+    # The phone's screen: the camera image with the page's overlay over it, the pose's pixel
+    # marked in green.
+    alpha = rgba[..., 3:4].astype(np.float32) / 255.0
+    camera = device.camera_image(got["frameIndex"]).astype(np.float32)
+    shot = np.ascontiguousarray((rgb * alpha + camera * (1 - alpha)).astype(np.uint8))
     cv2.circle(shot, (round(u), round(v)), 3, (0, 255, 0), -1)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(ARTIFACTS / f"webxr-{device.config['profile']}-drone.png"), shot[..., ::-1])
@@ -238,3 +267,41 @@ def _drone_in_layer(page, device: PreparedDevice) -> float | None:
         f"drone paint centred {error:.1f} px from where its pose projects ({u:.1f}, {v:.1f})"
     )
     return error
+
+
+def _drone_sent_into_view(page, device: PreparedDevice) -> tuple[float | None, list]:
+    """With the phone held still, send the drone to points on the view's optical axis (or the
+    nearest reachable point the server offers instead), until it arrives in view; then check
+    where the overlay drew it (``_drone_in_layer``). Returns that check's error (px; None when
+    the drone could not be brought into view) and what was tried."""
+    T_wc = np.array(page.snapshot()["lastPose"]["T_world_camera"]).reshape(4, 4)
+    targets = [(T_wc @ np.array([0.0, 0.0, d, 1.0]))[:3].tolist() for d in (1.2, 1.6, 0.9, 2.0)]
+    tried = []
+    while targets and len(tried) < 8:
+        target = targets.pop(0)
+        command = page.page.evaluate(f"window.dronesim.pilot.goto({target})")
+        outcome = None
+        for _ in range(40):
+            page.page.wait_for_timeout(250)
+            s = page.snapshot()
+            refused = [e for e in s["errors"] if e.get("command_id") == command]
+            if refused:
+                outcome = refused[0]["name"]
+                if "nearest" in refused[0]:
+                    targets.insert(0, refused[0]["nearest"])
+                break
+            if any(e["event"] == "arrived" and e.get("command_id") == command for e in s["events"]):
+                outcome = "arrived"
+                break
+        tried.append((np.round(target, 2).tolist(), outcome))
+        if outcome != "arrived":
+            continue
+        page.page.wait_for_timeout(500)  # the states of the arrived drone for the held frame
+        for attempt in range(6):
+            # Wholly in view if it will be; the narrow portrait view often cuts the drone.
+            check = _drone_in_layer(page, device, clipped=attempt >= 3)
+            if check is not None:
+                return check, tried
+            page.page.wait_for_timeout(300)
+        tried[-1] = (tried[-1][0], "arrived, not in view")
+    return None, tried

@@ -87,6 +87,18 @@ class PreparedDevice:
     K_view: Intrinsics  # the view's camera at the XR framebuffer's size (view_size x pixel_scale)
     stamps: np.ndarray  # (N,) the recording's timestamps, seconds
     sensor_crop: tuple[float, float, float, float]  # view's crop of the (turned) sensor image
+    folder: Path  # where the recording's files are
+
+    def camera_image(self, index: int) -> np.ndarray:
+        """Recording frame ``index`` as the device's camera shows it, RGB at the XR
+        framebuffer's size (the tests' pictures put the page's overlay over it)."""
+        offsets = self.config["colourOffsets"]
+        with open(self.folder / "colour.bin", "rb") as f:
+            f.seek(offsets[index])
+            jpeg = f.read(offsets[index + 1] - offsets[index])
+        bgr = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        size = (self.K_view.width, self.K_view.height)
+        return cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)[..., ::-1]
 
 
 def _view_of_sensor(K: Intrinsics, profile: DeviceProfile):
@@ -246,7 +258,7 @@ def prepare(
         pw,
         ph,
     )
-    return PreparedDevice(config, T_world_view, K_pixels, stamps, crop)
+    return PreparedDevice(config, T_world_view, K_pixels, stamps, crop, out)
 
 
 def _every(n: int, every: int, start: int) -> list[int]:

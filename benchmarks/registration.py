@@ -128,6 +128,25 @@ class Clock:
 
 
 # ---------------------------------------------------------------------------------- methods
+# Our tracker's configuration: the defaults, with --set's changes (e.g. the photometric term).
+BASE_CONFIG = RegistrationConfig()
+
+
+def parse_overrides(items: list[str]) -> dict[str, dict]:
+    """--set section.field=value ... -> {section: {field: value}} (values as YAML: numbers,
+    booleans, strings)."""
+    import yaml
+
+    out: dict[str, dict] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not (sep and dot and section and name):
+            raise argparse.ArgumentTypeError(f"--set wants section.field=value, got {item!r}")
+        out.setdefault(section, {})[name] = yaml.safe_load(value)
+    return out
+
+
 def run_ours(
     frames: list[RGBDFrame],
     K: Intrinsics,
@@ -138,7 +157,7 @@ def run_ours(
 ) -> MethodRun:
     """Our frame-to-keyframe tracker; sparse only or sparse + dense refinement; ``priors``
     (N, 4, 4): the device's own T_device_camera per frame, given to the tracker as its prior."""
-    config = RegistrationConfig().with_overrides(solver={"dense": dense})
+    config = BASE_CONFIG.with_overrides(solver={"dense": dense})
     tracker = Tracker(K, config, T_world_first=T0)
     run = MethodRun(poses=np.empty((len(frames), 4, 4)), weak=0)
     stages: dict[str, list[float]] = {}
@@ -396,7 +415,8 @@ def plot_topview(path: Path, title: str, gt: np.ndarray, estimates: dict[str, np
 def run_name_of(name: str, args) -> str:
     """The sequence name, with _nN / _sS for --frames / --stride, naming its output files."""
     frames = f"_n{args.frames}" if args.frames else ""
-    return name + frames + (f"_s{args.stride}" if args.stride > 1 else "")
+    changed = "".join(f"_{k}={v}" for k, v in args.set)
+    return name + frames + (f"_s{args.stride}" if args.stride > 1 else "") + changed
 
 
 def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
@@ -666,7 +686,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         f"drifting (like a phone's VIO) (default with --drop: {' '.join(PRIORS)})",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated device pose")
+    parser.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change our tracker's registration config, e.g. solver.photometric_weight=0.5 "
+        "(the run's name says so)",
+    )
     args = parser.parse_args(argv)
+    global BASE_CONFIG
+    try:
+        BASE_CONFIG = RegistrationConfig().with_overrides(**parse_overrides(args.set))
+    except (argparse.ArgumentTypeError, DroneSimError) as exc:
+        parser.error(str(exc))
+    args.set = [(k.split("=")[0].rsplit(".", 1)[-1], k.split("=", 1)[1]) for k in args.set]
     args.prior_mode = args.drop is not None or args.prior is not None
     if args.prior_mode:
         args.drop = args.drop or list(DROPS)

@@ -86,12 +86,18 @@ class ModelAligner:
     Poses are T_world_camera (4x4, metres, camera x right, y down, z forward); depth in metres.
     """
 
-    def __init__(self, K: Intrinsics, voxel_m: float, depth_max_m: float, scale: float) -> None:
+    def __init__(self, K: Intrinsics, voxel_m: float, depth_max_m: float, step: int) -> None:
         """K: the depth camera at full size; the model is fused from full-size depth, ray-cast
-        and aligned at ``scale`` times the size (ray casting and ICP cost scale with pixels)."""
-        self.depth_max, self.scale = depth_max_m, scale
+        and aligned on every ``step``-th pixel (ray casting and ICP cost scale with pixels)."""
+        self.depth_max, self.step = depth_max_m, step
         self.intrinsic_full = o3c.Tensor(K.matrix, o3c.float64)
-        self.K = K if scale == 1 else K.scaled(scale)
+        # Pixel (u, v) of the subsampled image is pixel (step u, step v) of the full one, so
+        # f / step and c / step exactly (not Intrinsics.scaled, whose pixel-centre convention
+        # suits area resizing and would shift the rays by half a full-size pixel here).
+        self.K = Intrinsics(
+            K.fx / step, K.fy / step, K.cx / step, K.cy / step,
+            -(-K.width // step), -(-K.height // step),
+        )  # fmt: skip
         self.intrinsic = o3c.Tensor(self.K.matrix, o3c.float64)
         # Depth-only grid: point-to-plane needs no colour, and fusing none halves the work.
         self.grid = o3d.t.geometry.VoxelBlockGrid(
@@ -135,10 +141,8 @@ class ModelAligner:
         it moved the guess more than max_step_m / max_step_deg (a wrong convergence)."""
         if self.fused == 0:
             return None
-        if self.scale != 1:
-            # Nearest neighbour: averaging depth across an edge would invent surfaces.
-            size = (self.K.width, self.K.height)
-            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        # Subsampled, not averaged: averaging depth across an edge would invent surfaces.
+        depth = depth[:: self.step, :: self.step]
         img, ext = self._depth_image(depth), self._extrinsic(T_guess)
         # The blocks this frame's depth falls in, seen from the guess: the part of the model the
         # rays can hit (the whole grid would cost more, the far side being out of view anyway).
@@ -195,13 +199,13 @@ def run_variant(
     voxel_m: float,
     every: int,
     depth_max_m: float,
-    scale: float,
+    step: int,
 ) -> Run:
     """Our sparse tracker over the first n frames; with f2m, each pose refined against the model
     (fed back into the tracker when feedback), fusing every ``every``-th frame."""
     config = RegistrationConfig().with_overrides(solver={"dense": False})
     tracker = Tracker(ds.intrinsics, config, T_world_first=T0)
-    aligner = ModelAligner(ds.intrinsics, voxel_m, depth_max_m, scale) if f2m else None
+    aligner = ModelAligner(ds.intrinsics, voxel_m, depth_max_m, step) if f2m else None
     run = Run(poses=np.empty((n, 4, 4)), stamps=np.empty(n))
     for i in range(n):
         frame = ds[i]  # reading is not timed
@@ -252,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--voxel", type=float, nargs="+", default=[0.01], help="TSDF voxel(s), m")
     p.add_argument("--every", type=int, nargs="+", default=[1], help="fuse every n-th frame")
     p.add_argument("--depth-max", type=float, default=4.0, help="model and ICP depth cut, m")
-    p.add_argument("--scale", type=float, default=0.5, help="ray cast and ICP image scale")
+    p.add_argument("--step", type=int, default=2, help="ray cast and ICP on every n-th pixel")
     p.add_argument(
         "--refine-only", action="store_true", help="also a row that does not feed poses back"
     )
@@ -293,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{ds.name}: {n} frames")
         print(header)
         for name, kw in variants:
-            run = run_variant(ds, n, T0, depth_max_m=args.depth_max, scale=args.scale, **kw)
+            run = run_variant(ds, n, T0, depth_max_m=args.depth_max, step=args.step, **kw)
             m = evaluate(ds.ground_truth, Trajectory(run.stamps, run.poses))
             t = np.array(run.times_ms or [0.0])
             ok = "" if target is None else (" ✓" if m["ate_rmse_m"] <= target else " ✗")

@@ -240,6 +240,26 @@ def run_variant(
     return run
 
 
+def model_bias_from_gt(
+    ds: RGBDDataset, n: int, voxel_m: float, depth_max_m: float, step: int
+) -> np.ndarray:
+    """Mean correction (x, y, z in the camera frame, metres) the model alignment applies to
+    ground-truth poses when the model is fused from ground-truth poses too (frames 5..n-1): zero
+    for an unbiased model and alignment; what f2m would pull a perfect trajectory by."""
+    aligner = ModelAligner(ds.intrinsics, voxel_m, depth_max_m, step)
+    moves = []
+    for i in range(n):
+        frame = ds[i]
+        T_gt = ground_truth_pose_at(ds, frame.timestamp)
+        if T_gt is None:
+            continue
+        refined = aligner.refine(frame.depth, T_gt, max_step_m=0.5, max_step_deg=30.0)
+        if refined is not None and i >= 5:
+            moves.append((np.linalg.inv(T_gt) @ refined)[:3, 3])
+        aligner.integrate(frame.depth, T_gt)
+    return np.mean(moves, axis=0) if moves else np.full(3, np.nan)
+
+
 def git_commit() -> str:
     def git(*a: str) -> subprocess.CompletedProcess:
         return subprocess.run(["git", *a], cwd=REPO_ROOT, capture_output=True, text=True)
@@ -259,6 +279,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--step", type=int, default=2, help="ray cast and ICP on every n-th pixel")
     p.add_argument(
         "--refine-only", action="store_true", help="also a row that does not feed poses back"
+    )
+    p.add_argument(
+        "--bias-frames",
+        type=int,
+        default=0,
+        help="also align ground-truth poses to a ground-truth model over N frames and print "
+        "the mean correction (0: skip)",
     )
     p.add_argument("--no-write", action="store_true", help="do not append to the results file")
     args = p.parse_args(argv)
@@ -310,6 +337,16 @@ def main(argv: list[str] | None = None) -> int:
             print(row, flush=True)
             rows.append(row)
         lines += [f"### {ds.name}", "", f"{n} frames.", "", *rows, ""]
+        if args.bias_frames:
+            nb = min(args.bias_frames, len(ds))
+            bias = model_bias_from_gt(ds, nb, args.voxel[0], args.depth_max, args.step)
+            note = (
+                f"Model bias check ({nb} frames, {args.voxel[0] * 100:g} cm): ground-truth poses "
+                f"aligned to a ground-truth model move by {np.round(bias * 1000, 2).tolist()} mm "
+                "(camera x, y, z) on average."
+            )
+            print(note)
+            lines += [note, ""]
     if not args.no_write:
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         new = not RESULTS.exists()

@@ -242,10 +242,11 @@ def run_variant(
 
 def model_bias_from_gt(
     ds: RGBDDataset, n: int, voxel_m: float, depth_max_m: float, step: int
-) -> np.ndarray:
-    """Mean correction (x, y, z in the camera frame, metres) the model alignment applies to
-    ground-truth poses when the model is fused from ground-truth poses too (frames 5..n-1): zero
-    for an unbiased model and alignment; what f2m would pull a perfect trajectory by."""
+) -> tuple[np.ndarray, float]:
+    """The correction the model alignment applies to ground-truth poses when the model is fused
+    from ground-truth poses too (frames 5..n-1): its mean (x, y, z in the camera frame, metres)
+    and the RMS of its length (metres). Zero for an unbiased model and alignment; what f2m would
+    pull a perfect trajectory by."""
     aligner = ModelAligner(ds.intrinsics, voxel_m, depth_max_m, step)
     moves = []
     for i in range(n):
@@ -257,7 +258,9 @@ def model_bias_from_gt(
         if refined is not None and i >= 5:
             moves.append((np.linalg.inv(T_gt) @ refined)[:3, 3])
         aligner.integrate(frame.depth, T_gt)
-    return np.mean(moves, axis=0) if moves else np.full(3, np.nan)
+    if not moves:
+        return np.full(3, np.nan), float("nan")
+    return np.mean(moves, axis=0), float(np.sqrt(np.mean(np.sum(np.square(moves), axis=1))))
 
 
 def git_commit() -> str:
@@ -339,11 +342,11 @@ def main(argv: list[str] | None = None) -> int:
         lines += [f"### {ds.name}", "", f"{n} frames.", "", *rows, ""]
         if args.bias_frames:
             nb = min(args.bias_frames, len(ds))
-            bias = model_bias_from_gt(ds, nb, args.voxel[0], args.depth_max, args.step)
+            bias, rms = model_bias_from_gt(ds, nb, args.voxel[0], args.depth_max, args.step)
             note = (
                 f"Model bias check ({nb} frames, {args.voxel[0] * 100:g} cm): ground-truth poses "
                 f"aligned to a ground-truth model move by {np.round(bias * 1000, 2).tolist()} mm "
-                "(camera x, y, z) on average."
+                f"(camera x, y, z) on average, {rms * 1000:.2f} mm RMS length."
             )
             print(note)
             lines += [note, ""]

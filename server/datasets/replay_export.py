@@ -18,6 +18,7 @@ import numpy as np
 
 from server.datasets.base import RGBDDataset
 from server.errors import DatasetError
+from server.geometry import Intrinsics
 
 EXPORT_DEPTH_SCALE = 1000.0  # depth PNG units per metre: millimetres, as a phone's depth
 MAX_DEPTH_M = 65.535  # the largest depth a uint16 millimetre PNG holds
@@ -69,16 +70,31 @@ def export_replay(
         frames.append(entry)
         if on_frame is not None:
             on_frame(i + 1, n)
-    span = frames[-1]["timestamp"] - frames[0]["timestamp"]
-    fps = (n - 1) / span if n > 1 and span > 0 else 15.0
+    return replay_index(
+        dataset.name, K, EXPORT_DEPTH_SCALE, gravity_in_first_camera(dataset), frames
+    )
+
+
+def replay_index(
+    name: str,
+    K: Intrinsics,
+    depth_scale: float,
+    gravity: list[float] | None,
+    frames: list[dict],
+) -> dict:
+    """The page's replay index (``ReplaySequence.fromServer``): camera, sizes (colour and depth
+    both K's, px), depth PNG units per metre, gravity in the first camera, the frames'
+    ``{timestamp, colour, depth, ...}`` entries and their mean rate (15 fps when unknown)."""
+    span = frames[-1]["timestamp"] - frames[0]["timestamp"] if frames else 0.0
+    fps = (len(frames) - 1) / span if len(frames) > 1 and span > 0 else 15.0
     return {
-        "name": dataset.name,
+        "name": name,
         "intrinsics": [K.fx, K.fy, K.cx, K.cy],
         "colour_size": [K.width, K.height],
         "depth_size": [K.width, K.height],
-        "depth_scale": EXPORT_DEPTH_SCALE,
+        "depth_scale": depth_scale,
         "depth_format": "png",
         "fps": round(float(fps), 3),
-        "gravity": gravity_in_first_camera(dataset),
+        "gravity": gravity,
         "frames": frames,
     }

@@ -29,6 +29,7 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse
 
 from server.datasets.demo import DemoSpec, demo_sequence_path
+from server.datasets.replay_export import replay_index
 from server.datasets.tum import read_file_list, read_ground_truth, tum_intrinsics
 from server.evaluation.trajectory import associate
 
@@ -150,19 +151,7 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files", query: st
         }
         for t, i, j in zip(times, idx_rgb, idx_depth, strict=True)
     ]
-    span = times[-1] - times[0]
-    fps = (len(frames) - 1) / span if len(frames) > 1 and span > 0 else 15.0
-    return {
-        "name": folder.name,
-        "intrinsics": [K.fx, K.fy, K.cx, K.cy],
-        "colour_size": [K.width, K.height],
-        "depth_size": [K.width, K.height],
-        "depth_scale": depth_scale,
-        "depth_format": "png",
-        "fps": round(float(fps), 3),
-        "gravity": _gravity(folder),
-        "frames": frames,
-    }
+    return replay_index(folder.name, K, depth_scale, _gravity(folder), frames)
 
 
 def _demo(preset: str) -> tuple[Path, dict]:

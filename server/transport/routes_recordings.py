@@ -16,19 +16,15 @@ from fastapi.responses import FileResponse, JSONResponse
 
 from server.transport.deps import bearer_token, creation_allowed
 from server.transport.recordings import RecordingError, RecordingStore, recording_name
-from server.transport.schemas import ErrorBody, RecordingCreated, RecordingIndex
+from server.transport.schemas import RecordingCreated, RecordingIndex, error_response
 
 router = APIRouter(prefix="/api/recordings", tags=["recordings"])
 TokenDep = Annotated[str | None, Depends(bearer_token)]
 
 
-def _error(description: str) -> dict[str, Any]:
-    return {"model": ErrorBody, "description": description}
-
-
 _TOKEN_ERRORS: dict[int | str, dict[str, Any]] = {
-    401: _error("no `Authorization: Bearer <token>` header"),
-    404: _error("unknown recording id, or a token that does not open it (the same answer)"),
+    401: error_response("no `Authorization: Bearer <token>` header"),
+    404: error_response("unknown recording id, or a token that does not open it (the same answer)"),
 }
 MEDIA_TYPES = {".jpg": "image/jpeg", ".png": "image/png"}
 
@@ -54,13 +50,15 @@ def _urls(recording_id: str, index: dict) -> dict:
     dependencies=[Depends(creation_allowed)],
     response_model=RecordingCreated,
     responses={
-        413: _error("`upload_too_large`: the body is larger than server.max_upload_mb"),
-        415: _error(
+        413: error_response("`upload_too_large`: the body is larger than server.max_upload_mb"),
+        415: error_response(
             "`unsupported_recording`: the body is not a zip of a Record3D or Stray Scanner "
             "recording (or a multipart form: send the file's bytes themselves)"
         ),
-        422: _error("`bad_recording`: a recording's layout, but unreadable (its message says)"),
-        429: _error("`rate_limited`: too many uploads and sessions from this address"),
+        422: error_response(
+            "`bad_recording`: a recording's layout, but unreadable (its message says)"
+        ),
+        429: error_response("`rate_limited`: too many uploads and sessions from this address"),
     },
     openapi_extra={
         "requestBody": {

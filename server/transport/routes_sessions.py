@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import LiveSession
 from server.transport.deps import ManagerDep, SessionDep, creation_allowed
-from server.transport.schemas import ErrorBody, SessionCreated, SessionStatus
+from server.transport.schemas import SessionCreated, SessionStatus, error_response
 from server.transport.websocket import end_connection
 
 PLY = "application/octet-stream"
@@ -28,14 +28,10 @@ PLY = "application/octet-stream"
 _Responses = dict[int | str, dict[str, Any]]
 
 
-def _error(description: str) -> dict[str, Any]:
-    return {"model": ErrorBody, "description": description}
-
-
 # Every call on a session: who may ask.
 _TOKEN_ERRORS: _Responses = {
-    401: _error("no `Authorization: Bearer <token>` header"),
-    404: _error("unknown session id, or a token that does not open it (the same answer)"),
+    401: error_response("no `Authorization: Bearer <token>` header"),
+    404: error_response("unknown session id, or a token that does not open it (the same answer)"),
 }
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
@@ -50,7 +46,9 @@ def _file(media_type: str, description: str) -> _Responses:
     }
 
 
-_NO_MAP: _Responses = {409: _error("`map_unavailable`: the session has fused no surface yet")}
+_NO_MAP: _Responses = {
+    409: error_response("`map_unavailable`: the session has fused no surface yet")
+}
 
 
 @router.post(
@@ -59,8 +57,10 @@ _NO_MAP: _Responses = {409: _error("`map_unavailable`: the session has fused no 
     dependencies=[Depends(creation_allowed)],
     response_model=SessionCreated,
     responses={
-        429: _error("`rate_limited`: too many new sessions from this address; see Retry-After"),
-        503: _error("`server_full`: the server holds its maximum of live sessions"),
+        429: error_response(
+            "`rate_limited`: too many new sessions from this address; see Retry-After"
+        ),
+        503: error_response("`server_full`: the server holds its maximum of live sessions"),
     },
 )
 def create_session(request: Request, manager: ManagerDep) -> JSONResponse:

@@ -51,6 +51,11 @@ class ErrorBody(_Body):
     error: ErrorDetail
 
 
+def error_response(description: str) -> dict:
+    """A route's documented error answer (FastAPI ``responses`` entry): ErrorBody, and when."""
+    return {"model": ErrorBody, "description": description}
+
+
 class Intrinsics(_Body):
     """The camera of the session's hello: pixels of the colour image."""
 

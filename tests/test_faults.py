@@ -62,6 +62,16 @@ def assert_session_files_whole(folder: Path) -> dict:
     return {"meta": meta, "trajectory": trajectory, "map_points": len(cloud.points)}
 
 
+def snapshot_with_poses(folder: Path, at_least: int) -> bool:
+    """A committed snapshot is on disk with a map and ``at_least`` poses in its trajectory."""
+    try:
+        lines = (folder / "trajectory.tum").read_text().splitlines()
+    except FileNotFoundError:
+        return False
+    poses = [line for line in lines if line.strip() and not line.startswith("#")]
+    return (folder / "map.ply").is_file() and len(poses) >= at_least
+
+
 # ---- the server dies ---------------------------------------------------------------------------
 
 
@@ -77,9 +87,12 @@ def test_after_sigkill_mid_session_the_last_snapshot_is_whole_and_downloadable(
     async def stream_then_kill():
         await stream.open()
         await stream.send_range(range(15))
-        deadline = time.monotonic() + 60  # until a snapshot with a map is on disk
+        # Until a committed snapshot holds a map and all of those 15 poses: on a busy machine the
+        # first snapshot can land after only a dozen frames, and a kill right after it would
+        # leave too few to check the order against.
+        deadline = time.monotonic() + 60
         seq = 15
-        while not (folder / "map.ply").is_file() and time.monotonic() < deadline:
+        while not snapshot_with_poses(folder, 15) and time.monotonic() < deadline:
             await stream.send(seq)
             seq += 1
         await stream.send_range(range(seq, seq + 10))

@@ -3,14 +3,16 @@
 // (what the sticks mean: position, angle or acro; PROTOCOL.md "Flight modes"). In position mode
 // sticks go out at STICK_HZ while a stick is held (the server centres sticks older than
 // stick_timeout_s), then zeros once on release. In angle and acro centred sticks mean something
-// too (level, or keep the attitude), so they go out all the time while connected: stale sticks
-// there hand the drone back to position mode's braking.
+// too (level, or keep the attitude), so they go out all the time while connected, until
+// IDLE_STREAM_MS after the sticks were last touched: stale sticks there hand the drone back to
+// position mode's braking and holding (an abandoned page does not keep its session busy).
 
 import { Joystick } from "./joystick.js";
 
 export const STICK_HZ = 15;
 export const FLIGHT_MODES = ["position", "angle", "acro"];
 const MODE_CONFIRM_MS = 3000; // a mode asked for waits this long for drone_state to report it
+const IDLE_STREAM_MS = 30000; // angle and acro: centred sticks stream this long after a touch
 
 export class Pilot extends EventTarget {
   /**
@@ -22,9 +24,10 @@ export class Pilot extends EventTarget {
     super();
     this.client = client;
     this.log = []; // commands sent: {id, name, fields, at}
-    this.left = new Joystick(left, { onChange: () => this.#sticksChanged() });
-    this.right = new Joystick(right, { onChange: () => this.#sticksChanged() });
+    this.left = new Joystick(left, { onChange: () => this.#sticksChanged(true) });
+    this.right = new Joystick(right, { onChange: () => this.#sticksChanged(true) });
     this.timer = null;
+    this.touchedAt = performance.now();
     this.flightMode = "position"; // as asked here, or as the server last reported it
     this.asked = null; // {mode, at}: a flight_mode command not yet confirmed by drone_state
     this.modeButtons = modes ? [...modes.querySelectorAll("[data-flight-mode]")] : [];
@@ -59,12 +62,18 @@ export class Pilot extends EventTarget {
 
   #tick() {
     const held = this.left.active || this.right.active;
+    if (!held && performance.now() - this.touchedAt > IDLE_STREAM_MS) {
+      clearInterval(this.timer); // untouched for long: let the server brake and hold
+      this.timer = null;
+      return;
+    }
     // Centred sticks streamed in angle or acro go out only on an open socket: they must never
     // wake the connection or take the session back from another tab.
     if (held || this.client.isOpen) this.#send("sticks", { sticks: this.sticks });
   }
 
-  #sticksChanged() {
+  #sticksChanged(touched = false) {
+    if (touched) this.touchedAt = performance.now();
     const stream = this.left.active || this.right.active || this.flightMode !== "position";
     if (stream && this.timer === null) {
       this.#tick();
@@ -99,7 +108,7 @@ export class Pilot extends EventTarget {
   #adopt(mode) {
     this.flightMode = mode;
     this.#showMode();
-    this.#sticksChanged();
+    this.#sticksChanged(true);
     this.dispatchEvent(new CustomEvent("flightmode", { detail: { mode } }));
   }
 

@@ -252,10 +252,11 @@ class DroneSimulator:
     def command_sticks(
         self, sticks: ArrayLike, now_s: float | None = None, command_id: int | None = None
     ) -> None:
-        """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1 (climb rate, yaw rate with
-        positive counter-clockwise seen from above, forward speed, rightward speed; each a
-        fraction of its limit). ``now_s`` is when they were read, in simulation time (now when
-        None); they count as centred once older than stick_timeout_s.
+        """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1; in position mode climb
+        rate, yaw rate with positive counter-clockwise seen from above, forward speed, rightward
+        speed, each a fraction of its limit (angle and acro: pilot_modes.py). ``now_s`` is
+        when they were read, in simulation time (now when None); they count as centred once
+        older than stick_timeout_s.
 
         Non-centred sticks take over from any flying mode; centred ones do not interrupt a goto
         or a landing. When landed, throttle above one half takes off into manual flight.

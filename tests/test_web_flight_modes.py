@@ -79,3 +79,14 @@ def test_angle_mode_from_the_page_tilts_the_drone(live_server, open_page):
     after = [c for c in page.snapshot()["commands"][before:] if c["name"] == "sticks"]
     assert not after, after
     assert page.page.inner_text("[data-field=flight-mode]") == "sticks position"
+
+    # The switch stays on screen beside the sticks in landscape too (controls over the views).
+    page.page.set_viewport_size({"width": 844, "height": 390})
+    time.sleep(0.5)
+    page.screenshot("flight-mode-landscape.png")
+    for selector in ("#flight-mode", "#btn-land", "#stick-left", "#stick-right"):
+        box = page.page.locator(selector).bounding_box()
+        assert box and box["width"] > 20 and box["height"] > 20, selector
+        assert box["x"] >= 0 and box["x"] + box["width"] <= 845, selector
+        assert box["y"] >= 0 and box["y"] + box["height"] <= 391, selector
+    assert not page.errors, page.errors

@@ -26,8 +26,8 @@ Both run the same inner loops: the attitude error (Lee et al. 2010, as ``control
 body rates with the setpoint's own rates as feed-forward, each clipped to its rate limit ->
 torques (rate loop with gyroscopic compensation, and the setpoint's angular acceleration as
 feed-forward, so the drone keeps up with the setpoint instead of lagging, then overshooting
-it) -> the mixer. Throttle t maps linearly,
-t = -1 -> MIN_THRUST_G of the weight, 0 -> hover, +1 -> MAX_THRUST_FRACTION of full thrust.
+it) -> the mixer. Throttle t maps linearly on either side of hover: t = -1 -> MIN_THRUST_G of
+the weight, 0 -> hover, +1 -> MAX_THRUST_FRACTION of the four motors' full thrust.
 
 Expo: the cubic ``(1 - e) s + e s^3`` (``stick_expo`` = e in [0, 1)): full stick still gives
 the full angle or rate, the centre is (1 - e) times as sensitive as linear.
@@ -257,7 +257,7 @@ class PilotController:
 
         k = dt / (self._rate_tau + dt)  # the first-order filter's step
         if mode == FlightMode.ANGLE:
-            # Tilt towards the sticks' at most at the rate limits, then filtered; yaw at the
+            # Tilt towards the sticks' at most at half the rate limits, then filtered; yaw at the
             # stick's rate (the setpoint kept within MAX_ATTITUDE_LAG_RAD of the heading).
             tr, tp = self.tilt_slew
             step_r = ANGLE_SLEW_SHARE * r.roll_rate_rad_s * dt

@@ -10,6 +10,8 @@ Cases, from the bare dynamics up to the whole per-session simulator as the serve
   (planning time excluded: only ``advance`` is timed).
 - ``simulator on a wall``: full pitch into a wall, the worst case for collision queries (every
   step is within reach of the wall, so every step queries the distance field).
+- ``simulator angle`` / ``simulator acro``: the pilot's flight modes (pilot_modes.py) turning
+  on the spot with the yaw stick at half, sticks sent at 20 Hz as the page does.
 
 Prints steps per second and microseconds per step, both per CPU second of this process (what
 one core delivers, even when other jobs share the machine) and per wall second, and the
@@ -135,6 +137,21 @@ def bench_wall(config: SimulationConfig, seconds: float):
     return _timed_advance(drone, seconds, lambda d: d.command_sticks((0.0, 0.0, 1.0, 0.0)))
 
 
+def bench_flight_mode(config: SimulationConfig, seconds: float, mode: str):
+    scene = room_with_door(config.voxel_m)
+    drone = DroneSimulator(config, scene.flight_map)
+    drone.spawn(scene.start)
+    drone.set_flight_mode(mode)
+    sent = [-1.0]
+
+    def sticks(d: DroneSimulator) -> None:
+        if d.time_s - sent[0] >= 0.05:
+            d.command_sticks((0.0, 0.5, 0.0, 0.0))
+            sent[0] = d.time_s
+
+    return _timed_advance(drone, seconds, sticks)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -149,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
         ("simulator hover", lambda: bench_hover(config, args.seconds)),
         ("simulator goto", lambda: bench_goto(config, args.seconds)),
         ("simulator on a wall", lambda: bench_wall(config, args.seconds)),
+        ("simulator angle", lambda: bench_flight_mode(config, args.seconds, "angle")),
+        ("simulator acro", lambda: bench_flight_mode(config, args.seconds, "acro")),
     ]
     table = Table(
         title=f"Physics, one drone, one core, {config.physics_hz} Hz "

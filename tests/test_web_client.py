@@ -301,11 +301,14 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         ),
         ({"type": "command", "id": 3, "name": "sticks", "sticks": [0, 0.5, -1, 1]}, C, True),
         ({"type": "command", "id": 4, "name": "land"}, C, True),
+        ({"type": "command", "id": 4, "name": "flight_mode", "flight_mode": "acro"}, C, True),
         ({"type": "bye"}, C, True),
         # bad ones
         ({"type": "command", "id": 5, "name": "goto"}, C, True),  # bad_command: no target
         ({"type": "command", "id": 6, "name": "sticks", "sticks": [0, 0, 0, 1.5]}, C, True),
         ({"type": "command", "id": 7, "name": "fly"}, C, True),
+        ({"type": "command", "id": 7, "name": "flight_mode"}, C, True),  # bad_command
+        ({"type": "command", "id": 7, "name": "flight_mode", "flight_mode": "3d"}, C, True),
         ({"type": "command", "id": 8.5, "name": "hold"}, C, True),
         ({"type": "command", "id": True, "name": "hold"}, C, True),
         ({"type": "command", "id": 9, "name": "goto", "target": [1, 2, "__nan__"]}, C, True),

@@ -25,7 +25,7 @@ class App {
     this.client = new SessionClient(this.protocol);
     this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
     this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
-    this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right") });
+    this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right"), modes: $("#flight-mode") });
     this.streamer = null;
     this.source = null;
     this.seen = this.#emptySeen();
@@ -223,6 +223,7 @@ class App {
       this.ar.setDroneState(state);
       this.map.setDroneState(state);
       this.hud.drone(state);
+      this.pilot.serverMode(state.flight_mode);
     });
     c.addEventListener("drone_event", ({ detail: event }) => {
       this.seen.events.push(event);

@@ -69,10 +69,12 @@ export class Hud {
     if (!state) {
       this.#set("drone", "drone —", "none");
       this.#set("clearance", "clear —", "none");
+      this.#set("flight-mode", "sticks —", "none");
       return;
     }
     const flying = ["manual", "goto", "hover", "landing"].includes(state.mode);
     this.#set("drone", `drone ${state.mode}`, flying ? "flying" : "none");
+    if (state.flight_mode) this.#set("flight-mode", `sticks ${state.flight_mode}`, state.flight_mode === "position" ? "none" : "warn");
     if (state.clearance === undefined) {
       this.#set("clearance", "clear —", "none");
     } else {

@@ -179,7 +179,7 @@ export class Protocol {
   }
 
   #checkCommand(m) {
-    const needs = { goto: "target", goto_pixel: "pixel", sticks: "sticks" }[m.name];
+    const needs = { goto: "target", goto_pixel: "pixel", sticks: "sticks", flight_mode: "flight_mode" }[m.name];
     if (needs && m[needs] === undefined) fail("bad_command", `${m.name} needs the field '${needs}'`);
   }
 
@@ -238,7 +238,7 @@ export class Protocol {
     return this.validate(message, CLIENT_TO_SERVER, { strict: true });
   }
 
-  /** A drone command: `fields` are target, pixel, seq, sticks, speed as the name needs. */
+  /** A drone command: `fields` are target, pixel, seq, sticks, speed, flight_mode as the name needs. */
   command(id, name, fields = {}) {
     const message = { type: "command", id, name };
     for (const [key, value] of Object.entries(fields)) {

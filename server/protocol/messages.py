@@ -115,9 +115,11 @@ def make_command(
     pixel: ArrayLike | None = None,
     seq: int | None = None,
     sticks: ArrayLike | None = None,
+    flight_mode: str | None = None,
 ) -> dict:
     """target: world [x, y, z] metres (goto); pixel: [u, v] of frame seq (goto_pixel);
-    sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks)."""
+    sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks); flight_mode: position, angle or
+    acro (flight_mode)."""
     return _message(
         "command",
         id=int(command_id),
@@ -127,6 +129,7 @@ def make_command(
         seq=None if seq is None else int(seq),
         sticks=None if sticks is None else _floats(sticks, 4, "sticks"),
         speed=None if speed is None else float(speed),
+        flight_mode=flight_mode,
     )
 
 
@@ -189,8 +192,11 @@ def make_drone_state(
     clearance: float | None = None,
     target: ArrayLike | None = None,
     route: np.ndarray | None = None,
+    flight_mode: str | None = None,
+    attitude: ArrayLike | None = None,
 ) -> dict:
-    """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points."""
+    """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points;
+    flight_mode: position, angle or acro; attitude: [roll, pitch, yaw] degrees (flight frame)."""
     return _message(
         "drone_state",
         timestamp=float(timestamp),
@@ -201,6 +207,10 @@ def make_drone_state(
         camera_seq=None if camera_seq is None else int(camera_seq),
         velocity=_floats(velocity, 3, "velocity"),
         mode=str(getattr(mode, "value", mode)),
+        flight_mode=None
+        if flight_mode is None
+        else str(getattr(flight_mode, "value", flight_mode)),
+        attitude=None if attitude is None else _floats(attitude, 3, "attitude"),
         clearance=None if clearance is None else float(clearance),
         target=None if target is None else _floats(target, 3, "target"),
         route=None if route is None else np.asarray(route, dtype=np.float64).ravel().tolist(),

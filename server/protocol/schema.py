@@ -87,7 +87,12 @@ def _check_hello(msg: Mapping) -> None:
         raise ProtocolError("bad_intrinsics", f"principal point ({cx}, {cy}) outside {cw}x{ch}")
 
 
-_COMMAND_NEEDS = {"goto": "target", "goto_pixel": "pixel", "sticks": "sticks"}
+_COMMAND_NEEDS = {
+    "goto": "target",
+    "goto_pixel": "pixel",
+    "sticks": "sticks",
+    "flight_mode": "flight_mode",
+}
 
 
 def _check_command(msg: Mapping) -> None:

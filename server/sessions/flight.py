@@ -24,6 +24,7 @@ from server.sessions.failures import RateLimitedLog
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneCommandError, DroneSimulator
 from server.simulation.flight_map import FlightMap, Region
+from server.simulation.pilot_modes import euler_from_rotation
 from server.simulation.planner import PlanningError
 
 log = logging.getLogger(__name__)
@@ -86,6 +87,8 @@ class DroneUpdate:
     target: np.ndarray | None
     route: np.ndarray | None  # (N, 3) remaining route, world frame
     command_id: int | None
+    flight_mode: str = "position"  # how sticks fly the drone: position, angle or acro
+    attitude: np.ndarray | None = None  # (3,) roll, pitch, yaw in degrees, flight frame
 
 
 @dataclass
@@ -237,6 +240,7 @@ class Flight:
         seq=None,
         sticks=None,
         speed=None,
+        flight_mode=None,
     ) -> None:
         """Carry out a pilot command (names and fields as the protocol's ``command``).
         Raises CommandRefused (code bad_command or unreachable_target)."""
@@ -246,7 +250,7 @@ class Flight:
                 f"the drone's simulation failed and the drone is stopped ({self.fault}); "
                 "create a new session to fly again",
             )
-        if not self.spawned and name != "sticks":
+        if not self.spawned and name not in ("sticks", "flight_mode"):
             raise CommandRefused(
                 "bad_command",
                 "the drone appears once the map has its first "
@@ -269,6 +273,8 @@ class Flight:
                     self.sim.command_land(command_id=command_id)
                 elif name == "takeoff":
                     self.sim.command_takeoff(command_id=command_id)
+                elif name == "flight_mode":
+                    self.sim.set_flight_mode(flight_mode, command_id=command_id)
                 else:
                     raise CommandRefused("bad_command", f"unknown drone command {name!r}")
             except DroneCommandError as exc:
@@ -481,6 +487,8 @@ class Flight:
             target=None if s.target is None else self._to_world(s.target),
             route=route,
             command_id=s.command_id,
+            flight_mode=s.flight_mode.value,
+            attitude=np.degrees(euler_from_rotation(tuple(s.T_flight_drone[:3, :3].ravel()))),
         )
 
     def summary(self) -> dict:

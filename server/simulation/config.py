@@ -12,6 +12,8 @@ from dataclasses import dataclass, fields
 
 from server.errors import ConfigError
 
+_MAY_BE_ZERO = {"stick_expo"}  # numeric settings that may be 0 (the others must be > 0)
+
 
 @dataclass(frozen=True)
 class SimulationConfig:
@@ -46,6 +48,15 @@ class SimulationConfig:
     max_tilt_deg: float = 35.0  # body z against flight z, degrees
     max_yaw_rate_deg_s: float = 120.0  # degrees/s
 
+    # Pilot flight modes angle and acro (server/simulation/pilot_modes.py); position mode uses
+    # the limits above. A stick s in -1..1 is shaped by the cubic expo
+    # (1 - stick_expo) s + stick_expo s^3 (0 linear; 0 and +-1 stay where they are).
+    angle_max_deg: float = 40.0  # angle mode: tilt at full roll or pitch stick, degrees
+    rate_roll_deg_s: float = 400.0  # acro: roll rate at full stick, deg/s; a limit in both modes
+    rate_pitch_deg_s: float = 400.0  # acro: pitch rate at full stick, deg/s; likewise
+    rate_yaw_deg_s: float = 200.0  # angle and acro: yaw rate at full stick, deg/s; likewise
+    stick_expo: float = 0.3  # expo of the roll, pitch and yaw sticks in angle and acro, [0, 1)
+
     # Behaviour
     cruise_speed_m_s: float = 1.0  # goto speed when a command gives none, m/s
     route_accel_m_s2: float = 2.0  # acceleration limit the routes are timed with, m/s^2
@@ -74,7 +85,7 @@ class SimulationConfig:
             values = value if isinstance(value, tuple) else (value,)
             for v in values:
                 numeric = isinstance(v, (int, float)) and not isinstance(v, bool)
-                if numeric and not (math.isfinite(v) and v > 0):
+                if numeric and not (math.isfinite(v) and (v > 0 or f.name in _MAY_BE_ZERO)):
                     raise ConfigError(f"simulation.{f.name} must be finite and > 0, got {value}")
         if self.physics_hz < 200:
             raise ConfigError(f"simulation.physics_hz must be >= 200, got {self.physics_hz}")
@@ -103,6 +114,12 @@ class SimulationConfig:
                 f"simulation.route_accel_m_s2 ({self.route_accel_m_s2}) exceeds "
                 f"max_accel_m_s2 ({self.max_accel_m_s2})"
             )
+        if not 0 < self.angle_max_deg < 80:
+            raise ConfigError(
+                f"simulation.angle_max_deg must be in (0, 80), got {self.angle_max_deg}"
+            )
+        if not 0 <= self.stick_expo < 1:
+            raise ConfigError(f"simulation.stick_expo must be in [0, 1), got {self.stick_expo}")
         if self.stick_deadband >= 1:
             raise ConfigError("simulation.stick_deadband must be below 1")
         if self.replan_min_gain >= 1:

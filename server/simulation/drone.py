@@ -41,6 +41,12 @@ from server.simulation.control import (
     fly_sticks,
 )
 from server.simulation.flight_map import Box, FlightMap, Region
+from server.simulation.pilot_modes import (
+    FlightMode,
+    PilotController,
+    StickRates,
+    hand_over_to_position,
+)
 from server.simulation.planner import PlanningError, Route, plan_path, route_is_clear
 from server.simulation.polyline import simplify
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
@@ -123,6 +129,7 @@ class DroneStatus:
     # (within ROUTE_TOLERANCE_M of it when drawn straight), N <= max_route_points; goto only
     route: FloatArray | None
     command_id: int | None
+    flight_mode: FlightMode = FlightMode.POSITION  # how sticks fly the drone (pilot_modes.py)
 
 
 @dataclass(frozen=True)
@@ -137,6 +144,7 @@ class _Saved:
     goal: FloatArray | None
     time_s: float
     n_events: int
+    pilot: tuple[object, ...] = ()  # PilotController.state()
 
 
 def plan_route(
@@ -171,7 +179,10 @@ class DroneSimulator:
         params = QuadrotorParams.from_config(config)
         self._quad = Quadrotor(params, config.dt_s)
         self._limits = ControlLimits.from_config(config)
-        self._ctrl = CascadedController(params, ControlGains.from_config(config), self._limits)
+        gains = ControlGains.from_config(config)
+        self._ctrl = CascadedController(params, gains, self._limits)
+        self._pilot = PilotController(params, gains, StickRates.from_config(config))
+        self._flight_mode = FlightMode.POSITION
         self._sp = Setpoint()
         self._lock = threading.RLock()
         self._mode: DroneMode | None = None  # None until spawned
@@ -241,10 +252,11 @@ class DroneSimulator:
     def command_sticks(
         self, sticks: ArrayLike, now_s: float | None = None, command_id: int | None = None
     ) -> None:
-        """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1 (climb rate, yaw rate with
-        positive counter-clockwise seen from above, forward speed, rightward speed; each a
-        fraction of its limit). ``now_s`` is when they were read, in simulation time (now when
-        None); they count as centred once older than stick_timeout_s.
+        """Manual flight: ``[throttle, yaw, pitch, roll]`` in -1..1; in position mode climb
+        rate, yaw rate with positive counter-clockwise seen from above, forward speed, rightward
+        speed, each a fraction of its limit (angle and acro: pilot_modes.py). ``now_s`` is
+        when they were read, in simulation time (now when None); they count as centred once
+        older than stick_timeout_s.
 
         Non-centred sticks take over from any flying mode; centred ones do not interrupt a goto
         or a landing. When landed, throttle above one half takes off into manual flight.
@@ -271,6 +283,23 @@ class DroneSimulator:
             if self._mode != DroneMode.MANUAL:
                 self._enter_manual()
             self._command_id = command_id
+
+    def set_flight_mode(self, mode: str, command_id: int | None = None) -> None:
+        """How the sticks fly the drone from now on: ``position`` (the default: velocities,
+        centred holds position), ``angle`` (self-levelling: tilt and yaw rate) or ``acro``
+        (body rates); pilot_modes.py says what each stick means. Allowed at any time, before
+        spawn too; takes effect in manual flight (mid-flight without a jump: the new mode starts
+        from the drone's attitude). An unknown mode raises DroneCommandError and changes
+        nothing."""
+        try:
+            new = FlightMode(mode)
+        except ValueError:
+            choices = ", ".join(m.value for m in FlightMode)
+            raise DroneCommandError(f"flight_mode must be one of {choices}; got {mode!r}") from None
+        with self._lock:
+            self._flight_mode = new
+            if self._mode is not None:
+                self._command_id = command_id
 
     def command_hold(self, command_id: int | None = None) -> None:
         """Stop and hover where the drone is."""
@@ -434,6 +463,7 @@ class DroneSimulator:
                 target=target,
                 route=route,
                 command_id=self._command_id,
+                flight_mode=self._flight_mode,
             )
 
     @property
@@ -443,6 +473,10 @@ class DroneSimulator:
     @property
     def mode(self) -> DroneMode | None:
         return self._mode
+
+    @property
+    def flight_mode(self) -> FlightMode:
+        return self._flight_mode
 
     @property
     def time_s(self) -> float:
@@ -517,6 +551,7 @@ class DroneSimulator:
             self._goal,
             self._time_s,
             len(self._events),
+            self._pilot.state(),
         )
 
     def _restore(self, saved: _Saved) -> None:
@@ -528,6 +563,7 @@ class DroneSimulator:
         for name, value in zip(Setpoint.__slots__, saved.setpoint, strict=True):
             setattr(self._sp, name, value)
         del self._events[saved.n_events :]
+        self._pilot.set_state(saved.pilot)
 
     def _step(self) -> None:
         """Mode logic, controller and one physics step."""
@@ -539,6 +575,10 @@ class DroneSimulator:
             if tracker.finished:
                 self._check_arrival(goal)
         elif mode == DroneMode.MANUAL:
+            if self._by_attitude():
+                q.step(*self._pilot.update(q, self._flight_mode, self._sticks))
+                self._time_s += q.dt
+                return
             fly_sticks(q, self._sp, self._current_sticks(), self._limits, q.dt)
         q.step(*self._ctrl.update(q, self._sp))
         self._time_s += q.dt
@@ -632,6 +672,19 @@ class DroneSimulator:
         self._clear_route()
         self._mode = DroneMode.MANUAL
         self._sp.hold(self._quad.position, self._quad.yaw_rad)
+        self._pilot.release()
+
+    def _by_attitude(self) -> bool:
+        """Whether angle or acro flies this manual step: so while the sticks are fresh. Stale
+        sticks (a lost link) and a switch to position mode hand over to position mode's
+        braking, then holding."""
+        fresh = self._time_s - self._sticks_at <= self.config.stick_timeout_s
+        if fresh and self._flight_mode != FlightMode.POSITION:
+            return True
+        if self._pilot.engaged:
+            self._pilot.release()
+            hand_over_to_position(self._sp, self._quad)
+        return False
 
     def _current_sticks(self) -> tuple[float, float, float, float]:
         """The latest sticks (zero where centred: command_sticks applies the deadband), all zero

@@ -74,6 +74,8 @@ def mix(
         scale = 1.0
         for f, s in ((f0, 1.0), (f1, -1.0), (f2, 1.0), (f3, -1.0)):
             without = f - s * rz
+            if without == f:  # a yaw share too small to change this motor's thrust
+                continue
             if f > f_max:
                 scale = min(scale, max(0.0, (f_max - without) / (f - without)))
             elif f < 0.0:

@@ -338,6 +338,8 @@ def _drone_state(s: DroneUpdate) -> dict:
         clearance=s.clearance,
         target=s.target,
         route=s.route,
+        flight_mode=s.flight_mode,
+        attitude=s.attitude,
     )
 
 
@@ -443,5 +445,6 @@ async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: byte
     elif kind == "frame":
         session.submit(message["seq"], data)
     elif kind == "command":
-        fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}
+        names = ("target", "pixel", "seq", "sticks", "speed", "flight_mode")
+        fields = {k: message.get(k) for k in names}
         await asyncio.to_thread(session.command, message["name"], message["id"], **fields)

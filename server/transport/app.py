@@ -21,7 +21,13 @@ from server.sessions import SessionError, SessionManager
 from server.sessions.config import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import warm_up
-from server.transport import routes_client, routes_recordings, routes_sessions, websocket
+from server.transport import (
+    routes_client,
+    routes_flights,
+    routes_recordings,
+    routes_sessions,
+    websocket,
+)
 from server.transport.deps import RateLimiter
 from server.transport.recordings import RecordingError, RecordingStore
 
@@ -113,6 +119,7 @@ def create_app(config: Config | None = None) -> FastAPI:
             allow_headers=["Authorization"],
         )
     app.include_router(routes_sessions.router)
+    app.include_router(routes_flights.router)
     app.include_router(websocket.router)
     app.include_router(routes_client.router)
     app.include_router(routes_recordings.router)

@@ -26,6 +26,8 @@ from server.transport import (
     routes_flights,
     routes_recordings,
     routes_sessions,
+    routes_viewers,
+    viewer_socket,
     websocket,
 )
 from server.transport.deps import RateLimiter
@@ -33,7 +35,14 @@ from server.transport.recordings import RecordingError, RecordingStore
 
 log = logging.getLogger(__name__)
 
-_STATUS = {"unauthorized": 401, "not_found": 404, "rate_limited": 429, "server_full": 503}
+_STATUS = {
+    "unauthorized": 401,
+    "not_found": 404,
+    "session_closed": 409,
+    "too_many_viewers": 409,
+    "rate_limited": 429,
+    "server_full": 503,
+}
 
 
 class RedactTokens(logging.Filter):
@@ -120,7 +129,9 @@ def create_app(config: Config | None = None) -> FastAPI:
         )
     app.include_router(routes_sessions.router)
     app.include_router(routes_flights.router)
+    app.include_router(routes_viewers.router)
     app.include_router(websocket.router)
+    app.include_router(viewer_socket.router)
     app.include_router(routes_client.router)
     app.include_router(routes_recordings.router)
 

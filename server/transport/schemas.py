@@ -40,7 +40,8 @@ class ErrorDetail(_Body):
         "the same answer), rate_limited (429, with a Retry-After header in seconds), "
         "server_full (503: the server holds its maximum of live sessions), map_unavailable "
         "(409: no map surface fused yet), session_failed (400: the session's worker died "
-        "during the request)"
+        "during the request), session_closed (409: a viewer link asked of a closed session), "
+        "too_many_viewers (409: the session has max_viewers links)"
     )
     message: str = Field(description="human-readable explanation")
 
@@ -348,3 +349,27 @@ class FlightRecordingBody(_Body):
         description="the flight outlasted flight_max_s (or its event/command caps): later "
         "entries were not kept"
     )
+
+
+class ViewerCreated(_Body):
+    """``POST /api/sessions/{id}/viewers`` answers 201 with this body."""
+
+    viewer_id: str = Field(description="names the viewer link (8 hex digits), for DELETE")
+    viewer_token: str = Field(
+        description="the viewer link's secret (256 bits, URL-safe base64), shown only here; "
+        "the server keeps only its SHA-256. It opens the read-only socket and nothing else"
+    )
+    url: str = Field(
+        description="the phone page opened as a viewer: `http(s)://host:port/#view=<id>&token="
+        "<viewer_token>` (in the fragment, which browsers never send to a server)"
+    )
+    websocket: str = Field(
+        description="the viewer socket's URL without the token (`/ws/sessions/{id}/view`): "
+        "append `?token=<viewer_token>`"
+    )
+
+
+class ViewerList(_Body):
+    """``GET /api/sessions/{id}/viewers``: the session's viewer links."""
+
+    viewers: list[str] = Field(description="viewer_id of every link not revoked")

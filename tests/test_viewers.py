@@ -143,7 +143,7 @@ def test_a_viewer_watches_live_cannot_command_and_is_closed_when_revoked(live_se
 
     link = out["link"]
     assert link["url"].endswith(
-        f"#view={link['websocket'].rsplit('/', 2)[1]}&token=" + link["viewer_token"]
+        f"#watch={link['websocket'].rsplit('/', 2)[1]}&token=" + link["viewer_token"]
     )
     assert out["welcome"]["role"] == "viewer"
     # It saw the map (the backlog first, then live chunks), the camera and the drone.

@@ -55,7 +55,7 @@ def create_viewer(
     body = {
         "viewer_id": viewer_id,
         "viewer_token": token,
-        "url": f"{'https' if secure else 'http'}://{netloc}/#view={session_id}&token={token}",
+        "url": f"{'https' if secure else 'http'}://{netloc}/#watch={session_id}&token={token}",
         "websocket": f"{'wss' if secure else 'ws'}://{netloc}/ws/sessions/{session_id}/view",
     }
     return JSONResponse(body, status_code=status.HTTP_201_CREATED)

@@ -360,7 +360,7 @@ class ViewerCreated(_Body):
         "the server keeps only its SHA-256. It opens the read-only socket and nothing else"
     )
     url: str = Field(
-        description="the phone page opened as a viewer: `http(s)://host:port/#view=<id>&token="
+        description="the phone page opened as a viewer: `http(s)://host:port/#watch=<id>&token="
         "<viewer_token>` (in the fragment, which browsers never send to a server)"
     )
     websocket: str = Field(

@@ -78,3 +78,36 @@ def test_a_viewer_link_watches_the_drone_move_and_the_owner_replays_the_flight(
     owner.page.check("#ghost-best")
     owner.wait("window.dronesim.snapshot().ghost.flight === '1'", 10, "the ghost of flight 1")
     assert not owner.errors and not viewer.errors, owner.errors + viewer.errors
+
+    # The page's flight arithmetic on a flight built here: the best flight is the best score
+    # (else the longest), a pose between two rows is interpolated, the ghost's clock starts
+    # when the live drone leaves the ground.
+    out = owner.page.evaluate("""async () => {
+      const { bestFlight, poseAt, Ghost } = await import('/app/js/flight_replay.js');
+      const s = Math.SQRT1_2;
+      const flight = { start_time_s: 10, duration_s: 1, state_columns:
+          ['t', 'x', 'y', 'z', 'vx', 'vy', 'vz', 'qx', 'qy', 'qz', 'qw', 'mode'],
+        states: [[10, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 'hover'],
+                 [11, 2, 0, 0, 0, 0, 0, 0, 0, s, s, 'manual']] };
+      const ghost = new Ghost(window.dronesim.map);
+      ghost.set(flight);
+      ghost.droneState({ timestamp: 5, mode: 'landed' });
+      const before = ghost.marker.pose.position;
+      ghost.droneState({ timestamp: 6, mode: 'hover' });
+      ghost.droneState({ timestamp: 6.5, mode: 'hover' });
+      const after = ghost.marker.pose.position;
+      ghost.set(null);
+      return {
+        scored: bestFlight([{ id: '1', duration_s: 9, result: { score: 3 } },
+                            { id: '2', duration_s: 2, result: { score: 7 } }]).id,
+        longest: bestFlight([{ id: '1', duration_s: 9, result: null },
+                             { id: '2', duration_s: 2, result: null }]).id,
+        none: bestFlight([]),
+        mid: poseAt(flight, 0.5), end: poseAt(flight, 5), before, after,
+      };
+    }""")
+    assert out["scored"] == "2" and out["longest"] == "1" and out["none"] is None
+    assert np.allclose(out["mid"]["position"], [1, 0, 0])
+    assert np.allclose(out["mid"]["quaternion"], [0, 0, np.sin(np.pi / 8), np.cos(np.pi / 8)])
+    assert np.allclose(out["end"]["position"], [2, 0, 0]) and out["end"]["mode"] == "manual"
+    assert np.allclose(out["before"], [0, 0, 0]) and np.allclose(out["after"], [1, 0, 0])

@@ -66,7 +66,8 @@ class ViewerOutbox:
             item = slot
         if len(self.items) >= self.size:
             oldest = self.items.popleft()
-            self.latest.pop(oldest, None)
+            if oldest is self._POSE or oldest is self._DRONE:
+                del self.latest[oldest]
             self.dropped += 1
         self.items.append(item)
         self._ready.set()

@@ -46,8 +46,10 @@ def test_a_flight_opens_in_the_air_closes_on_the_ground_and_carries_its_course(t
     result = {"time_s": 1.5, "gates_passed": 1, "gates_missed": 0, "collisions": 1, "score": 87}
     rec.finish(result)
     rec.state(1.55, _pose(3.0), np.zeros(3), "hover")  # still flying: the next flight opens
+    stale = rec.open_flight()  # a snapshot's copy, saved only after the flight ended:
     log.save_open()
     rec.state(1.6, _pose(3.0), np.zeros(3), "landed")  # and lands
+    log.save(stale)  # it does not overwrite the ended flight
 
     index = read_index(store, "0123456789abcdef")
     assert [f["id"] for f in index] == ["1", "2"]

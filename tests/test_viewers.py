@@ -129,10 +129,12 @@ async def _watch(server, dataset) -> dict:
         await asyncio.sleep(0.5)
         out["second_still_watching"] = len(second.of("drone_state")) > states
         await stuck.close()
-        await second.ws.close()
 
         await owner.send(proto.make_bye())
         await asyncio.wait_for(owner_task, 10)
+        # The session's end ends its viewers.
+        assert (await rest.delete(f"/api/sessions/{sid}", headers=auth(token))).status_code == 204
+        out["deleted_close"] = await second.closed_with()
     return out
 
 
@@ -183,6 +185,7 @@ def test_a_viewer_watches_live_cannot_command_and_is_closed_when_revoked(live_se
     assert out["again_close"] == proto.CLOSE_CODES["unauthorized"]
     assert out["unknown_revoke"] == 404
     assert out["second_still_watching"]
+    assert out["deleted_close"] == proto.CLOSE_CODES["unauthorized"]
 
 
 def test_a_slow_viewers_queue_keeps_the_newest_state_and_drops_its_oldest_updates():

@@ -82,6 +82,9 @@ class FlightLog:
         self.flights_kept = flights_kept
         self.saves_failed = 0  # flights the disk refused (the in-memory flight goes on)
         self._lock = threading.Lock()
+        # Flights saved as ended: a snapshot's copy of one still in progress, taken just before
+        # it ended on another thread, must not overwrite it.
+        self._ended: set[str] = set()
         try:
             saved = read_index(store, session_id)
         except StoreError:
@@ -112,9 +115,13 @@ class FlightLog:
         folder = flights_folder(self.store, self.session_id)
         data = json.dumps(flight, separators=(",", ":")).encode()
         with self._lock:
+            if flight["id"] in self._ended:
+                return
             atomic_write_bytes(folder / f"{flight['id']}.json", data)
+            if flight["finished"]:
+                self._ended.add(flight["id"])
             try:
-                index = [f for f in read_index(self.store, self.session_id)]
+                index = read_index(self.store, self.session_id)
             except StoreError:
                 index = []
             index = [f for f in index if f["id"] != flight["id"]]

@@ -573,11 +573,11 @@ class Session:
             self._wake.notify()
         if self.flight is not None:
             self.flight.stop()
-        if self.flight_log is not None:  # the flight in progress ends with the session
-            self.flight_log.close()
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._end_mapping_thread()
+        if self.flight_log is not None:  # the flight in progress ends with the session
+            self.flight_log.close()
         self.closed = True
         if save:
             self.snapshot()  # raises SnapshotError: the map stays, for the next try

@@ -14,12 +14,14 @@ import numpy as np
 import websockets
 from conftest import auth
 from test_drone_server import Pilot
+from test_openapi import strictly
 
 from server import protocol as proto
 from server.datasets import open_dataset
 from server.sessions.flight_log import FlightLog, read_flight, read_index
 from server.sessions.store import SessionStore
 from server.simulation.flight_recording import STATE_COLUMNS, FlightRecorder, states_csv
+from server.transport.schemas import FlightList, FlightRecordingBody, FlightSummary
 
 FRAMES = 24
 
@@ -162,9 +164,14 @@ def test_a_session_records_its_flights_and_serves_them_after_a_restart(
     assert not out["errors"], out["errors"]
     base = f"{server.url}/api/sessions/{sid}/flights"
 
-    listed = httpx.get(base, headers=auth(token)).json()["flights"]
+    body = httpx.get(base, headers=auth(token)).json()
+    strictly(FlightList, body)  # the documented models hold every field of the answers
+    listed = body["flights"]
+    for summary in listed:
+        strictly(FlightSummary, summary)
     assert listed[0]["id"] == "1" and listed[0]["end"] == "landed" and listed[0]["finished"]
     flight = httpx.get(f"{base}/1.json", headers=auth(token)).json()
+    strictly(FlightRecordingBody, flight)
     assert flight["format"] == "dronesim-flight/1" and flight["state_columns"] == list(
         STATE_COLUMNS
     )

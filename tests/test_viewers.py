@@ -9,9 +9,11 @@ import numpy as np
 import websockets
 from conftest import auth
 from test_drone_server import Pilot
+from test_openapi import strictly
 
 from server import protocol as proto
 from server.datasets import open_dataset
+from server.transport.schemas import ViewerCreated, ViewerList
 
 FRAMES = 24
 
@@ -46,6 +48,7 @@ async def _watch(server, dataset) -> dict:
         assert stranger.status_code == 404
         link = (await rest.post(f"/api/sessions/{sid}/viewers", headers=auth(token))).json()
         other = (await rest.post(f"/api/sessions/{sid}/viewers", headers=auth(token))).json()
+        strictly(ViewerCreated, link)
         out["link"] = link
         owner = Pilot(
             await websockets.connect(
@@ -112,6 +115,7 @@ async def _watch(server, dataset) -> dict:
 
         # Revoking one link closes its sockets (the stuck one too) and only those.
         listed = (await rest.get(f"/api/sessions/{sid}/viewers", headers=auth(token))).json()
+        strictly(ViewerList, listed)
         out["listed"] = listed["viewers"]
         revoke = await rest.delete(
             f"/api/sessions/{sid}/viewers/{link['viewer_id']}", headers=auth(token)

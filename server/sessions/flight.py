@@ -155,7 +155,9 @@ class Flight:
         self.fault: str | None = None  # why the drone was stopped for good, if it was
         self._failed_steps = RateLimitedLog(self.log)
         self._last_state: DroneUpdate | None = None
-        # Records every flight (server/simulation/flight_recording.py); set by the session.
+        # Records every flight (server/simulation/flight_recording.py); set by the session. A
+        # course judge attaches its course and result here: recorder.set_course(course_dict),
+        # recorder.finish(result_dict) (plain JSON-able dicts; finish ends the flight).
         self.recorder: FlightRecorder | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None

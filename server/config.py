@@ -67,6 +67,12 @@ class ServerConfig(BaseModel):
     session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
     snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
     drone_state_hz: float = Field(default=20.0, gt=0, le=60)  # drone_state messages per second
+    # Flight recordings (server/sessions/flight_log.py): the longest stretch of one flight kept,
+    # seconds (beyond it the flight is marked truncated), and the newest flights a session keeps.
+    flight_max_s: float = Field(default=600.0, gt=0, le=3600)
+    flights_kept: int = Field(default=20, ge=1, le=1000)
+    # Viewer links (read-only watchers of a live session) at once per session.
+    max_viewers: int = Field(default=8, ge=0, le=64)
     # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
     # cores among the live sessions, rebalanced as they come and go.
     worker_threads: int = Field(default=0, ge=0, le=256)

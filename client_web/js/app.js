@@ -13,6 +13,8 @@ import { mapChunkArrays, Protocol } from "./protocol.js";
 import { LiveSource, liveSupport } from "./sources/live.js";
 import { ReplaySequence, ReplaySource } from "./sources/replay.js";
 import { Streamer } from "./streamer.js";
+import { FlightsPanel } from "./flights_panel.js";
+import { ViewerClient, viewerLink } from "./viewer.js";
 
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
@@ -22,7 +24,8 @@ class App {
   async init() {
     this.hud = new Hud();
     this.protocol = await Protocol.load();
-    this.client = new SessionClient(this.protocol);
+    const watch = viewerLink(); // a viewer link (#watch=...): this page only watches
+    this.client = watch ? new ViewerClient(this.protocol, watch) : new SessionClient(this.protocol);
     this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
     this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
     this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right"), modes: $("#flight-mode") });
@@ -32,6 +35,7 @@ class App {
     this.tapCommands = new Set(); // ids of goto commands from taps: unreachable ones retry the nearest point
     this.#wireClient();
     this.#wireControls();
+    this.flights = new FlightsPanel(this);
     this.#renderLoop();
     this.#setupDialog();
     this.hud.connection(State.IDLE);
@@ -40,9 +44,20 @@ class App {
     const mode = params.get("mode"); // preselect a capture mode: demo, demo-small, folder, live
     const radio = mode && document.querySelector(`input[name="mode"][value="${CSS.escape(mode)}"]`);
     if (radio && !radio.disabled) radio.checked = true;
+    if (watch) return this.#watch();
     if (params.get("autostart")) {
       this.start({ mode: params.get("autostart"), fps: Number(params.get("fps") || 15) }).catch(() => {});
     }
+  }
+
+  /** A viewer link's page: the map and the drone live, every control off. */
+  #watch() {
+    document.body.classList.add("viewing");
+    for (const button of document.querySelectorAll("#controls button, #btn-flights")) button.disabled = true;
+    this.setView("map");
+    this.client.addEventListener("welcome", () => this.#resetViews()); // the server resends the map
+    this.client.open();
+    this.hud.toast("watching a session (read-only)", "info", 6000);
   }
 
   #emptySeen() {
@@ -224,6 +239,7 @@ class App {
       this.map.setDroneState(state);
       this.hud.drone(state);
       this.pilot.serverMode(state.flight_mode);
+      this.flights?.droneState(state);
     });
     c.addEventListener("drone_event", ({ detail: event }) => {
       this.seen.events.push(event);
@@ -331,6 +347,7 @@ class App {
     const frame = (now) => {
       const view = document.body.classList;
       if (!view.contains("layout-map") && !this.source?.session) this.ar.tick(now);
+      this.flights.tick(now);
       if (!view.contains("layout-ar")) this.map.tick(now);
       if (now - lastHud > 250) {
         lastHud = now;
@@ -433,6 +450,8 @@ class App {
         intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },
       commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),
       liveSupport: this.liveSupport ?? null,
+      viewer: this.client.viewer === true,
+      ...this.flights.snapshot(),
     };
   }
 }

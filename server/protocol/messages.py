@@ -142,7 +142,9 @@ def make_welcome(
     max_in_flight: int = LIMITS["max_in_flight"],
     max_message_bytes: int = LIMITS["max_message_bytes"],
     map_chunk_max_points: int = LIMITS["max_map_chunk_points"],
+    role: str | None = None,
 ) -> dict:
+    """role: None for the session's own socket, "viewer" for a viewer link's."""
     return _message(
         "welcome",
         version=VERSION,
@@ -150,6 +152,7 @@ def make_welcome(
         max_in_flight=int(max_in_flight),
         max_message_bytes=int(max_message_bytes),
         map_chunk_max_points=int(map_chunk_max_points),
+        role=role,
     )
 
 

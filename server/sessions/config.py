@@ -21,6 +21,8 @@ class SessionConfig:
     simulation: SimulationConfig | None  # None: no drone
     snapshot_interval_s: float  # periodic atomic snapshot of map + trajectory
     drone_state_hz: float  # drone_state messages per second
+    flight_max_s: float = 600.0  # the longest stretch of one flight recorded, s
+    flights_kept: int = 20  # the newest flight recordings a session keeps on disk
 
     @classmethod
     def from_config(cls, config: Config | None = None) -> SessionConfig:
@@ -32,4 +34,6 @@ class SessionConfig:
             simulation=config.simulation,
             snapshot_interval_s=config.server.snapshot_interval_s,
             drone_state_hz=config.server.drone_state_hz,
+            flight_max_s=config.server.flight_max_s,
+            flights_kept=config.server.flights_kept,
         )

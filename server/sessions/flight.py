@@ -24,6 +24,7 @@ from server.sessions.failures import RateLimitedLog
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneCommandError, DroneSimulator
 from server.simulation.flight_map import FlightMap, Region
+from server.simulation.flight_recording import FlightRecorder
 from server.simulation.pilot_modes import euler_from_rotation
 from server.simulation.planner import PlanningError
 
@@ -157,6 +158,10 @@ class Flight:
         self.fault: str | None = None  # why the drone was stopped for good, if it was
         self._failed_steps = RateLimitedLog(self.log)
         self._last_state: DroneUpdate | None = None
+        # Records every flight (server/simulation/flight_recording.py); set by the session. A
+        # course judge attaches its course and result here: recorder.set_course(course_dict),
+        # recorder.finish(result_dict) (plain JSON-able dicts; finish ends the flight).
+        self.recorder: FlightRecorder | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -256,6 +261,7 @@ class Flight:
                 "the drone appears once the map has its first "
                 "frames; wait for the drone_event 'spawned'",
             )
+        asked = {"target": target, "pixel": pixel, "seq": seq, "sticks": sticks, "speed": speed}
         if name == "goto_pixel":
             target = self._pixel_target(pixel, seq)
         with self._lock:
@@ -279,6 +285,13 @@ class Flight:
                     raise CommandRefused("bad_command", f"unknown drone command {name!r}")
             except DroneCommandError as exc:
                 raise CommandRefused("bad_command", str(exc)) from None
+            now_s = self.sim.time_s if self.spawned else 0.0
+        if self.recorder is not None:
+            try:
+                self.recorder.command(now_s, name, command_id, asked)
+            except Exception:  # the command was carried out; only its record is missing
+                self.errors += 1
+                self._failed_steps.failure("recording a command")
 
     @staticmethod
     def _sticks(sticks) -> np.ndarray:
@@ -360,9 +373,18 @@ class Flight:
             self._thread.join(timeout=5)
 
     def _run(self) -> None:
-        last = time.monotonic()
+        last = due = time.monotonic()
         failing = 0  # steps failed in a row
-        while not self._stop.wait(self.state_period_s):
+        while True:
+            # A fixed schedule (the wait is the period less the step's own time), so states go
+            # out at drone_state_hz, not a little below it (flight recordings keep that rate);
+            # after a step that overran a whole period the schedule starts afresh, a period on,
+            # rather than bunching the next steps.
+            due += self.state_period_s
+            if due < time.monotonic():
+                due = time.monotonic() + self.state_period_s
+            if self._stop.wait(max(0.0, due - time.monotonic())):
+                return
             now = time.monotonic()
             # A starved thread slows the drone down rather than letting it jump.
             dt, last = min(now - last, 0.25), now
@@ -383,6 +405,22 @@ class Flight:
             if state is not None:
                 self._last_state = state
                 self.publish(state)
+            self._record(notices, state)
+
+    def _record(self, notices: list[DroneNotice], state: DroneUpdate | None) -> None:
+        """Hand the step's events and state to the flight recorder, if there is one."""
+        if self.recorder is None:
+            return
+        try:
+            for n in notices:
+                self.recorder.event(n.timestamp, n.event, n.position, n.message, n.command_id)
+            if state is not None:
+                self.recorder.state(
+                    state.timestamp, state.T_world_drone, state.velocity, state.mode
+                )
+        except Exception:  # a recording that fails must not stop the drone: counted, logged
+            self.errors += 1
+            self._failed_steps.failure("recording a flight step")
 
     def _stop_faulted(self, reason: str, failing: int) -> None:
         """Stop the drone for good: its simulation failed ``failing`` steps in a row."""
@@ -393,17 +431,17 @@ class Flight:
         final = self.state()  # the last good state, at rest, mode faulted
         if final is None:
             return  # never spawned: the client has no drone to hear about
-        self.publish(
-            DroneNotice(
-                "faulted",
-                final.timestamp,
-                final.T_world_drone[:3, 3],
-                f"the drone's simulation failed and the drone is stopped ({reason}); "
-                "create a new session to fly again",
-                None,
-            )
+        notice = DroneNotice(
+            "faulted",
+            final.timestamp,
+            final.T_world_drone[:3, 3],
+            f"the drone's simulation failed and the drone is stopped ({reason}); "
+            "create a new session to fly again",
+            None,
         )
+        self.publish(notice)
         self.publish(final)
+        self._record([notice], final)
 
     def _tick(self, dt: float) -> list[DroneNotice]:
         with self._lock:

@@ -15,6 +15,7 @@ from typing import Any, Literal, Protocol, overload
 
 from server.sessions.errors import SessionError
 from server.sessions.updates import FrameRefused, PoseUpdate, SessionFailed
+from server.sessions.viewers import Viewers
 from server.sessions.worker import WorkerLost
 
 _RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)
@@ -79,6 +80,7 @@ class LiveSession:
         self._on_lost = on_lost
         self._on_failed = on_failed
         self.sends_failed = 0  # connections ended because sending an update failed (web side)
+        self.viewers = Viewers()  # read-only watchers (viewer links), fed by ``deliver``
         self.worker = start_worker(self)
 
     @property
@@ -110,6 +112,7 @@ class LiveSession:
             self.closed = True
             if self._on_failed is not None:
                 self._on_failed(self, item.message)
+        self.viewers.deliver(item)
         self._tell(item)
 
     def _tell(self, item) -> None:

@@ -253,6 +253,12 @@ class SessionManager:
             return entry
         raise SessionError("not_found", "no session with this id for this token")
 
+    def live_session(self, session_id: str) -> LiveSession | None:
+        """The live session with this id held here, or None (viewer links check their own
+        token against it: ``LiveSession.viewers``)."""
+        with self._lock:
+            return self._live.get(session_id)
+
     def _adopt(self, session_id: str) -> LiveSession | None:
         """A live session this front-end did not start (another front-end of the same cluster,
         or this one before a restart), found by its id."""

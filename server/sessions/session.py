@@ -24,6 +24,7 @@ from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, Flight
+from server.sessions.flight_log import FlightLog
 from server.sessions.mapping import (
     MAPPING_NICE,
     Mapper,
@@ -95,6 +96,7 @@ class Session:
         self._map_closed = False
         self.on_update: Callable[[Update], None] | None = None
         self.flight: Flight | None = None  # the drone, from the first hello on
+        self.flight_log: FlightLog | None = None  # its flights, recorded and saved
         self._flight_map_at = -np.inf
         # Frames fused so far, and how many of them the drone's map has been asked to include
         # (both mapping thread only).
@@ -147,6 +149,14 @@ class Session:
                 self.config.drone_state_hz,
                 log=SessionLog(logging.getLogger("server.sessions.flight"), self.id),
             )
+            self.flight_log = FlightLog(
+                self.store,
+                self.id,
+                self.config.drone_state_hz,
+                self.config.flight_max_s,
+                self.config.flights_kept,
+            )
+            self.flight.recorder = self.flight_log.recorder
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
@@ -465,6 +475,8 @@ class Session:
             counts = self.failures.as_dict()
         if self.flight is not None:
             counts["flight_errors"] = self.flight.errors
+        if self.flight_log is not None:  # a flight recording the disk refused
+            counts["snapshots_failed"] += self.flight_log.saves_failed
         return counts
 
     def _map_figures(self, wait: bool = False) -> dict:
@@ -527,6 +539,8 @@ class Session:
                     names += self.mapper.save(str(staging))
                 except MapperLost:
                     self._map_closed = True
+            if self.flight_log is not None:  # the flight in progress, as far as it got
+                self.flight_log.save_open()
             self.snapshot_error = None
             self.store.commit(self.id, names, self.meta())
         except (OSError, MapError) as exc:  # MapError: Open3D refused to write
@@ -562,6 +576,8 @@ class Session:
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._end_mapping_thread()
+        if self.flight_log is not None:  # the flight in progress ends with the session
+            self.flight_log.close()
         self.closed = True
         if save:
             self.snapshot()  # raises SnapshotError: the map stays, for the next try

@@ -1,7 +1,8 @@
 """Session files under the data directory, every write atomic (temp file + rename).
 
 Layout: ``<data_dir>/sessions/<id>/`` with ``meta.json``, ``trajectory.tum``, ``map.npz`` (the
-TSDF) and ``map.ply`` (its surface points, ready to download).
+TSDF) and ``map.ply`` (its surface points, ready to download), and ``flights/`` (the drone's
+flight recordings, written by ``server/sessions/flight_log.py``).
 """
 
 from __future__ import annotations
@@ -97,6 +98,9 @@ class SessionStore:
             for p in self.folder(session_id).iterdir()
             if p.is_file() and p.name.startswith(prefixes)
         ]
+        flights = self.folder(session_id) / "flights"  # server/sessions/flight_log.py
+        if flights.is_dir():  # its writes' temporary files start with a dot too
+            partial += [p for p in flights.iterdir() if p.is_file() and p.name.startswith(".")]
         for path in partial:
             path.unlink(missing_ok=True)
         staged = self.staging(session_id, create=False)  # a snapshot never committed

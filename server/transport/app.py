@@ -21,13 +21,28 @@ from server.sessions import SessionError, SessionManager
 from server.sessions.config import SessionConfig
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.worker import warm_up
-from server.transport import routes_client, routes_recordings, routes_sessions, websocket
+from server.transport import (
+    routes_client,
+    routes_flights,
+    routes_recordings,
+    routes_sessions,
+    routes_viewers,
+    viewer_socket,
+    websocket,
+)
 from server.transport.deps import RateLimiter
 from server.transport.recordings import RecordingError, RecordingStore
 
 log = logging.getLogger(__name__)
 
-_STATUS = {"unauthorized": 401, "not_found": 404, "rate_limited": 429, "server_full": 503}
+_STATUS = {
+    "unauthorized": 401,
+    "not_found": 404,
+    "session_closed": 409,
+    "too_many_viewers": 409,
+    "rate_limited": 429,
+    "server_full": 503,
+}
 
 
 class RedactTokens(logging.Filter):
@@ -113,7 +128,10 @@ def create_app(config: Config | None = None) -> FastAPI:
             allow_headers=["Authorization"],
         )
     app.include_router(routes_sessions.router)
+    app.include_router(routes_flights.router)
+    app.include_router(routes_viewers.router)
     app.include_router(websocket.router)
+    app.include_router(viewer_socket.router)
     app.include_router(routes_client.router)
     app.include_router(routes_recordings.router)
 

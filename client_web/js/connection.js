@@ -87,34 +87,42 @@ export class SessionClient extends EventTarget {
     this.dispatchEvent(new CustomEvent("status", { detail: { state, message } }));
   }
 
-  async #request(method, path, token) {
+  async #request(method, path, token, json = undefined) {
     const headers = token ? { Authorization: `Bearer ${token}` } : {};
-    const response = await fetch(`${this.baseUrl}${path}`, { method, headers });
-    let body = null;
+    if (json !== undefined) headers["Content-Type"] = "application/json";
+    const body = json === undefined ? undefined : JSON.stringify(json);
+    const response = await fetch(`${this.baseUrl}${path}`, { method, headers, body });
+    let answer = null;
     try {
-      body = await response.json();
+      answer = await response.json();
     } catch {
       /* no body */
     }
     if (!response.ok) {
-      const why = body?.error?.message ?? body?.detail ?? response.statusText;
+      const why = answer?.error?.message ?? answer?.detail ?? response.statusText;
       const error = new Error(`${method} ${path}: HTTP ${response.status} ${why}`);
       error.status = response.status;
       throw error;
     }
-    return body;
+    return answer;
   }
 
   /**
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
+   * With `room`, a new session in the room the saved (closed) session left: it relocalises in
+   * that room's map and tracks in its frame (README, "Rooms").
    * @returns {Promise<{id: string, token: string, resumed: boolean}>}
    */
-  async open(hello, { fresh = false } = {}) {
+  async open(hello, { fresh = false, room = false } = {}) {
     this.close();
     let resumed = false;
     const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
-    if (!fresh && same) {
+    if (room) {
+      if (!this.saved) throw new Error("no saved session on this device to continue the room of");
+      const created = await this.#request("POST", "/api/sessions", this.saved.token, { room: this.saved.id });
+      this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
+    } else if (!fresh && same) {
       try {
         const status = await this.#request("GET", `/api/sessions/${this.saved.id}`, this.saved.token);
         resumed = !status.closed;
@@ -122,7 +130,7 @@ export class SessionClient extends EventTarget {
         resumed = false;
       }
     }
-    if (!resumed) {
+    if (!resumed && !room) {
       const created = await this.#request("POST", "/api/sessions");
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     }

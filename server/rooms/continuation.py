@@ -58,6 +58,11 @@ class RoomTracker:
     def relocalised(self) -> bool:
         return self.relocalisation is not None
 
+    @property
+    def lost(self) -> bool:
+        """No pose for the latest frame: not found in the room yet, or tracking lost since."""
+        return not self.relocalised or self.tracker.lost
+
     def track(
         self, colour: GreyImage, depth: Float32Array, T_device_camera: FloatArray | None = None
     ) -> TrackResult | None:

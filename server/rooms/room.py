@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -173,16 +175,24 @@ def save_room(room: Room, folder: str | Path) -> dict[str, int]:
     """Write ``room`` into ``folder`` (created; files there are replaced). The map is re-fused
     from the keyframes when ``room.map`` is None. Returns the bytes written per part."""
     folder = Path(folder)
-    (folder / "keyframes").mkdir(parents=True, exist_ok=True)
     sizes = {"keyframes": 0, "map": 0, "meta": 0}
     for kf in room.keyframes:
-        path = folder / "keyframes" / f"kf_{kf.id:06d}.npz"
-        if not path.exists():  # keyframe images never change once written
-            _write_keyframe(path, kf)
-        sizes["keyframes"] += path.stat().st_size
+        sizes["keyframes"] += write_keyframe(folder, kf)
     (room.map or room.fuse_map()).save(folder / MAP_FILE)
     sizes["map"] = (folder / MAP_FILE).stat().st_size
-    K = room.intrinsics
+    entries = [(kf.id, kf.frame_index, kf.T_world_keyframe) for kf in room.keyframes]
+    sizes["meta"] = write_room_meta(folder, room.intrinsics, entries, room.sessions)
+    return sizes
+
+
+def write_room_meta(
+    folder: Path,
+    K: Intrinsics,
+    keyframes: list[tuple[int, int, FloatArray]],
+    sessions: list[dict[str, Any]],
+) -> int:
+    """Write ``room.json`` (last: a folder with it is a whole room) for keyframes given as
+    (id, frame index, T_world_keyframe) whose files are in ``folder``; returns its size."""
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -191,21 +201,44 @@ def save_room(room: Room, folder: str | Path) -> dict[str, int]:
             "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": K.width, "height": K.height
         },
         "keyframes": [
-            {
-                "id": kf.id,
-                "frame_index": kf.frame_index,
-                "T_world_keyframe": np.round(kf.T_world_keyframe, 9).ravel().tolist(),
-            }
-            for kf in room.keyframes
+            {"id": i, "frame_index": f, "T_world_keyframe": np.round(T, 9).ravel().tolist()}
+            for i, f, T in keyframes
         ],
-        "sessions": room.sessions,
+        "sessions": sessions,
     }  # fmt: skip
     text = json.dumps(meta, indent=1)
     atomic_write(
         folder / META_FILE, lambda tmp: Path(tmp).write_text(text), suffix=".json", mode=0o644
     )
-    sizes["meta"] = len(text)
-    return sizes
+    return len(text)
+
+
+def keyframe_path(folder: Path, kf_id: int) -> Path:
+    return folder / "keyframes" / f"kf_{kf_id:06d}.npz"
+
+
+def write_keyframe(folder: Path, kf: RoomKeyframe) -> int:
+    """Write one keyframe's file into the room ``folder`` unless it is there (a keyframe never
+    changes once written; its pose lives in room.json); returns the file's size."""
+    path = keyframe_path(folder, kf.id)
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write_keyframe(path, kf)
+    return path.stat().st_size
+
+
+def link_keyframes(source: Path, folder: Path, ids: list[int]) -> None:
+    """Give the room ``folder`` the keyframe files ``ids`` of the room ``source`` (hard links,
+    copies where the file system has none)."""
+    for kf_id in ids:
+        src, dst = keyframe_path(source, kf_id), keyframe_path(folder, kf_id)
+        if dst.exists():
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copyfile(src, dst)
 
 
 def _write_keyframe(path: Path, kf: RoomKeyframe) -> None:
@@ -265,7 +298,7 @@ def _read_keyframe(
     K: Intrinsics,
     cfg: RegistrationConfig,
 ) -> RoomKeyframe:
-    path = folder / "keyframes" / f"kf_{kf_id:06d}.npz"
+    path = keyframe_path(folder, kf_id)
     with np.load(path) as z:
         colour_bgr = cv2.imdecode(z["colour_jpg"], cv2.IMREAD_COLOR)
         mm = cv2.imdecode(z["depth_png"], cv2.IMREAD_UNCHANGED)

@@ -27,7 +27,13 @@ from server.transport.recordings import RecordingError, RecordingStore
 
 log = logging.getLogger(__name__)
 
-_STATUS = {"unauthorized": 401, "not_found": 404, "rate_limited": 429, "server_full": 503}
+_STATUS = {
+    "unauthorized": 401,
+    "not_found": 404,
+    "room_unavailable": 409,
+    "rate_limited": 429,
+    "server_full": 503,
+}
 
 
 class RedactTokens(logging.Filter):

@@ -19,10 +19,13 @@ from server.errors import DatasetError
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
+from server.geometry import invert
 from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
 from server.registration.config import RegistrationConfig
+from server.registration.loops import LoopCloser
+from server.registration.preprocess import clean_depth
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import Room, save_room
 
@@ -93,6 +96,7 @@ def run_odometry(
         room.map = None
     world_map = PointCloudMap(voxel_m=voxel_m)
     results, stamps = [], []
+    closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
     with_device_pose = 0  # frames that had a device pose to give
     bar = tqdm(
@@ -106,7 +110,11 @@ def run_odometry(
         if result is None:  # not yet found in the room
             continue
         tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
-        room.add_tracked(result, frame.colour, frame.depth, i, cfg)
+        if room.add_tracked(result, frame.colour, frame.depth, i, cfg) and closer is not None:
+            kf = room.keyframes[-1]
+            closer.add_keyframe(
+                kf.id, kf.T_world_keyframe, kf.place, clean_depth(frame.depth, cfg.depth)
+            )
         results.append(result)
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
@@ -121,6 +129,13 @@ def run_odometry(
         np.array(stamps).reshape(-1),
         np.array([r.T_world_camera for r in results]).reshape(-1, 4, 4),
     )
+    loops = None
+    if closer is not None:
+        odometry = trajectory
+        trajectory = _close_loops(closer, room, results, trajectory)
+        loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
+        if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
+            loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)
     run = OdometryRun(trajectory, results, world_map, room)
     if dataset.ground_truth is not None and len(trajectory) > 1:
         run.metrics = evaluate(dataset.ground_truth, trajectory)
@@ -138,6 +153,8 @@ def run_odometry(
             "guesses": sum(r.prior_used for r in results),
         },
     }
+    if loops is not None:
+        run.summary["loops"] = loops
     if isinstance(tracker, RoomTracker):
         run.summary["relocalisation"] = _relocalisation_summary(tracker, start)
     room.sessions.append(
@@ -149,6 +166,27 @@ def run_odometry(
         }
     )
     return run
+
+
+def _close_loops(
+    closer: LoopCloser, room: Room, results: list[TrackResult], trajectory: Trajectory
+) -> Trajectory:
+    """Optimise the pose graph and move every frame with its keyframe: each frame keeps its
+    pose relative to the keyframe it was tracked against; the room's keyframes take the
+    corrected poses (its map is re-fused from them when saved)."""
+    if not closer.loops:
+        return trajectory
+    corrected = closer.optimise()
+    tracked = {kf.id: kf.T_world_keyframe.copy() for kf in room.keyframes}
+    poses = trajectory.poses.copy()
+    for k, r in enumerate(results):
+        if r.keyframe_id in corrected and r.keyframe_id in tracked:
+            poses[k] = corrected[r.keyframe_id] @ invert(tracked[r.keyframe_id]) @ poses[k]
+    for kf in room.keyframes:
+        if kf.id in corrected:
+            kf.T_world_keyframe = corrected[kf.id]
+    room.map = None
+    return Trajectory(trajectory.timestamps.copy(), poses)
 
 
 def _relocalisation_summary(tracker: RoomTracker, start: int) -> dict:

@@ -66,9 +66,8 @@ def test_a_session_opened_in_a_saved_room_relocalises_and_tracks_in_its_frame(
     # its poses are those of the room's frame (session a's first camera), not its own origin.
     s = _stream(server, b, token_b, ds, 60, 20)
     states = [p["state"] for p in s.poses]
-    first_ok = states.index("ok")
-    assert first_ok <= 5, states
-    assert all(st == "lost" for st in states[:first_ok])
+    first_ok = next(k for k, st in enumerate(states) if st != "lost")
+    assert first_ok <= 5 and states.count("lost") == first_ok, states
     T_room_gt = invert(ground_truth_pose_at(ds, ds[0].timestamp))  # a's first camera = origin
     poses = s.matrices()
     for k in range(first_ok, 20):
@@ -77,9 +76,15 @@ def test_a_session_opened_in_a_saved_room_relocalises_and_tracks_in_its_frame(
 
     # 4. Its map started as the room's: it holds a's fused frames and its own; the drone's map
     # was fed from it.
-    status = httpx.get(f"{url}/{b}", headers=auth(token_b)).json()
-    assert status["map"]["frames_integrated"] > closed["map"]["frames_integrated"]
-    assert status["drone"]["map_frames"] >= 1
+    # (The status may lag the worker by a moment on a busy machine: wait for it.)
+    deadline = time.time() + 60
+    while True:
+        status = httpx.get(f"{url}/{b}", headers=auth(token_b)).json()
+        grown = status["map"].get("frames_integrated", 0) > closed["map"]["frames_integrated"]
+        if grown and (status["drone"] or {}).get("map_frames", 0) >= 1:
+            break
+        assert time.time() < deadline, status
+        time.sleep(0.3)
     assert status["failures"]["room_keyframes_failed"] == 0
 
     # 5. Closed, it leaves the room extended: a third session may open it with b's token.

@@ -163,6 +163,18 @@ class PlaceConfig:
 
 
 @dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure over keyframes (server/registration/loops.py): off by default."""
+
+    enabled: bool = False
+    min_separation: int = 10  # a loop joins keyframes at least this many keyframes apart
+    icp_distance_m: float = 0.05  # point-to-plane refinement of a loop; the graph's too
+    min_icp_fitness: float = 0.5  # share of the new keyframe's depth that must fit the old one
+    cloud_stride: int = 4  # every n-th depth pixel in the keyframes' clouds
+    preference: float = 1.0  # Open3D's preference_loop_closure (0.1 odometry-heavy, 2 loops)
+
+
+@dataclass(frozen=True)
 class RegistrationConfig:
     """All parameters of the registration pipeline."""
 
@@ -174,6 +186,7 @@ class RegistrationConfig:
     state: StateConfig = field(default_factory=StateConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     place: PlaceConfig = field(default_factory=PlaceConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)
 
     def __post_init__(self) -> None:
         if (

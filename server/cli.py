@@ -120,6 +120,14 @@ def track(
             "folder in it): relocalise by place recognition, track in its frame, extend it",
         ),
     ] = None,
+    save_room: Annotated[
+        bool,
+        typer.Option(
+            "--save-room/--no-save-room",
+            help="keep the keyframes and save OUT/room (ORB features per keyframe, a TSDF "
+            "re-fused from them: seconds more per run)",
+        ),
+    ] = True,
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
@@ -158,6 +166,7 @@ def track(
         mapping=config.mapping,
         room=saved_room,
         start=start,
+        keep_room=save_room,
     )
     if saved_room is not None and not run.summary["relocalisation"]["relocalised"]:
         raise DroneSimError(

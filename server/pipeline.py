@@ -61,6 +61,7 @@ def run_odometry(
     progress: bool = True,
     room: Room | None = None,
     start: int = 0,
+    keep_room: bool = True,
 ) -> OdometryRun:
     """Register ``max_frames`` frames of ``dataset`` from frame ``start`` on and fuse every
     ``mapping.fuse_every``-th tracked frame (and every keyframe) into a point cloud map with
@@ -77,7 +78,8 @@ def run_odometry(
     relocalised by place recognition until one is found, and tracked from there in the room's
     world frame; the frames before have no pose and are left out of the trajectory. The room
     gains this run's keyframes (``run.room`` is the same object) and its map is cleared, to be
-    re-fused from all keyframes when saved.
+    re-fused from all keyframes when saved. ``keep_room=False`` keeps no keyframes (no place
+    features computed; ``run.room`` stays as it was), unless loop closure needs them.
     """
     mapping = mapping or MappingConfig()
     fuse_every, voxel_m = mapping.fuse_every, mapping.tsdf.voxel_m
@@ -110,11 +112,12 @@ def run_odometry(
         if result is None:  # not yet found in the room
             continue
         tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
-        if room.add_tracked(result, frame.colour, frame.depth, i, cfg) and closer is not None:
-            kf = room.keyframes[-1]
-            closer.add_keyframe(
-                kf.id, kf.T_world_keyframe, kf.place, clean_depth(frame.depth, cfg.depth)
-            )
+        keep = keep_room or closer is not None
+        if keep and room.add_tracked(result, frame.colour, frame.depth, i, cfg):
+            if closer is not None:
+                kf = room.keyframes[-1]
+                depth = clean_depth(frame.depth, cfg.depth)
+                closer.add_keyframe(kf.id, kf.T_world_keyframe, kf.place, depth)
         results.append(result)
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
@@ -142,7 +145,13 @@ def run_odometry(
     times = np.array([r.timings_ms.get("total", 0.0) for r in results[1:]] or [0.0])
     run.summary = {
         "frames": n,
-        "keyframes": len(room.keyframes),
+        # made by this run (a room's own keyframes not counted)
+        "keyframes": (
+            tracker.keyframe_count
+            if isinstance(tracker, Tracker)
+            else sum(r.new_keyframe for r in results)
+        ),
+        "room_keyframes": len(room.keyframes),
         "states": dict(Counter(r.state.value for r in results)),
         "median_ms": float(np.median(times)),
         "p90_ms": float(np.percentile(times, 90)),
@@ -210,7 +219,7 @@ def write_outputs(
     run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig
 ) -> dict:
     """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``, and the
-    run's room into ``out_dir/room`` (see server/rooms/room.py)."""
+    run's room, when it kept keyframes, into ``out_dir/room`` (see server/rooms/room.py)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {
         "trajectory": out_dir / "trajectory.tum",
@@ -227,8 +236,9 @@ def write_outputs(
         within = (gt.timestamps >= t0) & (gt.timestamps <= t1)
         curves = {"ground truth": gt.poses[within], **curves}
     plot_top_view(paths["picture"], curves, run.map.points, title=f"{dataset.name}: top view")
-    paths["room"] = out_dir / "room"
-    run.summary["room_bytes"] = save_room(run.room, paths["room"])
+    if run.room.keyframes:
+        paths["room"] = out_dir / "room"
+        run.summary["room_bytes"] = save_room(run.room, paths["room"])
     summary = {
         "dataset": str(dataset.path),
         **run.summary,

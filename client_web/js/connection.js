@@ -6,6 +6,7 @@
 import { SERVER_TO_CLIENT } from "./protocol.js";
 
 const STORE_KEY = "dronesim.session";
+const ROOM_KEY = "dronesim.room"; // the last ended session: its id and token open its room
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
 // Closes (protocol.json names) after which reconnecting cannot help: the hello or the session
 // itself is refused.
@@ -119,8 +120,10 @@ export class SessionClient extends EventTarget {
     let resumed = false;
     const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
     if (room) {
-      if (!this.saved) throw new Error("no saved session on this device to continue the room of");
-      const created = await this.#request("POST", "/api/sessions", this.saved.token, { room: this.saved.id });
+      // The room of the last session ended here, else of the session still remembered.
+      const last = JSON.parse(this.storage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
+      if (!last) throw new Error("no earlier session on this device to continue the room of");
+      const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     } else if (!fresh && same) {
       try {
@@ -309,6 +312,8 @@ export class SessionClient extends EventTarget {
   /** Forget the saved session (the next open creates a new one). */
   forget() {
     this.close();
+    // The ended session may leave a room: remembered for "Continue in a saved room".
+    if (this.saved) this.storage.setItem(ROOM_KEY, JSON.stringify({ id: this.saved.id, token: this.saved.token }));
     this.saved = null;
     this.#save();
   }

@@ -23,6 +23,7 @@ def test_the_page_continues_in_the_room_of_the_session_it_ended(live_server, ope
     # End it: the server closes it once disconnected for the TTL, and it leaves a room.
     page.page.click("#btn-menu")
     page.page.click("#btn-end")
+    page.wait("localStorage.getItem('dronesim.room') !== null", 10, "the ended session kept")
     room = page.page.evaluate("JSON.parse(localStorage.getItem('dronesim.room'))")
     assert room["id"] == first
     deadline = time.time() + 60

@@ -26,10 +26,12 @@ export const State = Object.freeze({
 /** Events: "status" {state, message}, "message" (every decoded server message), and one event
  * per message type ("pose", "map_chunk", "drone_state", "drone_event", "error", "welcome"). */
 export class SessionClient extends EventTarget {
-  constructor(protocol, { storage = window.sessionStorage, baseUrl = window.location.origin } = {}) {
+  constructor(protocol, { storage = window.sessionStorage, roomStorage = window.localStorage,
+    baseUrl = window.location.origin } = {}) {
     super();
     this.protocol = protocol;
     this.storage = storage;
+    this.roomStorage = roomStorage; // outlives the tab: a room is for coming back another day
     this.baseUrl = baseUrl;
     this.state = State.IDLE;
     this.ws = null;
@@ -121,7 +123,7 @@ export class SessionClient extends EventTarget {
     const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
     if (room) {
       // The room of the last session ended here, else of the session still remembered.
-      const last = JSON.parse(this.storage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
+      const last = JSON.parse(this.roomStorage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
       if (!last) throw new Error("no earlier session on this device to continue the room of");
       const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
@@ -313,7 +315,7 @@ export class SessionClient extends EventTarget {
   forget() {
     this.close();
     // The ended session may leave a room: remembered for "Continue in a saved room".
-    if (this.saved) this.storage.setItem(ROOM_KEY, JSON.stringify({ id: this.saved.id, token: this.saved.token }));
+    if (this.saved) this.roomStorage.setItem(ROOM_KEY, JSON.stringify({ id: this.saved.id, token: this.saved.token }));
     this.saved = null;
     this.#save();
   }

@@ -21,6 +21,7 @@ class SessionConfig:
     simulation: SimulationConfig | None  # None: no drone
     snapshot_interval_s: float  # periodic atomic snapshot of map + trajectory
     drone_state_hz: float  # drone_state messages per second
+    save_room: bool = True  # keep keyframes and leave a room when closed (server.save_rooms)
 
     @classmethod
     def from_config(cls, config: Config | None = None) -> SessionConfig:
@@ -32,4 +33,5 @@ class SessionConfig:
             simulation=config.simulation,
             snapshot_interval_s=config.server.snapshot_interval_s,
             drone_state_hz=config.server.drone_state_hz,
+            save_room=config.server.save_rooms,
         )

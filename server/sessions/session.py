@@ -436,7 +436,7 @@ class Session:
                     self.failures.fusions_failed += 1
                 continue
             self._fused += 1
-            if job.keyframe:
+            if job.keyframe and self.config.save_room:
                 self._keep_room_keyframe(job, K)
             with self._lock:
                 self._dirty = True

@@ -477,7 +477,12 @@ class Session:
         folder = self.store.folder(self.id)
         with self._lock:
             keyframes = list(self._room_keyframes)
-        if not self.config.save_room or self.intrinsics is None or not keyframes or not (folder / MAP_FILE).is_file():
+        if (
+            not self.config.save_room
+            or self.intrinsics is None
+            or not keyframes
+            or not (folder / MAP_FILE).is_file()
+        ):
             return False
         room = folder / ROOM_FOLDER
         room.mkdir(parents=True, exist_ok=True)

@@ -96,7 +96,8 @@ def track(
         ),
     ],
     out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
-    frames: Annotated[int | None, typer.Option(help="only the first N frames")] = None,
+    frames: Annotated[int | None, typer.Option(help="only N frames (from --start)")] = None,
+    start: Annotated[int, typer.Option(min=0, help="begin at this frame (0 = the first)")] = 0,
     dense: Annotated[
         bool | None,
         typer.Option(
@@ -112,6 +113,21 @@ def track(
             "(registration.prior.enabled; default: on)",
         ),
     ] = None,
+    room: Annotated[
+        Path | None,
+        typer.Option(
+            help="continue in the room saved by an earlier run (its --out folder, or the room "
+            "folder in it): relocalise by place recognition, track in its frame, extend it",
+        ),
+    ] = None,
+    save_room: Annotated[
+        bool,
+        typer.Option(
+            "--save-room/--no-save-room",
+            help="keep the keyframes and save OUT/room (ORB features per keyframe, a TSDF "
+            "re-fused from them: seconds more per run)",
+        ),
+    ] = True,
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
@@ -120,10 +136,10 @@ def track(
     config_file: ConfigFile = None,
     sets: ConfigSets = None,
 ) -> None:
-    """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture, metrics and
-    the configuration used (config.yaml: `--config OUT/config.yaml` runs it again). A Stray
-    Scanner or Record3D recording's own odometry is each frame's prior unless
-    --no-device-prior."""
+    """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture, metrics, the
+    configuration used (config.yaml: `--config OUT/config.yaml` runs it again) and the room
+    (OUT/room: keyframes and TSDF map, for a later --room). A Stray Scanner or Record3D
+    recording's own odometry is each frame's prior unless --no-device-prior."""
     from server.config import write_config
     from server.evaluation.metrics import format_table
     from server.pipeline import run_odometry, write_outputs
@@ -136,8 +152,26 @@ def track(
     flags = {"registration": registration} if registration else {}
     config = _load_config(config_file, sets, flags)
     ds = _open(dataset, fx, fy, cx, cy, depth_scale)
+    saved_room = None
+    if room is not None:
+        from server.rooms import load_room
+
+        folder = room / "room" if (room / "room").is_dir() else room
+        saved_room = load_room(folder, config.registration)
     _print_config(config, "configuration")
-    run = run_odometry(ds, config.registration, max_frames=frames, mapping=config.mapping)
+    run = run_odometry(
+        ds,
+        config.registration,
+        max_frames=frames,
+        mapping=config.mapping,
+        room=saved_room,
+        start=start,
+        keep_room=save_room,
+    )
+    if saved_room is not None and not run.summary["relocalisation"]["relocalised"]:
+        raise DroneSimError(
+            f"no frame of {ds.name} was recognised in the room {room}: nothing tracked"
+        )
     paths = write_outputs(run, out, ds, config.registration)
     paths["config"] = write_config(config, out / "config.yaml")
     s = run.summary
@@ -163,6 +197,13 @@ def track(
         )
     elif ds.device_poses is not None:
         console.print("device prior: off (the recording's odometry was not used)")
+    found = s.get("relocalisation")
+    if found is not None:
+        console.print(
+            f"relocalised in the room at frame {found['sequence_frame']} "
+            f"(keyframe {found['keyframe']}, {found['inliers']} inliers, {found['ms']:.0f} ms; "
+            f"{found['total_ms']:.0f} ms in all)"
+        )
     if run.metrics is not None:
         console.print(
             format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth")

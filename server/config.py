@@ -66,6 +66,9 @@ class ServerConfig(BaseModel):
     max_upload_mb: float = Field(default=1000.0, gt=0)
     session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
     snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
+    # Every session keeps its keyframes (ORB features, JPEG + PNG, ~270 KB each, written by its
+    # mapping thread) and leaves a room when it closes; false: no rooms, no such work.
+    save_rooms: bool = True
     drone_state_hz: float = Field(default=20.0, gt=0, le=60)  # drone_state messages per second
     # Flight recordings (server/sessions/flight_log.py): the longest stretch of one flight kept,
     # seconds (beyond it the flight is marked truncated), and the newest flights a session keeps.

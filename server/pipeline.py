@@ -15,13 +15,19 @@ import numpy as np
 from tqdm import tqdm
 
 from server.datasets import RGBDDataset
+from server.errors import DatasetError
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
+from server.geometry import invert
 from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
 from server.registration.config import RegistrationConfig
+from server.registration.loops import LoopCloser
+from server.registration.preprocess import clean_depth
+from server.rooms.continuation import RoomTracker
+from server.rooms.room import Room, save_room
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +39,7 @@ class OdometryRun:
     trajectory: Trajectory  # one T_world_camera per input frame, lost frames included
     results: list[TrackResult]
     map: PointCloudMap
+    room: Room  # the keyframes of this run (after those of the room it continued in, if any)
     metrics: dict | None = None  # when the dataset has ground truth
     summary: dict = field(default_factory=dict)
 
@@ -52,8 +59,11 @@ def run_odometry(
     max_frames: int | None = None,
     mapping: MappingConfig | None = None,
     progress: bool = True,
+    room: Room | None = None,
+    start: int = 0,
+    keep_room: bool = True,
 ) -> OdometryRun:
-    """Register the first ``max_frames`` frames of ``dataset`` and fuse every
+    """Register ``max_frames`` frames of ``dataset`` from frame ``start`` on and fuse every
     ``mapping.fuse_every``-th tracked frame (and every keyframe) into a point cloud map with
     ``mapping.tsdf.voxel_m`` voxels (offline, the map is a point cloud, not the server's TSDF).
 
@@ -63,24 +73,51 @@ def run_odometry(
     A phone's recording (``dataset.device_poses``, Stray Scanner, Record3D) gives every frame its
     device pose as the tracker's prior (``Tracker.track(..., T_device_camera=...)``), as the
     server does with a phone's frames; ``config.prior.enabled = False`` tracks without it.
+
+    With ``room`` (a saved room, see server/rooms/), the run starts inside it: frames are
+    relocalised by place recognition until one is found, and tracked from there in the room's
+    world frame; the frames before have no pose and are left out of the trajectory. The room
+    gains this run's keyframes (``run.room`` is the same object) and its map is cleared, to be
+    re-fused from all keyframes when saved. ``keep_room=False`` keeps no keyframes (no place
+    features computed; ``run.room`` stays as it was), unless loop closure needs them.
     """
     mapping = mapping or MappingConfig()
     fuse_every, voxel_m = mapping.fuse_every, mapping.tsdf.voxel_m
-    n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
-    first = dataset[0]
-    tracker = Tracker(dataset.intrinsics, config, ground_truth_pose_at(dataset, first.timestamp))
+    if not 0 <= start < len(dataset):
+        raise DatasetError(f"start frame {start} is outside {dataset.name}'s {len(dataset)} frames")
+    left = len(dataset) - start
+    n = left if max_frames is None else min(max_frames, left)
+    first = dataset[start]
+    cfg = config or RegistrationConfig()
+    if room is None:
+        T_first = ground_truth_pose_at(dataset, first.timestamp)
+        tracker: Tracker | RoomTracker = Tracker(dataset.intrinsics, cfg, T_first)
+        room = Room(dataset.intrinsics)
+    else:
+        tracker = RoomTracker(room, dataset.intrinsics, cfg)
+        room.map = None
     world_map = PointCloudMap(voxel_m=voxel_m)
     results, stamps = [], []
-    cfg = config or RegistrationConfig()
+    closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
     with_device_pose = 0  # frames that had a device pose to give
-    bar = tqdm(range(n), desc=f"track {dataset.name}", unit="frame", disable=not progress)
+    bar = tqdm(
+        range(start, start + n), desc=f"track {dataset.name}", unit="frame", disable=not progress
+    )
     for i in bar:
-        frame = first if i == 0 else dataset[i]
+        frame = first if i == start else dataset[i]
         T_device_camera = dataset.device_pose(i) if use_device else None
         with_device_pose += T_device_camera is not None
         result = tracker.track(frame.colour, frame.depth, T_device_camera=T_device_camera)
+        if result is None:  # not yet found in the room
+            continue
         tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
+        keep = keep_room or closer is not None
+        if keep and room.add_tracked(result, frame.colour, frame.depth, i, cfg):
+            if closer is not None:
+                kf = room.keyframes[-1]
+                depth = clean_depth(frame.depth, cfg.depth)
+                closer.add_keyframe(kf.id, kf.T_world_keyframe, kf.place, depth)
         results.append(result)
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
@@ -88,17 +125,33 @@ def run_odometry(
         bar.set_postfix(
             state=result.state.value,
             inliers=result.inliers,
-            kf=tracker.keyframe_count,
+            kf=len(room.keyframes),
             refresh=False,
         )
-    trajectory = Trajectory(np.array(stamps), np.array([r.T_world_camera for r in results]))
-    run = OdometryRun(trajectory, results, world_map)
-    if dataset.ground_truth is not None:
+    trajectory = Trajectory(
+        np.array(stamps).reshape(-1),
+        np.array([r.T_world_camera for r in results]).reshape(-1, 4, 4),
+    )
+    loops = None
+    if closer is not None:
+        odometry = trajectory
+        trajectory = _close_loops(closer, room, results, trajectory)
+        loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
+        if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
+            loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)
+    run = OdometryRun(trajectory, results, world_map, room)
+    if dataset.ground_truth is not None and len(trajectory) > 1:
         run.metrics = evaluate(dataset.ground_truth, trajectory)
     times = np.array([r.timings_ms.get("total", 0.0) for r in results[1:]] or [0.0])
     run.summary = {
         "frames": n,
-        "keyframes": tracker.keyframe_count,
+        # made by this run (a room's own keyframes not counted)
+        "keyframes": (
+            tracker.keyframe_count
+            if isinstance(tracker, Tracker)
+            else sum(r.new_keyframe for r in results)
+        ),
+        "room_keyframes": len(room.keyframes),
         "states": dict(Counter(r.state.value for r in results)),
         "median_ms": float(np.median(times)),
         "p90_ms": float(np.percentile(times, 90)),
@@ -109,13 +162,64 @@ def run_odometry(
             "guesses": sum(r.prior_used for r in results),
         },
     }
+    if loops is not None:
+        run.summary["loops"] = loops
+    if isinstance(tracker, RoomTracker):
+        run.summary["relocalisation"] = _relocalisation_summary(tracker, start)
+    room.sessions.append(
+        {
+            "dataset": str(dataset.path),
+            "frames": n,
+            "tracked": len(results),
+            "keyframes_after": len(room.keyframes),
+        }
+    )
     return run
+
+
+def _close_loops(
+    closer: LoopCloser, room: Room, results: list[TrackResult], trajectory: Trajectory
+) -> Trajectory:
+    """Optimise the pose graph and move every frame with its keyframe: each frame keeps its
+    pose relative to the keyframe it was tracked against; the room's keyframes take the
+    corrected poses (its map is re-fused from them when saved)."""
+    if not closer.loops:
+        return trajectory
+    corrected = closer.optimise()
+    tracked = {kf.id: kf.T_world_keyframe.copy() for kf in room.keyframes}
+    poses = trajectory.poses.copy()
+    for k, r in enumerate(results):
+        if r.keyframe_id in corrected and r.keyframe_id in tracked:
+            poses[k] = corrected[r.keyframe_id] @ invert(tracked[r.keyframe_id]) @ poses[k]
+    for kf in room.keyframes:
+        if kf.id in corrected:
+            kf.T_world_keyframe = corrected[kf.id]
+    room.map = None
+    return Trajectory(trajectory.timestamps.copy(), poses)
+
+
+def _relocalisation_summary(tracker: RoomTracker, start: int) -> dict:
+    """frame: the frames it took before one was recognised (0: the first); sequence_frame: that
+    frame's index in the sequence; ms: its place recognition, verification and tracking."""
+    found = tracker.relocalisation
+    if found is None:
+        return {"relocalised": False, "attempts": tracker.attempts}
+    return {
+        "relocalised": True,
+        "frame": found.frame,
+        "sequence_frame": start + found.frame,
+        "keyframe": found.match.keyframe_id,
+        "inliers": found.match.inliers,
+        "ms": round(found.ms, 1),
+        "total_ms": round(found.total_ms, 1),
+    }
 
 
 def write_outputs(
     run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig
 ) -> dict:
-    """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``."""
+    """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``, and the
+    run's room, when it kept keyframes, into ``out_dir/room`` (see server/rooms/room.py)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {
         "trajectory": out_dir / "trajectory.tum",
@@ -132,6 +236,9 @@ def write_outputs(
         within = (gt.timestamps >= t0) & (gt.timestamps <= t1)
         curves = {"ground truth": gt.poses[within], **curves}
     plot_top_view(paths["picture"], curves, run.map.points, title=f"{dataset.name}: top view")
+    if run.room.keyframes:
+        paths["room"] = out_dir / "room"
+        run.summary["room_bytes"] = save_room(run.room, paths["room"])
     summary = {
         "dataset": str(dataset.path),
         **run.summary,

@@ -41,6 +41,8 @@ RULES: dict[str, tuple[str, ...]] = {
     "registration": _CORE_FORBIDS,
     "simulation": _CORE_FORBIDS,
     "mapping": _CORE_FORBIDS,
+    # rooms joins registration and mapping on files; sessions and the CLI use it.
+    "rooms": _CORE_FORBIDS,
     # evaluation owns trajectories: datasets use it, never the other way round.
     "evaluation": _CORE_FORBIDS,
     "datasets": tuple(p for p in _CORE_FORBIDS if p != "server.datasets"),

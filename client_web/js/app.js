@@ -70,9 +70,9 @@ class App {
   /**
    * Start streaming from a capture mode into a session.
    * @param {{mode?: "demo"|"demo-small"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
-   *   files?: FileList, recording?: File}} options
+   *   room?: boolean, files?: FileList, recording?: File}} options
    */
-  async start({ mode = "demo", fps = 15, fresh = false, files = null, recording = null } = {}) {
+  async start({ mode = "demo", fps = 15, fresh = false, room = false, files = null, recording = null } = {}) {
     this.stopStreaming();
     this.source?.stop?.();
     const button = $("#btn-stream");
@@ -97,7 +97,7 @@ class App {
       this.source = source;
       const info = source.info;
       const hello = this.protocol.hello(info);
-      const { id, resumed } = await this.client.open(hello, { fresh });
+      const { id, resumed } = await this.client.open(hello, { fresh, room });
       if (!resumed) this.#resetViews();
       this.hud.toast(resumed ? `continuing session ${id}` : `new session ${id}`, "ok");
       this.hello = hello;
@@ -365,6 +365,7 @@ class App {
     const form = $("#setup-form");
     const data = new FormData(form);
     return { mode: data.get("mode"), fps: Number(data.get("fps")), fresh: data.get("session") === "new",
+      room: data.get("session") === "room",
       files: $("#folder-input").files, recording: $("#recording-input").files?.[0] ?? null };
   }
 

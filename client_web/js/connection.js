@@ -6,6 +6,7 @@
 import { SERVER_TO_CLIENT } from "./protocol.js";
 
 const STORE_KEY = "dronesim.session";
+const ROOM_KEY = "dronesim.room"; // the last ended session: its id and token open its room
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
 // Closes (protocol.json names) after which reconnecting cannot help: the hello or the session
 // itself is refused.
@@ -25,10 +26,12 @@ export const State = Object.freeze({
 /** Events: "status" {state, message}, "message" (every decoded server message), and one event
  * per message type ("pose", "map_chunk", "drone_state", "drone_event", "error", "welcome"). */
 export class SessionClient extends EventTarget {
-  constructor(protocol, { storage = window.sessionStorage, baseUrl = window.location.origin } = {}) {
+  constructor(protocol, { storage = window.sessionStorage, roomStorage = window.localStorage,
+    baseUrl = window.location.origin } = {}) {
     super();
     this.protocol = protocol;
     this.storage = storage;
+    this.roomStorage = roomStorage; // outlives the tab: a room is for coming back another day
     this.baseUrl = baseUrl;
     this.state = State.IDLE;
     this.ws = null;
@@ -87,34 +90,44 @@ export class SessionClient extends EventTarget {
     this.dispatchEvent(new CustomEvent("status", { detail: { state, message } }));
   }
 
-  async #request(method, path, token) {
+  async #request(method, path, token, json = undefined) {
     const headers = token ? { Authorization: `Bearer ${token}` } : {};
-    const response = await fetch(`${this.baseUrl}${path}`, { method, headers });
-    let body = null;
+    if (json !== undefined) headers["Content-Type"] = "application/json";
+    const body = json === undefined ? undefined : JSON.stringify(json);
+    const response = await fetch(`${this.baseUrl}${path}`, { method, headers, body });
+    let answer = null;
     try {
-      body = await response.json();
+      answer = await response.json();
     } catch {
       /* no body */
     }
     if (!response.ok) {
-      const why = body?.error?.message ?? body?.detail ?? response.statusText;
+      const why = answer?.error?.message ?? answer?.detail ?? response.statusText;
       const error = new Error(`${method} ${path}: HTTP ${response.status} ${why}`);
       error.status = response.status;
       throw error;
     }
-    return body;
+    return answer;
   }
 
   /**
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
+   * With `room`, a new session in the room the saved (closed) session left: it relocalises in
+   * that room's map and tracks in its frame (README, "Rooms").
    * @returns {Promise<{id: string, token: string, resumed: boolean}>}
    */
-  async open(hello, { fresh = false } = {}) {
+  async open(hello, { fresh = false, room = false } = {}) {
     this.close();
     let resumed = false;
     const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
-    if (!fresh && same) {
+    if (room) {
+      // The room of the last session ended here, else of the session still remembered.
+      const last = JSON.parse(this.roomStorage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
+      if (!last) throw new Error("no earlier session on this device to continue the room of");
+      const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id });
+      this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
+    } else if (!fresh && same) {
       try {
         const status = await this.#request("GET", `/api/sessions/${this.saved.id}`, this.saved.token);
         resumed = !status.closed;
@@ -122,7 +135,7 @@ export class SessionClient extends EventTarget {
         resumed = false;
       }
     }
-    if (!resumed) {
+    if (!resumed && !room) {
       const created = await this.#request("POST", "/api/sessions");
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     }
@@ -301,6 +314,8 @@ export class SessionClient extends EventTarget {
   /** Forget the saved session (the next open creates a new one). */
   forget() {
     this.close();
+    // The ended session may leave a room: remembered for "Continue in a saved room".
+    if (this.saved) this.roomStorage.setItem(ROOM_KEY, JSON.stringify({ id: this.saved.id, token: this.saved.token }));
     this.saved = null;
     this.#save();
   }

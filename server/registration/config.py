@@ -121,6 +121,60 @@ class PriorConfig:
 
 
 @dataclass(frozen=True)
+class PlaceConfig:
+    """Place recognition (ORB descriptors with depth per keyframe) and its geometric check.
+
+    Used to relocalise a frame that has no pose guess (opening a saved room) and to find loops.
+    """
+
+    # ORB keypoints detected per image, before the depth check: 2000 rather than 1000 nearly
+    # doubles the matches that survive verification on 7scenes_a.
+    orb_features: int = 2000
+    # Database look-up: every query descriptor votes for the keyframe of its nearest database
+    # descriptor when that lies within this Hamming distance (of 256 bits).
+    vote_max_hamming: int = 64
+    # Descriptors that take part in the vote, evenly picked: of the query, and of each keyframe.
+    vote_features: int = 400
+    candidates: int = 3  # keyframes with the most votes that are verified geometrically
+    min_votes: int = 10  # a keyframe with fewer votes is not verified at all
+    # Verification: ratio test between one query and one keyframe's descriptors.
+    match_ratio: float = 0.9
+    # ORB keypoints (pixel grid, 1.2x pyramid steps) are placed less precisely than the
+    # tracker's sub-pixel LK corners: their lateral noise in the verification's noise model.
+    lateral_noise_px: float = 2.0
+    ransac_iterations: int = 300
+    ransac_threshold_m: float = 0.05  # 3D distance of a RANSAC inlier
+    # Accepted when the Gauss-Newton refinement (Mahalanobis, registration.solver) keeps at
+    # least this many inliers, this share of the RANSAC sample, and this RMSE.
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.25
+    max_rmse: float = 3.0
+    # Surface check: the query's depth (shrunk by depth_shrink, every n-th pixel) moved into the
+    # keyframe must lie on the keyframe's depth (within max(agree_m, agree_ratio * z)) for at
+    # least min_agreement of the pixels that land on measured keyframe depth, and those must be
+    # at least min_overlap of the query's pixels. Descriptors alone accepted wrong places on
+    # 7scenes_a (repeated structure, 20-50 cm off, benchmarks/README.md "Rooms").
+    depth_shrink: int = 8
+    agree_m: float = 0.05
+    agree_ratio: float = 0.03
+    min_agreement: float = 0.7
+    min_overlap: float = 0.2
+    seed: int = 0  # RANSAC's random sampling: the same input gives the same answer
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure over keyframes (server/registration/loops.py): off by default."""
+
+    enabled: bool = False
+    min_separation: int = 10  # a loop joins keyframes at least this many keyframes apart
+    icp_distance_m: float = 0.05  # point-to-plane refinement of a loop; the graph's too
+    min_icp_fitness: float = 0.5  # share of the new keyframe's depth that must fit the old one
+    cloud_stride: int = 4  # every n-th depth pixel in the keyframes' clouds
+    preference: float = 1.0  # Open3D's preference_loop_closure (0.1 odometry-heavy, 2 loops)
+
+
+@dataclass(frozen=True)
 class RegistrationConfig:
     """All parameters of the registration pipeline."""
 
@@ -131,6 +185,8 @@ class RegistrationConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     state: StateConfig = field(default_factory=StateConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
+    place: PlaceConfig = field(default_factory=PlaceConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)
 
     def __post_init__(self) -> None:
         if (
@@ -155,6 +211,13 @@ class RegistrationConfig:
             raise ConfigError(
                 "registration.prior: need alignment_frames >= 1, max_motion_m > 0 and "
                 "max_motion_deg > 0"
+            )
+
+        q = self.place
+        if q.orb_features < 10 or q.candidates < 1 or q.min_inliers < 3 or q.ransac_iterations < 1:
+            raise ConfigError(
+                "registration.place: need orb_features >= 10, candidates >= 1, min_inliers >= 3 "
+                "and ransac_iterations >= 1"
             )
 
     def to_dict(self) -> dict[str, Any]:

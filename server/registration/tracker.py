@@ -150,6 +150,9 @@ class Tracker:
         self.pending: _PendingKeyframe | None = None
         self.alignment = DeviceAlignment(self.cfg.prior)
         self.device_last: FloatArray | None = None  # the prior of the last tracked frame
+        # Keyframes of a saved map (a room) this session continues in: candidates for a keyframe
+        # switch beside the recent ones, so that tracking goes back to the map where it can.
+        self.map_keyframes: list[Keyframe] = []
 
     @property
     def T_world_device(self) -> FloatArray | None:
@@ -158,6 +161,27 @@ class Tracker:
         return (
             None if self.alignment.T_world_device is None else self.alignment.T_world_device.copy()
         )
+
+    def resume_in_map(
+        self, T_world_camera: FloatArray, keyframe: Keyframe, map_keyframes: list[Keyframe]
+    ) -> None:
+        """Continue in a saved map: the next frame is tracked against ``keyframe`` (one of
+        ``map_keyframes``, in the map's world frame) from ``T_world_camera`` (4x4, metres; e.g.
+        from place recognition), with its corners followed straight from the keyframe image.
+        ``map_keyframes`` stay candidates for keyframe switches; new keyframes get ids above
+        theirs. Whatever was tracked before is dropped."""
+        self.map_keyframes = list(map_keyframes)
+        self.recent.clear()
+        self.recent.append(keyframe)
+        self.keyframe = keyframe
+        self.keyframe_count = max(k.id for k in [keyframe, *self.map_keyframes]) + 1
+        self.tracks = None
+        self.pending = None
+        self.T_world_last = orthonormalize(np.asarray(T_world_camera, dtype=np.float64))
+        self.velocity = np.eye(4)
+        self.lost = False
+        self.device_last = None
+        self.alignment.reset()
 
     # ------------------------------------------------------------------ per frame
     def track(
@@ -540,9 +564,9 @@ class Tracker:
         every new keyframe adds its own error to the chain, an old one adds none. Returns the
         keyframe switched to, or None."""
         c = self.cfg.keyframes
-        for kf in sorted(
-            self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)
-        ):
+        recent = list(self.recent)
+        candidates = recent + [k for k in self.map_keyframes if all(k is not r for r in recent)]
+        for kf in sorted(candidates, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)):
             if kf is self.keyframe:
                 continue
             T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur

@@ -23,6 +23,7 @@ class SessionConfig:
     drone_state_hz: float  # drone_state messages per second
     flight_max_s: float = 600.0  # the longest stretch of one flight recorded, s
     flights_kept: int = 20  # the newest flight recordings a session keeps on disk
+    save_room: bool = True  # keep keyframes and leave a room when closed (server.save_rooms)
 
     @classmethod
     def from_config(cls, config: Config | None = None) -> SessionConfig:
@@ -36,4 +37,5 @@ class SessionConfig:
             drone_state_hz=config.server.drone_state_hz,
             flight_max_s=config.server.flight_max_s,
             flights_kept=config.server.flights_kept,
+            save_room=config.server.save_rooms,
         )

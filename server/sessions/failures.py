@@ -22,6 +22,7 @@ class Failures:
     flight_errors: int = 0  # flight steps (20 per second) that raised
     snapshots_failed: int = 0  # snapshots the disk refused (periodic and final)
     sends_failed: int = 0  # connections ended because sending them an update failed
+    room_keyframes_failed: int = 0  # keyframes that could not be kept for the session's room
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

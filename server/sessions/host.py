@@ -110,6 +110,7 @@ class HostArgs:
     threads: int  # native threads for this session's libraries
     # Tests only: stage -> the calls that fail (server/sessions/faults.py); None in service.
     faults: dict[str, list[int]] | None = None
+    room_dir: str | None = None  # a saved room the session continues in (server/rooms/)
 
 
 class SessionHost:
@@ -129,6 +130,7 @@ class SessionHost:
             args.config,
             created_at=args.created_at,
             mapper=mapper,
+            room_dir=None if args.room_dir is None else Path(args.room_dir),
         )
         self._hello: dict | None = None
 

@@ -19,6 +19,7 @@ from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.host import HostArgs
 from server.sessions.live import LiveSession, SessionWorker
+from server.sessions.session import ROOM_FOLDER
 from server.sessions.store import SessionStore, StoreError, hash_token
 from server.sessions.worker import ProcessWorker
 
@@ -127,9 +128,23 @@ class SessionManager:
     def _threads_each(self, sessions: int) -> int:
         return self.threads or max(1, (os.cpu_count() or 1) // max(1, sessions))
 
-    def create(self) -> tuple[LiveSession, str]:
+    def room_of(self, room_id: str, token: str | None) -> Path:
+        """The room folder a closed session ``room_id`` left, if ``token`` is that session's.
+        SessionError not_found (as ``authorize``) for a wrong id or token, room_unavailable when
+        the session is live or saved no room (no keyframe, or no map)."""
+        entry = self.authorize(room_id, token)
+        folder = self.store.folder(room_id) / ROOM_FOLDER
+        if isinstance(entry, LiveSession) or not (folder / "room.json").is_file():
+            raise SessionError(
+                "room_unavailable",
+                "that session has saved no room: a room is saved when a session that mapped "
+                "something closes",
+            )
+        return folder
+
+    def create(self, room: Path | None = None) -> tuple[LiveSession, str]:
         """A new live session, its worker started, and its secret token (shown once; only its
-        hash is kept)."""
+        hash is kept). room: a room folder (``room_of``) for the session to continue in."""
         with self._lock:
             if len(self._live) + len(self._closing) >= self.max_sessions:
                 raise SessionError(
@@ -151,6 +166,7 @@ class SessionManager:
             time.time(),
             threads,
             self.faults,
+            None if room is None else str(room),
         )
         try:
             session = LiveSession(

@@ -102,6 +102,13 @@ class Mapper:
         with self._lock:
             return self.map.occupancy_update(voxel_m, R_flight_world)
 
+    def load(self, path: str) -> None:
+        """Start from a saved map (a room's ``map.npz``) instead of an empty one; its voxel
+        size and block resolution must be this session's."""
+        loaded = TSDFMap.load(path, self.map.config)
+        with self._lock:
+            self.map = loaded
+
     def stats(self, wait: bool = True) -> dict | None:
         """The map's figures (``TSDFMap.stats``); None instead of waiting when the map is busy
         (a fusion in progress) and ``wait`` is False."""
@@ -219,6 +226,9 @@ class MapperClient:
 
     def save(self, folder: str) -> list[str]:
         return self._call("save", str(folder))
+
+    def load(self, path: str) -> None:
+        self._call("load", str(path))
 
     def download(self, name: str) -> bytes:
         return self._call("download", name)

@@ -7,19 +7,31 @@ the newest wins, so latency stays bounded and stale frames are dropped and count
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
-from server.registration import Tracker, TrackingState
+from server.registration import Tracker, TrackingState, TrackResult
 from server.registration.preprocess import resample_depth
+from server.rooms.continuation import RoomTracker
+from server.rooms.room import (
+    MAP_FILE,
+    RoomError,
+    link_keyframes,
+    load_room,
+    room_keyframe,
+    write_keyframe,
+    write_room_meta,
+)
 from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
@@ -44,6 +56,7 @@ from server.sessions.updates import (
 
 log = logging.getLogger(__name__)
 
+ROOM_FOLDER = "room"  # in a session's folder: the room it leaves (server/rooms/room.py)
 _KEYFRAME_WAIT_S = 10.0  # a keyframe waits this long for room in a mapper that is behind
 _POLL_S = 0.2  # how often a wait on the mapping thread checks that it is still alive
 
@@ -55,6 +68,7 @@ class _FuseJob:
     depth: np.ndarray
     T_world_camera: np.ndarray
     keyframe: bool
+    keyframe_id: int = -1  # the tracker's id of the keyframe, when ``keyframe``
 
 
 class Session:
@@ -79,7 +93,10 @@ class Session:
         config: SessionConfig | None = None,
         created_at: float | None = None,
         mapper: Mapper | MapperClient | None = None,
+        room_dir: Path | None = None,
     ) -> None:
+        """room_dir: a saved room (server/rooms/) to continue in: the tracker relocalises the
+        first frames in it and the map starts as the room's; None starts an empty world."""
         self.id = session_id
         self.log = SessionLog(log, session_id)
         self.token_hash = token_hash
@@ -89,7 +106,15 @@ class Session:
         self.closed = False
         self.client_name = ""
         self.intrinsics: Intrinsics | None = None
-        self.tracker: Tracker | None = None
+        self.tracker: Tracker | RoomTracker | None = None
+        self.room_dir = room_dir
+        # This session's room (server/rooms/): the keyframes written so far into its folder's
+        # room/ (mapping thread), as (id, frame seq, T_world_keyframe), after the room it
+        # continues in, if any.
+        self._room_keyframes: list[tuple[int, int, np.ndarray]] = []
+        self._room_sessions: list[dict] = []
+        self._room_base_ids: list[int] = []  # the keyframes of the room continued in
+        self._placed = False  # a frame has been tracked (in a room: recognised in it)
         # The map, in a process of its own when given one (server/sessions/mapping.py says why).
         self.mapper = mapper or Mapper(self.config.mapping)
         self._map_stats: dict = {}
@@ -139,7 +164,7 @@ class Session:
                 "this session was started with another camera; create a new session",
             )
         if self.tracker is None:
-            self.tracker = Tracker(intrinsics, self.config.registration)
+            self.tracker = self._make_tracker(intrinsics)
         if self.flight is None and self.config.simulation is not None:
             self.flight = Flight(
                 self.config.simulation,
@@ -162,6 +187,23 @@ class Session:
         self.last_seen = time.monotonic()
         with self._lock:  # a new connection numbers its frames afresh (a reloaded page)
             self._last_seq = -1
+
+    def _make_tracker(self, intrinsics: Intrinsics) -> Tracker | RoomTracker:
+        """A tracker from the origin, or one that starts in the room and a map that starts as
+        the room's (the drone's map is fed from it with the first fused frame)."""
+        if self.room_dir is None:
+            return Tracker(intrinsics, self.config.registration)
+        try:
+            room = load_room(self.room_dir, self.config.registration)
+            tracker = RoomTracker(room, intrinsics, self.config.registration)
+        except RoomError as exc:
+            raise SessionError("room_unusable", str(exc)) from exc
+        self.mapper.load(str(self.room_dir / MAP_FILE))
+        self._room_keyframes = [(k.id, k.frame_index, k.T_world_keyframe) for k in room.keyframes]
+        self._room_base_ids = [k.id for k in room.keyframes]
+        self._room_sessions = list(room.sessions)
+        self.log.info("continues in the room %s (%d keyframes)", self.room_dir, len(room.keyframes))
+        return tracker
 
     def _publish(self, update: Update) -> None:
         on_update = self.on_update
@@ -227,7 +269,7 @@ class Session:
         return True
 
     # ------------------------------------------------------------------ worker
-    def _configured(self) -> tuple[Intrinsics, Tracker]:
+    def _configured(self) -> tuple[Intrinsics, Tracker | RoomTracker]:
         """The camera and tracker the hello set (``configure``); submit takes no frame before."""
         if self.intrinsics is None or self.tracker is None:
             raise SessionError("no_hello", "send a hello before frames")
@@ -285,6 +327,8 @@ class Session:
         t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
         result = tracker.track(frame.colour, depth, T_device_camera=frame.T_device_camera)
+        if result is None:  # in a room, before a frame is recognised in it: no pose yet
+            result = _not_placed(frame.seq)
         timings = {
             "decode": frame.decode_ms,
             **{f"track_{k}": v for k, v in result.timings_ms.items()},
@@ -323,9 +367,22 @@ class Session:
         new_keyframe = result.new_keyframe
         if result.keyframe_due:
             new_keyframe = tracker.update_keyframe()
-        if tracked and (new_keyframe or (processed - 1) % self.config.mapping.fuse_every == 0):
+        # The first frame placed in a room is always fused: with it the drone's map is fed the
+        # room's map (a fresh session's first frame is its first keyframe anyway).
+        first_placed = tracked and not self._placed
+        self._placed = self._placed or tracked
+        if tracked and (
+            new_keyframe or first_placed or (processed - 1) % self.config.mapping.fuse_every == 0
+        ):
             self._queue_fusion(
-                _FuseJob(frame.seq, frame.colour, depth, result.T_world_camera, new_keyframe)
+                _FuseJob(
+                    frame.seq,
+                    frame.colour,
+                    depth,
+                    result.T_world_camera,
+                    new_keyframe,
+                    result.keyframe_id,
+                )
             )
 
     # ------------------------------------------------------------------ mapping worker
@@ -389,6 +446,8 @@ class Session:
                     self.failures.fusions_failed += 1
                 continue
             self._fused += 1
+            if job.keyframe and self.config.save_room:
+                self._keep_room_keyframe(job, K)
             with self._lock:
                 self._dirty = True
             if fused.stats:
@@ -397,6 +456,53 @@ class Session:
                 self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
             if occupancy is not None:
                 self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
+
+    def _keep_room_keyframe(self, job: _FuseJob, K: Intrinsics) -> None:
+        """Write a keyframe into this session's room folder (mapping thread: its features and
+        images cost 20-40 ms, which the poses do not wait for). A failure is counted; the
+        session goes on without that keyframe in its room."""
+        try:
+            kf = room_keyframe(
+                job.keyframe_id,
+                job.seq,
+                job.T_world_camera,
+                job.colour,
+                job.depth,
+                K,
+                self.config.registration,
+            )
+            write_keyframe(self.store.folder(self.id) / ROOM_FOLDER, kf)
+        except Exception:
+            self.log.exception("keeping keyframe %d for the room failed", job.keyframe_id)
+            with self._lock:
+                self.failures.room_keyframes_failed += 1
+            return
+        with self._lock:
+            self._room_keyframes.append((kf.id, kf.frame_index, kf.T_world_keyframe))
+
+    def save_room(self) -> bool:
+        """Make this session's folder a room (``room/``: its keyframes, those of the room it
+        continued in, and its final map) for a later session to continue in; False when it has
+        no keyframe or no map. Call after the final snapshot."""
+        folder = self.store.folder(self.id)
+        with self._lock:
+            keyframes = list(self._room_keyframes)
+        if (
+            not self.config.save_room
+            or self.intrinsics is None
+            or not keyframes
+            or not (folder / MAP_FILE).is_file()
+        ):
+            return False
+        room = folder / ROOM_FOLDER
+        room.mkdir(parents=True, exist_ok=True)
+        if self.room_dir is not None:
+            link_keyframes(self.room_dir, room, self._room_base_ids)
+        (room / MAP_FILE).unlink(missing_ok=True)
+        os.link(folder / MAP_FILE, room / MAP_FILE)
+        sessions = [*self._room_sessions, {"session": self.id, "keyframes_after": len(keyframes)}]
+        write_room_meta(room, self.intrinsics, keyframes, sessions)
+        return True
 
     def _catch_up_flight_map(self) -> None:
         """No frame to fuse (the phone holds still, or the stream ended): hand the drone the
@@ -581,6 +687,12 @@ class Session:
         self.closed = True
         if save:
             self.snapshot()  # raises SnapshotError: the map stays, for the next try
+            try:
+                self.save_room()
+            except OSError:
+                self.log.exception("saving the session's room failed")
+                with self._lock:
+                    self.failures.room_keyframes_failed += 1
         self._map_figures(wait=True)
         self._map_closed = True
         self.mapper.close()
@@ -599,3 +711,9 @@ class Session:
             except queue.Full:
                 continue
         thread.join(max(0.0, deadline - time.monotonic()))
+
+
+def _not_placed(seq: int) -> TrackResult:
+    """The answer for a frame of a session in a room before any frame was recognised in it:
+    lost, at the identity (no pose is known yet)."""
+    return TrackResult(seq, np.eye(4), TrackingState.LOST, 0, np.inf, 0.0, -1, False)

@@ -40,6 +40,7 @@ _STATUS = {
     "not_found": 404,
     "session_closed": 409,
     "too_many_viewers": 409,
+    "room_unavailable": 409,
     "rate_limited": 429,
     "server_full": 503,
 }

@@ -10,15 +10,15 @@ from __future__ import annotations
 import asyncio
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.responses import JSONResponse
 
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import LiveSession
-from server.transport.deps import ManagerDep, SessionDep, creation_allowed
-from server.transport.schemas import SessionCreated, SessionStatus, error_response
+from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
+from server.transport.schemas import SessionCreate, SessionCreated, SessionStatus, error_response
 from server.transport.websocket import end_connection
 
 PLY = "application/octet-stream"
@@ -61,23 +61,39 @@ _NO_MAP: _Responses = {
             "`rate_limited`: too many new sessions from this address; see Retry-After"
         ),
         503: error_response("`server_full`: the server holds its maximum of live sessions"),
+        401: error_response("`unauthorized`: `room` given without the room's token"),
+        404: error_response("`not_found`: no closed session `room` for this token"),
+        409: error_response("`room_unavailable`: the session `room` saved no room"),
     },
 )
-def create_session(request: Request, manager: ManagerDep) -> JSONResponse:
-    """Create a live session: **201** with `{id, token, websocket}`. No request body.
+def create_session(
+    request: Request,
+    manager: ManagerDep,
+    token: Annotated[str | None, Depends(bearer_token)],
+    body: SessionCreate | None = None,
+) -> JSONResponse:
+    """Create a live session: **201** with `{id, token, websocket, room}`. The body is optional.
 
     The token is shown only here: keep it, every other call needs it (`Authorization: Bearer
     <token>`, or `?token=` on the WebSocket). `websocket` is the socket's URL without the
     token. A client creating sessions too fast gets 429 with Retry-After (seconds); a full
-    server 503."""
-    session, token = manager.create()
+    server 503.
+
+    With `{"room": "<id>"}` and that closed session's token as `Authorization: Bearer`, the new
+    session continues in the room it saved (README, "Rooms"): its first frames are relocalised
+    in the room (answered `lost` at the identity until one is recognised), then tracked in the
+    room's world frame; the map and the drone's map start as the room's. The new session gets a
+    token of its own."""
+    room = None if body is None or body.room is None else manager.room_of(body.room, token)
+    session, new_token = manager.create(room)
     scheme = "wss" if request.url.scheme == "https" else "ws"
-    body = {
+    answer = {
         "id": session.id,
-        "token": token,
+        "token": new_token,
         "websocket": f"{scheme}://{request.url.netloc}/ws/sessions/{session.id}",
+        "room": None if body is None else body.room,
     }
-    return JSONResponse(body, status_code=status.HTTP_201_CREATED)
+    return JSONResponse(answer, status_code=status.HTTP_201_CREATED)
 
 
 @router.get("/{session_id}", response_model=SessionStatus, responses=_TOKEN_ERRORS)

@@ -16,6 +16,19 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="allow")
 
 
+class SessionCreate(_Body):
+    """The optional body of ``POST /api/sessions``."""
+
+    room: str | None = Field(
+        None,
+        description="continue in the room a closed session saved: that session's id. The "
+        "request's `Authorization: Bearer <token>` must be that session's token. The new "
+        "session relocalises its first frames in the room and tracks in its world frame; the "
+        "map and the drone's map start as the room's",
+        pattern="^[0-9a-f]{16}$",
+    )
+
+
 class SessionCreated(_Body):
     """``POST /api/sessions`` answers 201 with this body."""
 
@@ -32,6 +45,9 @@ class SessionCreated(_Body):
         description="URL of the session's WebSocket, ws:// or wss:// as the request came in "
         "(`/ws/sessions/{id}`), WITHOUT the token: append `?token=<token>` to connect",
     )
+    room: str | None = Field(
+        None, description="the room this session continues in (a session id), or null"
+    )
 
 
 class ErrorDetail(_Body):
@@ -39,7 +55,8 @@ class ErrorDetail(_Body):
         description="unauthorized (401: no token), not_found (404: unknown id or wrong token, "
         "the same answer), rate_limited (429, with a Retry-After header in seconds), "
         "server_full (503: the server holds its maximum of live sessions), map_unavailable "
-        "(409: no map surface fused yet), session_failed (400: the session's worker died "
+        "(409: no map surface fused yet), room_unavailable (409: the session named as a room "
+        "saved none, or is still live), session_failed (400: the session's worker died "
         "during the request), session_closed (409: a viewer link asked of a closed session), "
         "too_many_viewers (409: the session has max_viewers links)"
     )
@@ -126,6 +143,9 @@ class Failures(_Body):
     flight_errors: int = Field(description="drone simulation steps that failed")
     snapshots_failed: int = Field(description="periodic or final snapshots that failed")
     sends_failed: int = Field(description="connections ended with send_failed (close 4011)")
+    room_keyframes_failed: int = Field(
+        0, description="keyframes that could not be written to the session's room"
+    )
 
 
 class WorkerInfo(_Body):

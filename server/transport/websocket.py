@@ -40,6 +40,8 @@ _SESSION_CODES = {
     "intrinsics_changed": "bad_intrinsics",
     "session_closed": "unauthorized",
     "session_failed": "session_failed",
+    # A session in a room refuses a camera other than the room's (or a room it cannot read).
+    "room_unusable": "bad_intrinsics",
 }
 _OUTBOX = 256  # updates waiting for a slow client; beyond this the oldest are skipped
 

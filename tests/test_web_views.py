@@ -47,6 +47,16 @@ def _shot(page, path: Path) -> np.ndarray:
     )
 
 
+# The held frame's depth set aside (as when a live XR frame has none) and put back.
+USE_MESH = """() => { const ar = window.dronesim.ar;
+  window.heldDepth = ar.occlusion.depth ?? window.heldDepth;
+  ar.occlusion.clearDepth();
+  ar.dirty = true; }"""
+USE_DEPTH = """() => { const ar = window.dronesim.ar;
+  ar.occlusion.depth = window.heldDepth;
+  ar.dirty = true; }"""
+
+
 def _hidden_and_front_points(index: int) -> tuple[np.ndarray, np.ndarray, float, int]:
     """In the demo room's own frame, for the camera of frame ``index``: the free point (0.3 m
     clear of every surface, in the picture) whose drone-sized disc is most hidden by a surface,
@@ -199,10 +209,24 @@ def test_ar_occlusion_hides_the_drone_behind_the_demo_table(live_server, open_pa
     assert shown >= 20, f"without occlusion the drone {z_behind:.2f} m away shows only {shown} px"
     assert hidden <= 0.2 * shown, f"behind the table {hidden} of {shown} drone pixels still show"
 
+    # Without the frame's depth (live AR while ARCore has none), the fused mesh hides it.
+    page.page.evaluate("() => { const m = window.dronesim.mapMesh; m.wanted = true; m.poll(); }")
+    page.wait("window.dronesim.mapMesh.geometry !== null", 40, "the map's mesh")
+    page.page.evaluate(USE_MESH)
+    by_mesh, _ = _drone_paint(page, tmp_path, "behind-table-occlusion-mesh")
+    assert page.snapshot()["occlusion"]["source"] == "mesh"
+    assert by_mesh <= 0.2 * shown, f"behind the table {by_mesh} of {shown} px show (mesh)"
+
+    page.page.evaluate(USE_DEPTH)
     _fly_to(page, world(front))
     in_front, z_front = _drone_paint(page, tmp_path, "before-table-occlusion-on")
+    assert page.snapshot()["occlusion"]["source"] == "depth"
     assert z_front < z_behind - 0.5
     assert in_front >= 20, f"in front of the table the drone shows only {in_front} px"
+    page.page.evaluate(USE_MESH)
+    in_front_mesh, _ = _drone_paint(page, tmp_path, "before-table-occlusion-mesh")
+    assert page.snapshot()["occlusion"]["source"] == "mesh"
+    assert in_front_mesh >= 0.8 * in_front, (in_front_mesh, in_front)
     assert not page.errors, page.errors
 
 
@@ -258,4 +282,90 @@ def test_fpv_view_draws_the_room_from_the_drone(live_server, open_page, tmp_path
     mesh = page.snapshot()["mesh"]
     elapsed = time.time() - t0
     assert 1 <= mesh["downloads"] <= 2 + elapsed / 8.0, (mesh, elapsed)
+    assert not page.errors, page.errors
+
+
+def _png16(values: np.ndarray) -> bytes:
+    """A 16-bit greyscale PNG written here, row y with PNG filter type y % 5 (none, sub, up,
+    average, Paeth), so that the page's reader meets every filter; split into two IDAT chunks."""
+    import struct
+    import zlib
+
+    h, w = values.shape
+    rows = values.astype(">u2").view(np.uint8).reshape(h, 2 * w).astype(int)
+    raw = bytearray()
+    for y in range(h):
+        cur, up = rows[y], rows[y - 1] if y else np.zeros(2 * w, int)
+        left = np.concatenate([[0, 0], cur[:-2]])
+        upleft = np.concatenate([[0, 0], up[:-2]])
+        f = y % 5
+        if f == 0:
+            pred = np.zeros_like(cur)
+        elif f == 1:
+            pred = left
+        elif f == 2:
+            pred = up
+        elif f == 3:
+            pred = (left + up) // 2
+        else:
+            p = left + up - upleft
+            pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - upleft)
+            pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, upleft))
+        raw += bytes([f]) + bytes(((cur - pred) % 256).astype(np.uint8))
+    data = zlib.compress(bytes(raw))
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body)
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)
+    half = len(data) // 2
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", data[:half])
+        + chunk(b"IDAT", data[half:])
+        + chunk(b"IEND", b"")
+    )
+
+
+READERS_JS = """async ([png, cvPng, ply]) => {
+  const { decodeDepthPng } = await import('/app/js/depth_png.js');
+  const { parseMeshPly } = await import('/app/js/mesh_ply.js');
+  const bytes = (list) => new Uint8Array(list);
+  const a = await decodeDepthPng(bytes(png));
+  const b = await decodeDepthPng(bytes(cvPng));
+  const m = parseMeshPly(bytes(ply).buffer);
+  const plain = (d) => ({ w: d.width, h: d.height, v: Array.from(d.values) });
+  return { a: plain(a), b: plain(b),
+    mesh: { p: Array.from(m.positions), c: Array.from(m.colours), i: Array.from(m.indices) } };
+}"""
+
+
+def test_depth_png_and_mesh_ply_readers_in_the_browser(live_server, open_page, tmp_path):
+    import open3d as o3d
+
+    rng = np.random.default_rng(3)
+    h, w = 24, 33
+    depth = (rng.integers(0, 65536, (h, w)) * (rng.random((h, w)) > 0.1)).astype(np.uint16)
+    smooth = (5000 * (1 + np.add.outer(np.arange(h), np.arange(w)) / 50)).astype(np.uint16)
+    ok, cv_png = cv2.imencode(".png", smooth)
+    assert ok
+    mesh = o3d.geometry.TriangleMesh.create_box(0.5, 0.3, 0.2).translate((1.0, -2.0, 0.5))
+    mesh.compute_vertex_normals()
+    colours = rng.random((len(mesh.vertices), 3))
+    mesh.vertex_colors = o3d.utility.Vector3dVector(colours)
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh, write_ascii=False)
+    ply = (tmp_path / "mesh.ply").read_bytes()
+
+    page = open_page(live_server())
+    out = page.page.evaluate(READERS_JS, [list(_png16(depth)), list(cv_png.tobytes()), list(ply)])
+    assert (out["a"]["w"], out["a"]["h"]) == (w, h)
+    assert np.array_equal(np.array(out["a"]["v"]).reshape(h, w), depth)
+    assert np.array_equal(np.array(out["b"]["v"]).reshape(h, w), smooth)
+    positions = np.array(out["mesh"]["p"]).reshape(-1, 3)
+    assert np.allclose(positions, np.asarray(mesh.vertices), atol=1e-6)
+    assert np.array_equal(np.array(out["mesh"]["i"]).reshape(-1, 3), np.asarray(mesh.triangles))
+    expected = np.round(colours * 255)
+    assert np.abs(np.array(out["mesh"]["c"]).reshape(-1, 3) - expected).max() <= 1
     assert not page.errors, page.errors

@@ -36,14 +36,24 @@ const QUAD_FRAGMENT = /* glsl */ `
   uniform sampler2D depthMetres;
   uniform mat4 depthFromView; // normalized view -> normalized depth-image coordinates
   uniform vec2 bias;          // metres, per metre
+  uniform vec2 texel;         // one depth pixel in normalized depth-image coordinates
   varying vec2 vView;
   varying vec4 vDepthTerms;
   void main() {
     vec4 p = depthFromView * vec4(vView, 0.0, 1.0);
     vec2 uv = p.xy / p.w;
     if (uv.x < 0.0 || uv.y < 0.0 || uv.x >= 1.0 || uv.y >= 1.0) discard;
-    float d = texture2D(depthMetres, uv).r;
-    if (!(d > 0.0)) discard; // no measurement: nothing hides the drone here
+    // The nearest valid sample of the 5x5 around: depth sensors leave holes (grazing angles,
+    // dark or shiny surfaces) that would let the drone show through a surface in specks; the
+    // nearest one errs on the side of hiding, by at most two depth pixels at an edge.
+    float d = 1e9;
+    for (int j = -2; j <= 2; j++) {
+      for (int i = -2; i <= 2; i++) {
+        float s = texture2D(depthMetres, uv + vec2(float(i), float(j)) * texel).r;
+        if (s > 0.0) d = min(d, s);
+      }
+    }
+    if (d > 1e8) discard; // no measurement near: nothing hides the drone here
     d += bias.x + bias.y * d;
     float z = vDepthTerms.x * -d + vDepthTerms.y;
     float w = vDepthTerms.z * -d + vDepthTerms.w;
@@ -71,7 +81,8 @@ export class Occlusion {
     this.source = "none"; // what hid the drone in the last draw: depth, mesh or none
     const bias = new THREE.Vector2(OCCLUSION_BIAS.metres, OCCLUSION_BIAS.perMetre);
     this.quadMaterial = new THREE.ShaderMaterial({
-      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias } },
+      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias },
+        texel: { value: new THREE.Vector2() } },
       vertexShader: QUAD_VERTEX, fragmentShader: QUAD_FRAGMENT,
       colorWrite: false, depthWrite: true, depthTest: true, depthFunc: THREE.AlwaysDepth,
     });
@@ -110,6 +121,7 @@ export class Occlusion {
     texture.needsUpdate = true;
     this.depth = { seq, texture, width, height };
     this.quadMaterial.uniforms.depthMetres.value = texture;
+    this.quadMaterial.uniforms.texel.value.set(1 / width, 1 / height);
     if (depthFromView) this.quadMaterial.uniforms.depthFromView.value.fromArray(depthFromView);
     else this.quadMaterial.uniforms.depthFromView.value.copy(IDENTITY);
   }

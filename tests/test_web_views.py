@@ -336,13 +336,20 @@ READERS_JS = """async ([png, cvPng, ply]) => {
   const a = await decodeDepthPng(bytes(png));
   const b = await decodeDepthPng(bytes(cvPng));
   const m = parseMeshPly(bytes(ply).buffer);
+  const { fillDepthHoles } = await import('/app/js/occlusion.js');
+  const row = new Float32Array([2, 0, 0, 0, 0, 0, 3]);
+  const square = new Float32Array([5, 4, 6, 7, 0, 4.5, 9, 8, 0]);
+  const filled = [Array.from(fillDepthHoles(row, 7, 1, new Float32Array(7))),
+    Array.from(fillDepthHoles(square, 3, 3, new Float32Array(9), 1))];
   const plain = (d) => ({ w: d.width, h: d.height, v: Array.from(d.values) });
-  return { a: plain(a), b: plain(b),
+  return { a: plain(a), b: plain(b), filled,
     mesh: { p: Array.from(m.positions), c: Array.from(m.colours), i: Array.from(m.indices) } };
 }"""
 
 
-def test_depth_png_and_mesh_ply_readers_in_the_browser(live_server, open_page, tmp_path):
+def test_depth_png_mesh_ply_readers_and_hole_filling_in_the_browser(
+    live_server, open_page, tmp_path
+):
     import open3d as o3d
 
     rng = np.random.default_rng(3)
@@ -368,4 +375,7 @@ def test_depth_png_and_mesh_ply_readers_in_the_browser(live_server, open_page, t
     assert np.array_equal(np.array(out["mesh"]["i"]).reshape(-1, 3), np.asarray(mesh.triangles))
     expected = np.round(colours * 255)
     assert np.abs(np.array(out["mesh"]["c"]).reshape(-1, 3) - expected).max() <= 1
+    # Occlusion's hole filling: the nearest valid depth within the radius, else still none.
+    assert out["filled"][0] == [2, 2, 2, 0, 3, 3, 3]
+    assert out["filled"][1] == [5, 4, 6, 7, 4, 4.5, 9, 8, 4.5]  # from the input, not the filled
     assert not page.errors, page.errors

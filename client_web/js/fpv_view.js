@@ -33,7 +33,9 @@ export class FPVView {
   /** @param {HTMLElement} container */
   constructor(container) {
     this.container = container;
-    this.renderer = new THREE.WebGLRenderer({ antialias: true });
+    // No multisampling: the mesh's colours are soft anyway, and it adds to the cost of a big
+    // mesh where WebGL runs in software (headless chromium; benchmarks/page_fps.py).
+    this.renderer = new THREE.WebGLRenderer({ antialias: false });
     this.renderer.setClearColor(SKY, 1);
     this.renderer.domElement.className = "fpv-canvas";
     this.hint = document.createElement("div");

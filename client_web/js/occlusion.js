@@ -36,24 +36,14 @@ const QUAD_FRAGMENT = /* glsl */ `
   uniform sampler2D depthMetres;
   uniform mat4 depthFromView; // normalized view -> normalized depth-image coordinates
   uniform vec2 bias;          // metres, per metre
-  uniform vec2 texel;         // one depth pixel in normalized depth-image coordinates
   varying vec2 vView;
   varying vec4 vDepthTerms;
   void main() {
     vec4 p = depthFromView * vec4(vView, 0.0, 1.0);
     vec2 uv = p.xy / p.w;
     if (uv.x < 0.0 || uv.y < 0.0 || uv.x >= 1.0 || uv.y >= 1.0) discard;
-    // The nearest valid sample of the 5x5 around: depth sensors leave holes (grazing angles,
-    // dark or shiny surfaces) that would let the drone show through a surface in specks; the
-    // nearest one errs on the side of hiding, by at most two depth pixels at an edge.
-    float d = 1e9;
-    for (int j = -2; j <= 2; j++) {
-      for (int i = -2; i <= 2; i++) {
-        float s = texture2D(depthMetres, uv + vec2(float(i), float(j)) * texel).r;
-        if (s > 0.0) d = min(d, s);
-      }
-    }
-    if (d > 1e8) discard; // no measurement near: nothing hides the drone here
+    float d = texture2D(depthMetres, uv).r; // holes filled on upload (fillDepthHoles)
+    if (!(d > 0.0)) discard; // no measurement near: nothing hides the drone here
     d += bias.x + bias.y * d;
     float z = vDepthTerms.x * -d + vDepthTerms.y;
     float w = vDepthTerms.z * -d + vDepthTerms.w;
@@ -74,6 +64,36 @@ const MESH_VERTEX = /* glsl */ `
 
 const MESH_FRAGMENT = /* glsl */ `void main() { gl_FragColor = vec4(0.0); }`;
 
+/**
+ * Depth with its holes filled: each sample without a measurement (0) takes the nearest valid
+ * depth within `radius` pixels (the square around it), else stays 0. Depth sensors leave holes
+ * at grazing angles and on dark or shiny surfaces, which would let the drone show through a
+ * surface in specks; the nearest depth errs on the side of hiding, by at most `radius` depth
+ * pixels beside an edge. Done once per depth image, not per drawn pixel.
+ * @param {Float32Array} metres width x height, row-major
+ * @param {Float32Array} out the same size (may not be `metres`)
+ */
+export function fillDepthHoles(metres, width, height, out, radius = 2) {
+  for (let y = 0; y < height; y++) {
+    for (let x = 0; x < width; x++) {
+      const i = y * width + x;
+      let d = metres[i];
+      if (!(d > 0)) {
+        d = Infinity;
+        for (let v = Math.max(0, y - radius); v <= Math.min(height - 1, y + radius); v++) {
+          for (let u = Math.max(0, x - radius); u <= Math.min(width - 1, x + radius); u++) {
+            const s = metres[v * width + u];
+            if (s > 0 && s < d) d = s;
+          }
+        }
+        if (d === Infinity) d = 0;
+      }
+      out[i] = d;
+    }
+  }
+  return out;
+}
+
 export class Occlusion {
   constructor() {
     this.enabled = true;
@@ -81,8 +101,7 @@ export class Occlusion {
     this.source = "none"; // what hid the drone in the last draw: depth, mesh or none
     const bias = new THREE.Vector2(OCCLUSION_BIAS.metres, OCCLUSION_BIAS.perMetre);
     this.quadMaterial = new THREE.ShaderMaterial({
-      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias },
-        texel: { value: new THREE.Vector2() } },
+      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias } },
       vertexShader: QUAD_VERTEX, fragmentShader: QUAD_FRAGMENT,
       colorWrite: false, depthWrite: true, depthTest: true, depthFunc: THREE.AlwaysDepth,
     });
@@ -117,11 +136,10 @@ export class Occlusion {
       texture = new THREE.DataTexture(new Float32Array(width * height), width, height, THREE.RedFormat, THREE.FloatType);
       texture.minFilter = texture.magFilter = THREE.NearestFilter; // never blend a near edge with the far side
     }
-    texture.image.data.set(metres);
+    fillDepthHoles(metres, width, height, texture.image.data);
     texture.needsUpdate = true;
     this.depth = { seq, texture, width, height };
     this.quadMaterial.uniforms.depthMetres.value = texture;
-    this.quadMaterial.uniforms.texel.value.set(1 / width, 1 / height);
     if (depthFromView) this.quadMaterial.uniforms.depthFromView.value.fromArray(depthFromView);
     else this.quadMaterial.uniforms.depthFromView.value.copy(IDENTITY);
   }

@@ -71,7 +71,7 @@ MEASURE_JS = """async ([view, ms]) => {
   return { fps: (stamps.length - 1) / span, p95: gaps[Math.floor(0.95 * (gaps.length - 1))],
     drawsPerS: draws / span, msPerDraw: draws ? drawMs / draws : 0,
     occlusion: window.dronesim.ar.lastDraw.occlusion,
-    triangles: window.dronesim.fpv.lastDraw.triangles };
+    triangles: window.dronesim.fpv.lastDraw.triangles, mesh: window.dronesim.mapMesh.summary() };
 }"""
 
 
@@ -133,10 +133,12 @@ def main() -> None:
     ):
         table.add_column(column)
     for name, r in rows:
+        mesh = r["mesh"]["lastDownload"] or {"ms": float("nan"), "bytes": 0}
         note = (
             f"occluder: {r['occlusion']}"
             if name.startswith("AR")
-            else f"{r['triangles']} triangles"
+            else f"{r['triangles']} triangles; mesh.ply {mesh['bytes'] / 1e6:.1f} MB"
+            f" in {mesh['ms']:.0f} ms"
         )
         table.add_row(
             name,

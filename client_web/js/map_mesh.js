@@ -28,6 +28,7 @@ export class MapMesh extends EventTarget {
     this.downloads = 0; // requests made (tests check the rate)
     this.failures = 0;
     this.lastError = null;
+    this.lastDownload = null; // {ms, bytes} of the last mesh that came
   }
 
   /** The map's size in preview points (after each map_chunk); a reset map drops the mesh. */
@@ -54,8 +55,10 @@ export class MapMesh extends EventTarget {
   async #download(atPoints) {
     this.pending = true;
     this.downloads += 1;
+    const t0 = performance.now();
     try {
       const { blob } = await this.client.download("mesh.ply");
+      this.lastDownload = { ms: performance.now() - t0, bytes: blob.size }; // the server's extraction included
       const { positions, colours, indices } = parseMeshPly(await blob.arrayBuffer());
       const geometry = new THREE.BufferGeometry();
       geometry.setAttribute("position", new THREE.BufferAttribute(positions, 3));
@@ -80,6 +83,7 @@ export class MapMesh extends EventTarget {
   /** What the tests and the debugging snapshot read. */
   summary() {
     return { downloads: this.downloads, failures: this.failures, lastError: this.lastError, wanted: this.wanted,
-      triangles: this.geometry ? this.geometry.index.count / 3 : 0, loadedAtPoints: this.loadedAtPoints };
+      triangles: this.geometry ? this.geometry.index.count / 3 : 0, loadedAtPoints: this.loadedAtPoints,
+      lastDownload: this.lastDownload };
   }
 }

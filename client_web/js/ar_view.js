@@ -55,8 +55,7 @@ export class ARView {
     this.root.matrixAutoUpdate = false;
     this.scene.add(this.root);
     this.occlusion = new Occlusion(); // real surfaces hide the drone (occlusion.js)
-    this.scene.add(this.occlusion.quad);
-    this.root.add(this.occlusion.mesh);
+    this.root.add(this.occlusion.quad, this.occlusion.mesh);
     for (const name of ["drone", "marker", "target"]) {
       this[name] = { drone: createDrone, marker: createGroundMarker, target: createTargetMarker }[name]();
       this[name].matrixAutoUpdate = false;
@@ -193,7 +192,7 @@ export class ARView {
       this.#placeGroundMarker(s, frame);
       this.#placeRoute(s, frame);
     }
-    this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null);
+    this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null, this.drone.visible ? this.drone.matrix : null);
     this.renderer.render(this.scene, this.camera);
     this.dirty = false;
   }

@@ -21,15 +21,31 @@ import * as THREE from "three";
 import { CV_TO_GL } from "./geometry.js";
 
 export const OCCLUSION_BIAS = Object.freeze({ metres: 0.04, perMetre: 0.02 }); // bias = 4 cm + 2 % of depth
+const DRONE_RADIUS_M = 0.25; // centre to rotor tips, 0.23 m (drone_model.js), and a little more
 const IDENTITY = new THREE.Matrix4();
 
+// The quad covers the drone's part of the screen only (a generous box around the projection of
+// its bounding sphere; all of it when the camera is about inside the sphere): depth matters only
+// where the drone is drawn, and a full-screen pass that writes gl_FragDepth costs every XR frame.
 const QUAD_VERTEX = /* glsl */ `
-  varying vec2 vView;       // normalized view coordinates: x right, y down, origin top left
-  varying vec4 vDepthTerms; // projection entries that map eye-space z to clip z and w
+  uniform vec3 droneCentre;  // in the quad's frame (the overlay's root, as the drone)
+  uniform float droneRadius; // metres
+  varying vec2 vView;        // normalized view coordinates: x right, y down, origin top left
+  varying vec4 vDepthTerms;  // projection entries that map eye-space z to clip z and w
   void main() {
-    vView = vec2(0.5 + 0.5 * position.x, 0.5 - 0.5 * position.y);
+    vec4 c = projectionMatrix * modelViewMatrix * vec4(droneCentre, 1.0);
+    vec2 centre = vec2(0.0);
+    vec2 halfSize = vec2(1.0);
+    if (c.w > 2.0 * droneRadius) {
+      centre = c.xy / c.w;
+      halfSize = 2.0 * droneRadius * vec2(abs(projectionMatrix[0][0]), abs(projectionMatrix[1][1])) / (c.w - droneRadius);
+    } else if (c.w < -2.0 * droneRadius) {
+      halfSize = vec2(0.0); // behind the camera: nothing of the drone is drawn
+    }
+    vec2 ndc = clamp(centre + position.xy * halfSize, -1.0, 1.0);
+    vView = vec2(0.5 + 0.5 * ndc.x, 0.5 - 0.5 * ndc.y);
     vDepthTerms = vec4(projectionMatrix[2][2], projectionMatrix[3][2], projectionMatrix[2][3], projectionMatrix[3][3]);
-    gl_Position = vec4(position.xy, 0.0, 1.0);
+    gl_Position = vec4(ndc, 0.0, 1.0);
   }`;
 
 const QUAD_FRAGMENT = /* glsl */ `
@@ -101,11 +117,12 @@ export class Occlusion {
     this.source = "none"; // what hid the drone in the last draw: depth, mesh or none
     const bias = new THREE.Vector2(OCCLUSION_BIAS.metres, OCCLUSION_BIAS.perMetre);
     this.quadMaterial = new THREE.ShaderMaterial({
-      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias } },
+      uniforms: { depthMetres: { value: null }, depthFromView: { value: new THREE.Matrix4() }, bias: { value: bias },
+        droneCentre: { value: new THREE.Vector3() }, droneRadius: { value: DRONE_RADIUS_M } },
       vertexShader: QUAD_VERTEX, fragmentShader: QUAD_FRAGMENT,
       colorWrite: false, depthWrite: true, depthTest: true, depthFunc: THREE.AlwaysDepth,
     });
-    /** Add to the overlay's scene: a full-screen quad, whatever the camera. */
+    /** Add to the overlay's root (the shown frame's GL camera frame), like the drone. */
     this.quad = new THREE.Mesh(new THREE.PlaneGeometry(2, 2), this.quadMaterial);
     this.quad.frustumCulled = false;
     this.quad.renderOrder = -100; // before everything else that is opaque
@@ -159,12 +176,15 @@ export class Occlusion {
    * Choose the occluder for the next draw.
    * @param {{seq: number, T_camera_world: THREE.Matrix4}|null} frame the shown frame
    * @param {boolean} live the overlay is drawn over the live XR camera (depth of the current frame)
+   * @param {THREE.Matrix4|null} drone the drone's pose in the root frame, or null when not drawn
    */
-  prepare(frame, live = false) {
+  prepare(frame, live = false, drone = null) {
     const depthFits = this.depth !== null && (live ? this.depth.seq === null : this.depth.seq === frame?.seq);
     this.source = !this.enabled || !frame ? "none" : depthFits ? "depth" : this.hasMesh ? "mesh" : "none";
-    this.quad.visible = this.source === "depth";
-    this.mesh.visible = this.source === "mesh";
+    // Nothing to hide without the drone: the ground marker and target lie on surfaces anyway.
+    this.quad.visible = this.source === "depth" && drone !== null;
+    this.mesh.visible = this.source === "mesh" && drone !== null;
+    if (drone) this.quadMaterial.uniforms.droneCentre.value.setFromMatrixPosition(drone);
     if (this.mesh.visible) {
       this.mesh.matrix.multiplyMatrices(CV_TO_GL, frame.T_camera_world);
       this.mesh.matrixWorldNeedsUpdate = true;

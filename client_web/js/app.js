@@ -19,6 +19,7 @@ import { Streamer } from "./streamer.js";
 
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
+const MESH_AFTER_NO_DEPTH_MS = 1000; // live AR without depth this long: occlusion by the map's mesh
 const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
 
 class App {
@@ -358,8 +359,11 @@ class App {
       if (!view.contains("layout-map") && !fpv && !this.source?.session) this.ar.tick(now);
       if (!view.contains("layout-ar") && !fpv) this.map.tick(now);
       if (fpv) this.fpv.tick(now);
-      // The mesh is fetched only while a view draws it: FPV, or live AR's occlusion without depth.
-      this.mapMesh.wanted = fpv || (this.ar.occlusion.enabled && this.source?.kind === "live");
+      // The mesh is fetched only while a view draws it: FPV, or live AR's occlusion when the XR
+      // frames have had no depth for a while (not for one frame without it).
+      const noDepth = this.ar.occlusion.depthMissingSince;
+      this.mapMesh.wanted = fpv || (this.ar.occlusion.enabled && this.source?.kind === "live" &&
+        noDepth !== null && now - noDepth > MESH_AFTER_NO_DEPTH_MS);
       this.mapMesh.poll(now);
       if (now - lastHud > 250) {
         lastHud = now;

@@ -3,7 +3,8 @@
 // its TSDF on each request (marching cubes over the whole map, in the mapper process that fusion
 // also waits for), so the page asks rarely: only while a view wants the mesh, one request at a
 // time, no sooner than MESH_REFRESH.minIntervalMs after the previous one, and only when the map
-// grew by MESH_REFRESH.minNewPoints preview points since (map_chunk counts) or never loaded.
+// grew by MESH_REFRESH.minNewPoints preview points since (map_chunk counts) or, the first time,
+// has that many.
 
 import * as THREE from "three";
 import { parseMeshPly } from "./mesh_ply.js";
@@ -46,7 +47,8 @@ export class MapMesh extends EventTarget {
 
   /** Start a download when one is due; cheap to call every animation frame. */
   poll(now = performance.now()) {
-    if (!this.wanted || this.pending || now < this.nextAllowed || this.mapPoints === 0) return;
+    // A map of a few points may have no surface yet (409): wait until it has some.
+    if (!this.wanted || this.pending || now < this.nextAllowed || this.mapPoints < MESH_REFRESH.minNewPoints) return;
     const grown = this.loadedAtPoints < 0 || this.mapPoints - this.loadedAtPoints >= MESH_REFRESH.minNewPoints;
     if (!grown) return;
     this.#download(this.mapPoints);

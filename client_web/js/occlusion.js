@@ -137,6 +137,7 @@ export class Occlusion {
     this.mesh.renderOrder = -101;
     this.mesh.visible = false;
     this.hasMesh = false;
+    this.depthMissingSince = null; // performance.now() since which live AR has had no depth
   }
 
   /**
@@ -156,6 +157,7 @@ export class Occlusion {
     fillDepthHoles(metres, width, height, texture.image.data);
     texture.needsUpdate = true;
     this.depth = { seq, texture, width, height };
+    this.depthMissingSince = null;
     this.quadMaterial.uniforms.depthMetres.value = texture;
     if (depthFromView) this.quadMaterial.uniforms.depthFromView.value.fromArray(depthFromView);
     else this.quadMaterial.uniforms.depthFromView.value.copy(IDENTITY);
@@ -164,6 +166,7 @@ export class Occlusion {
   /** This XR frame has no depth: the mesh (or nothing) hides the drone until it does. */
   clearDepth() {
     this.depth = null;
+    this.depthMissingSince ??= performance.now();
   }
 
   /** The fused map's mesh (world frame), or null. Shared with other views; never disposed here. */

@@ -227,6 +227,11 @@ def test_ar_occlusion_hides_the_drone_behind_the_demo_table(live_server, open_pa
     in_front_mesh, _ = _drone_paint(page, tmp_path, "before-table-occlusion-mesh")
     assert page.snapshot()["occlusion"]["source"] == "mesh"
     assert in_front_mesh >= 0.8 * in_front, (in_front_mesh, in_front)
+    print(
+        f"drone-coloured px: behind the table {shown} (occlusion off), {hidden} (depth),"
+        f" {by_mesh} (mesh) at {z_behind:.2f} m; in front {in_front} (depth),"
+        f" {in_front_mesh} (mesh) at {z_front:.2f} m"
+    )
     assert not page.errors, page.errors
 
 

@@ -43,7 +43,9 @@ export class FPVView {
     this.hint.textContent = "The drone's camera shows the mapped room once the drone has spawned and a map exists.";
     container.append(this.renderer.domElement, this.hint);
     this.scene = new THREE.Scene();
-    this.material = new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide }); // colours are the camera's: already lit
+    // Colours are the camera's, already lit. Front faces only: marching cubes turns them towards
+    // the free space the drone flies in, and culling the rest halves the rasterisation.
+    this.material = new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.FrontSide });
     this.room = new THREE.Mesh(new THREE.BufferGeometry(), this.material);
     this.room.frustumCulled = false;
     this.room.visible = false;

@@ -384,3 +384,69 @@ def test_depth_png_mesh_ply_readers_and_hole_filling_in_the_browser(
     assert out["filled"][0] == [2, 2, 2, 0, 3, 3, 3]
     assert out["filled"][1] == [5, 4, 6, 7, 4, 4.5, 9, 8, 4.5]  # from the input, not the filled
     assert not page.errors, page.errors
+
+
+# The AR view alone, on the page: a drone 1 m ahead on the optical axis, seen from above, and a
+# depth image that puts a surface at 0.7 m over the left half of the view (no measurement on the
+# right), laid out as the view (replay) or transposed with a normDepthBufferFromNormView that
+# swaps the axes (as a portrait phone's landscape depth buffer); and the same surface at 1.3 m,
+# behind the drone. -> drone-coloured pixels in the left and right halves of the overlay.
+OCCLUDER_JS = """async ([surfaceM, transposed]) => {
+  const { ARView } = await import('/app/js/ar_view.js');
+  const box = document.createElement('div');
+  box.style.cssText = 'position:fixed;left:0;top:0;width:320px;height:240px;z-index:99';
+  document.body.append(box);
+  const ar = new ARView(box);
+  ar.renderer.setPixelRatio(1);
+  ar.setCamera([200, 200, 159.5, 119.5], [320, 240]);
+  ar.renderer.setSize(320, 240);
+  const identity = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  ar.showFrame(null, 1, identity);
+  // body x -> camera x, body z (up) -> camera -z: the drone shows its top to the camera
+  const T_world_drone = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 1, 0, 0, 0, 1];
+  ar.setDroneState({ mode: 'hover', T_world_drone });
+  const [W, H] = [160, 120];
+  const depth = new Float32Array(W * H);
+  let matrix = null;
+  for (let y = 0; y < H; y++) for (let x = 0; x < W; x++) {
+    const u = (x + 0.5) / W;
+    if (!transposed) depth[y * W + x] = u < 0.5 ? surfaceM : 0;
+  }
+  if (transposed) { // a buffer H wide, W high: its (column, row) is the view's (v, u)
+    for (let by = 0; by < W; by++) {
+      for (let bx = 0; bx < H; bx++) depth[by * H + bx] = (by + 0.5) / W < 0.5 ? surfaceM : 0;
+    }
+    matrix = [0, 1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  }
+  ar.occlusion.setDepth(depth, transposed ? H : W, transposed ? W : H, 1, matrix);
+  ar.render(0);
+  const canvas = document.createElement('canvas');
+  canvas.width = 320; canvas.height = 240;
+  const ctx = canvas.getContext('2d');
+  ctx.drawImage(ar.renderer.domElement, 0, 0, 320, 240);
+  const px = ctx.getImageData(0, 0, 320, 240).data;
+  let left = 0, right = 0;
+  for (let i = 0; i < px.length; i += 4) {
+    const [r, g, b] = [px[i], px[i + 1], px[i + 2]];
+    if (!(r > 130 && b > 95 && g < 90 && r - g > 90 && b - g > 60)) continue;
+    if ((i / 4) % 320 < 160) left++; else right++;
+  }
+  const source = ar.lastDraw.occlusion;
+  ar.renderer.dispose();
+  box.remove();
+  return { left, right, source };
+}"""
+
+
+def test_the_occluder_hides_what_is_behind_the_depth_in_either_layout(live_server, open_page):
+    page = open_page(live_server())
+    for transposed in (False, True):
+        near = page.page.evaluate(OCCLUDER_JS, [0.7, transposed])
+        far = page.page.evaluate(OCCLUDER_JS, [1.3, transposed])
+        assert near["source"] == far["source"] == "depth"
+        # Behind a surface at 0.7 m the left half of the drone is gone, the right half (no depth
+        # measured there) shows; a surface at 1.3 m hides nothing of a drone at 1 m.
+        assert far["left"] >= 30 and far["right"] >= 30, (transposed, far)
+        assert near["left"] <= 0.05 * far["left"], (transposed, near, far)
+        assert near["right"] >= 0.8 * far["right"], (transposed, near, far)
+    assert not page.errors, page.errors

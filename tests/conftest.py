@@ -121,7 +121,7 @@ def demo_clean(tmp_path_factory) -> Path:
 class LiveServer:
     """A real uvicorn server on a loopback port, in a background thread."""
 
-    def __init__(self, data_dir: Path, **settings) -> None:
+    def __init__(self, data_dir: Path, simulation=None, **settings) -> None:
         import socket
         import threading
 
@@ -132,7 +132,10 @@ class LiveServer:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
         server = ServerConfig(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
-        self.config = Config(server=server)
+        # simulation: a SimulationConfig for the sessions' drones (default: the defaults)
+        self.config = Config(
+            server=server, **({} if simulation is None else {"simulation": simulation})
+        )
         self.settings = self.config.server
         self.app = create_app(self.config)
         self.server = make_server(

@@ -4,8 +4,11 @@
 
 import { ARView } from "./ar_view.js";
 import { SessionClient, State } from "./connection.js";
+import { FPVView } from "./fpv_view.js";
+import { FrameDepths } from "./frame_depths.js";
 import { upFromGravity } from "./geometry.js";
 import { Hud } from "./hud.js";
+import { MapMesh } from "./map_mesh.js";
 import { MapView } from "./map_view.js";
 import { Pilot } from "./pilot.js";
 import { parsePly, parseTumPositions } from "./ply.js";
@@ -18,6 +21,7 @@ import { ViewerClient, viewerLink } from "./viewer.js";
 
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
+const MESH_AFTER_NO_DEPTH_MS = 1000; // live AR without depth this long: occlusion by the map's mesh
 const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
 
 class App {
@@ -28,6 +32,14 @@ class App {
     this.client = watch ? new ViewerClient(this.protocol, watch) : new SessionClient(this.protocol);
     this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
     this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
+    this.fpv = new FPVView($("#fpv-view"));
+    this.mapMesh = new MapMesh(this.client); // the fused mesh, for FPV and occlusion without depth
+    this.mapMesh.addEventListener("mesh", ({ detail: geometry }) => {
+      this.fpv.setMesh(geometry);
+      this.ar.occlusion.setMesh(geometry);
+      this.ar.dirty = true;
+    });
+    this.frameDepths = new FrameDepths(this.ar);
     this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right"), modes: $("#flight-mode") });
     this.streamer = null;
     this.source = null;
@@ -41,6 +53,7 @@ class App {
     this.hud.connection(State.IDLE);
     const params = new URLSearchParams(window.location.search);
     if (params.get("view")) this.setView(params.get("view"));
+    if (params.get("occlusion") === "off") this.setOcclusion(false);
     const mode = params.get("mode"); // preselect a capture mode: demo, demo-small, folder, live
     const radio = mode && document.querySelector(`input[name="mode"][value="${CSS.escape(mode)}"]`);
     if (radio && !radio.disabled) radio.checked = true;
@@ -113,6 +126,7 @@ class App {
       if (resumed && source.kind === "replay" && place?.session === id && place.name === source.sequence.name) {
         this.streamer.tick = place.tick;
       }
+      this.streamer.addEventListener("sent", (e) => this.frameDepths.keep(e.detail.seq, e.detail.fields));
       this.streamer.addEventListener("sent", () => sessionStorage.setItem(REPLAY_KEY, JSON.stringify(
         { session: id, name: source.sequence?.name, tick: this.streamer.tick })));
       this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
@@ -187,6 +201,7 @@ class App {
 
   #resetViews() {
     this.map.clear();
+    this.mapMesh.clear();
     this.ar.clearDrone();
     this.map.setDroneState(null);
     this.seen = this.#emptySeen();
@@ -222,6 +237,7 @@ class App {
     c.addEventListener("map_chunk", ({ detail: chunk }) => {
       const { points, colours } = mapChunkArrays(chunk);
       this.map.addPoints(points, colours, chunk.reset === true);
+      this.mapMesh.noteMapPoints(this.map.pointCount, chunk.reset === true);
       this.seen.chunks += 1;
       this.seen.chunkPoints += chunk.count;
       this.seen.mapPoints = this.map.pointCount;
@@ -237,6 +253,7 @@ class App {
       this.seen.lastDrone = state;
       this.ar.setDroneState(state);
       this.map.setDroneState(state);
+      this.fpv.setDroneState(state);
       this.hud.drone(state);
       this.pilot.serverMode(state.flight_mode);
       this.flights?.droneState(state);
@@ -263,6 +280,7 @@ class App {
     this.map.addCameraPose(pose.T_world_camera);
     const bitmap = this.streamer?.takeImage(pose.seq) ?? null;
     this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state);
+    this.frameDepths.shown(pose.seq);
     bitmap?.close?.();
     s.shownSeq = pose.seq;
   }
@@ -310,6 +328,7 @@ class App {
       this.map.setColourMode(mode);
       e.target.textContent = mode === "height" ? "Height" : "Colour";
     });
+    $("#btn-occlusion").addEventListener("click", () => this.setOcclusion(!this.ar.occlusion.enabled));
     for (const button of document.querySelectorAll("[data-view]")) {
       button.addEventListener("click", () => this.setView(button.dataset.view));
     }
@@ -317,8 +336,15 @@ class App {
     this.setView(document.body.className.replace("layout-", "") || "split");
   }
 
+  /** Real surfaces hide the drone in AR (occlusion.js), or the drone is drawn on top. */
+  setOcclusion(on) {
+    this.ar.occlusion.enabled = on;
+    this.ar.dirty = true;
+    $("#btn-occlusion").setAttribute("aria-pressed", String(on));
+  }
+
   setView(view) {
-    document.body.classList.remove("layout-ar", "layout-split", "layout-map");
+    document.body.classList.remove("layout-ar", "layout-split", "layout-map", "layout-fpv");
     document.body.classList.add(`layout-${view}`);
     for (const button of document.querySelectorAll("[data-view]")) {
       button.setAttribute("aria-pressed", String(button.dataset.view === view));
@@ -346,9 +372,17 @@ class App {
     let lastHud = 0;
     const frame = (now) => {
       const view = document.body.classList;
-      if (!view.contains("layout-map") && !this.source?.session) this.ar.tick(now);
+      const fpv = view.contains("layout-fpv");
+      if (!view.contains("layout-map") && !fpv && !this.source?.session) this.ar.tick(now);
+      if (!view.contains("layout-ar") && !fpv) this.map.tick(now);
+      if (fpv) this.fpv.tick(now);
       this.flights.tick(now);
-      if (!view.contains("layout-ar")) this.map.tick(now);
+      // The mesh is fetched only while a view draws it: FPV, or live AR's occlusion when the XR
+      // frames have had no depth for a while (not for one frame without it).
+      const noDepth = this.ar.occlusion.depthMissingSince;
+      this.mapMesh.wanted = fpv || (this.ar.occlusion.enabled && this.source?.kind === "live" &&
+        noDepth !== null && now - noDepth > MESH_AFTER_NO_DEPTH_MS);
+      this.mapMesh.poll(now);
       if (now - lastHud > 250) {
         lastHud = now;
         this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
@@ -449,6 +483,9 @@ class App {
       ...this.seen,
       ar: { ...this.ar.lastDraw, stage: { left: rect.left, top: rect.top, width: rect.width, height: rect.height },
         intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },
+      occlusion: { enabled: this.ar.occlusion.enabled, source: this.ar.lastDraw.occlusion ?? "none",
+        depthSeq: this.ar.occlusion.depth?.seq ?? null, depthFailures: this.frameDepths.failures },
+      fpv: { ...this.fpv.lastDraw }, mesh: this.mapMesh.summary(),
       commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),
       liveSupport: this.liveSupport ?? null,
       viewer: this.client.viewer === true,

@@ -13,6 +13,7 @@ import { LineGeometry } from "three/addons/lines/LineGeometry.js";
 import { LineMaterial } from "three/addons/lines/LineMaterial.js";
 import { createDrone, createGroundMarker, createTargetMarker } from "./drone_model.js";
 import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint } from "./geometry.js";
+import { Occlusion } from "./occlusion.js";
 import { projectionFromIntrinsics } from "./packing.js";
 
 const TAP_MAX_MOVE_PX = 12;
@@ -53,6 +54,8 @@ export class ARView {
     this.root = new THREE.Group();
     this.root.matrixAutoUpdate = false;
     this.scene.add(this.root);
+    this.occlusion = new Occlusion(); // real surfaces hide the drone (occlusion.js)
+    this.root.add(this.occlusion.quad, this.occlusion.mesh);
     for (const name of ["drone", "marker", "target"]) {
       this[name] = { drone: createDrone, marker: createGroundMarker, target: createTargetMarker }[name]();
       this[name].matrixAutoUpdate = false;
@@ -189,6 +192,7 @@ export class ARView {
       this.#placeGroundMarker(s, frame);
       this.#placeRoute(s, frame);
     }
+    this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null, this.drone.visible ? this.drone.matrix : null);
     this.renderer.render(this.scene, this.camera);
     this.dirty = false;
   }

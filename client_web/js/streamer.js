@@ -107,7 +107,7 @@ export class Streamer extends EventTarget {
       } else {
         this.images.set(seq, captured.bitmap);
         if (captured.anchor) this.source.keep?.(seq, captured.anchor);
-        this.dispatchEvent(new CustomEvent("sent", { detail: { seq, index: captured.index } }));
+        this.dispatchEvent(new CustomEvent("sent", { detail: { seq, index: captured.index, fields: captured.fields } }));
       }
     } catch (exc) {
       this.stop(`capture failed: ${exc.message}`);

@@ -113,6 +113,7 @@ export class LiveSource {
     // three's loop also runs on the window's animation frames (no XR frame): nothing to do then.
     if (!frame) return;
     const pose = frame.getViewerPose(this.space);
+    if (pose) this.#occlusionDepth(frame, pose.views[0]);
     this.arView.render(1 / 60);
     if (!pose) return;
     const view = pose.views[0];
@@ -155,6 +156,22 @@ export class LiveSource {
     } catch (exc) {
       request.reject(exc);
     }
+  }
+
+  /** The current XR frame's depth, in metres, for occlusion in the overlay drawn over this very
+   * view (occlusion.js; the buffer is only readable inside the frame, so it is copied here). */
+  #occlusionDepth(frame, view) {
+    const occlusion = this.arView.occlusion;
+    if (!occlusion.enabled) return;
+    const depth = frame.getDepthInformation(view);
+    if (!depth) {
+      occlusion.clearDepth();
+      return;
+    }
+    const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depth.data) : new Uint16Array(depth.data);
+    const metres = new Float32Array(raw.length);
+    for (let i = 0; i < raw.length; i++) metres[i] = raw[i] * depth.rawValueToMeters;
+    occlusion.setDepth(metres, depth.width, depth.height, null, depth.normDepthBufferFromNormView.matrix);
   }
 
   /** The camera image, downscaled to colourSize, as top-down RGBA ImageData: the camera

@@ -400,11 +400,14 @@ def test_a_session_lost_for_long_keeps_its_map_and_says_so(live_server, room):
     wall_depth = np.full((K.height, K.width), 1.2, np.float32)  # ...as a constant depth plane
 
     def settled_status() -> dict:
-        """Status once the mapping thread has caught up (frames_integrated stops changing)."""
-        last = None
-        for _ in range(100):
+        """Status once the mapping thread has caught up: the map unchanged for 2 s (a busy
+        machine can stall the mapper for longer than one 0.3 s poll: one CI run read a map
+        'settled' at 1 frame that then grew to 5)."""
+        last, same = None, 0
+        for _ in range(200):
             status = session_status(server.url, sid, token)
-            if last is not None and status["map"] == last["map"]:
+            same = same + 1 if last is not None and status["map"] == last["map"] else 0
+            if same >= 7:
                 return status
             last = status
             time.sleep(0.3)

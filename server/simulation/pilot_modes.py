@@ -48,7 +48,7 @@ from server.simulation.control import (
     Setpoint,
     wrap_angle,
 )
-from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix, quaternion_rotation
 
 # Angle mode tilts its setpoint at most at this share of the rate limits: the rest is headroom
 # for the yaw turning it and for the attitude loop's corrections.
@@ -127,19 +127,8 @@ def _from_euler(roll: float, pitch: float, yaw: float) -> Quaternion:
 
 
 def _rotation(q: Quaternion) -> tuple[float, ...]:
-    """R (row-major, 9 floats) of a unit quaternion."""
-    w, x, y, z = q
-    return (
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    )
+    """R (row-major, 9 floats) of a unit quaternion (w, x, y, z)."""
+    return quaternion_rotation(*q)
 
 
 def euler_from_rotation(R: tuple[float, ...]) -> tuple[float, float, float]:

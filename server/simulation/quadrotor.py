@@ -93,6 +93,22 @@ def mix(
     )
 
 
+def quaternion_rotation(qw: float, qx: float, qy: float, qz: float) -> tuple[float, ...]:
+    """The rotation of a unit quaternion (w, x, y, z) as 9 floats, row-major (plain floats:
+    called at every physics step, where numpy's per-call cost would dominate)."""
+    return (
+        1 - 2 * (qy * qy + qz * qz),
+        2 * (qx * qy - qw * qz),
+        2 * (qx * qz + qw * qy),
+        2 * (qx * qy + qw * qz),
+        1 - 2 * (qx * qx + qz * qz),
+        2 * (qy * qz - qw * qx),
+        2 * (qx * qz - qw * qy),
+        2 * (qy * qz + qw * qx),
+        1 - 2 * (qx * qx + qy * qy),
+    )
+
+
 class Quadrotor:
     """State and fixed-step dynamics of one quadrotor.
 
@@ -258,18 +274,7 @@ class Quadrotor:
 
     def rotation(self) -> tuple[float, ...]:
         """R_flight_body as 9 floats, row-major."""
-        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
-        return (
-            1 - 2 * (qy * qy + qz * qz),
-            2 * (qx * qy - qw * qz),
-            2 * (qx * qz + qw * qy),
-            2 * (qx * qy + qw * qz),
-            1 - 2 * (qx * qx + qz * qz),
-            2 * (qy * qz - qw * qx),
-            2 * (qx * qz - qw * qy),
-            2 * (qy * qz + qw * qx),
-            1 - 2 * (qx * qx + qy * qy),
-        )
+        return quaternion_rotation(self.qw, self.qx, self.qy, self.qz)
 
     @property
     def position(self) -> FloatArray:

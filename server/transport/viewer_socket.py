@@ -19,11 +19,11 @@ from collections import deque
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from server import protocol as proto
-from server.sessions import DroneNotice, DroneUpdate, LiveSession, MapUpdate, PoseUpdate
+from server.sessions import DroneUpdate, LiveSession, MapUpdate, PoseUpdate
 from server.sessions.failures import SessionLog
 from server.sessions.store import SESSION_ID
 from server.sessions.viewers import ViewerSocket, merged_map
-from server.transport.websocket import _drone_state, _pose, _refuse, _send
+from server.transport.websocket import _refuse, _send, update_messages
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -205,32 +205,9 @@ async def _send_updates(
     chunk = 0  # this socket's own chunk numbers: its backlog started them afresh
     try:
         while True:
-            item = await outbox.get()
-            if isinstance(item, dict):
-                await _send(ws, item)
-            elif isinstance(item, MapUpdate):
-                for i in range(0, len(item.points), chunk_points):
-                    await _send(
-                        ws,
-                        proto.make_map_chunk(
-                            item.points[i : i + chunk_points],
-                            item.colours[i : i + chunk_points],
-                            chunk,
-                            total_points=item.total_points,
-                        ),
-                    )
-                    chunk += 1
-            elif isinstance(item, DroneUpdate):
-                await _send(ws, _drone_state(item))
-            elif isinstance(item, DroneNotice):
-                await _send(
-                    ws,
-                    proto.make_drone_event(
-                        item.event, item.timestamp, item.position, item.message, item.command_id
-                    ),
-                )
-            elif isinstance(item, PoseUpdate):
-                await _send(ws, _pose(item))
+            messages, chunk = update_messages(await outbox.get(), chunk_points, chunk)
+            for message in messages:
+                await _send(ws, message)
     except (WebSocketDisconnect, OSError, asyncio.CancelledError, RuntimeError):
         return  # the viewer left (Starlette raises RuntimeError on a closed socket)
     except Exception:  # a bug: say so to this viewer alone, the session goes on

@@ -234,6 +234,35 @@ def _closed(ws: WebSocket) -> bool:
     return WebSocketState.DISCONNECTED in (ws.client_state, ws.application_state)
 
 
+def update_messages(
+    item: dict | MapUpdate | DroneUpdate | DroneNotice | PoseUpdate, chunk_points: int, chunk: int
+) -> tuple[list[dict], int]:
+    """The messages one of a session's updates goes out as, to its owner or a viewer: a map
+    update as chunks of at most ``chunk_points`` points numbered from ``chunk`` on; and the
+    next chunk number."""
+    if isinstance(item, dict):
+        return [item], chunk
+    if isinstance(item, MapUpdate):
+        chunks = [
+            proto.make_map_chunk(
+                item.points[i : i + chunk_points],
+                item.colours[i : i + chunk_points],
+                chunk + k,
+                total_points=item.total_points,
+            )
+            for k, i in enumerate(range(0, len(item.points), chunk_points))
+        ]
+        return chunks, chunk + len(chunks)
+    if isinstance(item, DroneUpdate):
+        return [_drone_state(item)], chunk
+    if isinstance(item, DroneNotice):
+        event = proto.make_drone_event(
+            item.event, item.timestamp, item.position, item.message, item.command_id
+        )
+        return [event], chunk
+    return [_pose(item)], chunk
+
+
 async def _send_updates(
     ws: WebSocket,
     outbox: _Outbox,
@@ -246,33 +275,6 @@ async def _send_updates(
     try:
         while True:
             item = await outbox.get()
-            if isinstance(item, dict):
-                await _send(ws, item)
-                continue
-            if isinstance(item, MapUpdate):
-                for i in range(0, len(item.points), chunk_points):
-                    await _send(
-                        ws,
-                        proto.make_map_chunk(
-                            item.points[i : i + chunk_points],
-                            item.colours[i : i + chunk_points],
-                            chunk,
-                            total_points=item.total_points,
-                        ),
-                    )
-                    chunk += 1
-                continue
-            if isinstance(item, DroneUpdate):
-                await _send(ws, _drone_state(item))
-                continue
-            if isinstance(item, DroneNotice):
-                await _send(
-                    ws,
-                    proto.make_drone_event(
-                        item.event, item.timestamp, item.position, item.message, item.command_id
-                    ),
-                )
-                continue
             if isinstance(item, FrameRefused):  # answered like a bad message, and counted
                 error = proto.ProtocolError(
                     _SESSION_CODES.get(item.code, item.code),
@@ -294,8 +296,11 @@ async def _send_updates(
                     "token",
                 )
                 return
-            errors.reset()
-            await _send(ws, _pose(item))
+            if isinstance(item, PoseUpdate):
+                errors.reset()
+            messages, chunk = update_messages(item, chunk_points, chunk)
+            for message in messages:
+                await _send(ws, message)
     except (WebSocketDisconnect, OSError, asyncio.CancelledError):
         return
     except Exception as exc:  # a bug in sending must not leave the client waiting on a dead socket

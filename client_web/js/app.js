@@ -4,6 +4,7 @@
 
 import { ARView } from "./ar_view.js";
 import { SessionClient, State } from "./connection.js";
+import { CourseView } from "./course_view.js";
 import { upFromGravity } from "./geometry.js";
 import { Hud } from "./hud.js";
 import { MapView } from "./map_view.js";
@@ -16,7 +17,9 @@ import { Streamer } from "./streamer.js";
 
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
-const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
+const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "warn",
+  crash: "error" };
+const COURSE_EVENTS = new Set(["gate_passed", "gate_missed", "course_finished"]); // course_view.js shows them
 
 class App {
   async init() {
@@ -26,6 +29,7 @@ class App {
     this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
     this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
     this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right") });
+    this.course = new CourseView({ client: this.client, ar: this.ar, map: this.map, hud: this.hud });
     this.streamer = null;
     this.source = null;
     this.seen = this.#emptySeen();
@@ -174,6 +178,7 @@ class App {
     this.map.clear();
     this.ar.clearDrone();
     this.map.setDroneState(null);
+    this.course.clear();
     this.seen = this.#emptySeen();
     this.hud.drone(null);
   }
@@ -228,7 +233,9 @@ class App {
       this.seen.events.push(event);
       if (this.seen.events.length > 200) this.seen.events.shift();
       const where = event.position.map((v) => v.toFixed(2)).join(", ");
-      if (event.event === "collision") this.hud.showBanner(`Collision! ${event.message} (at ${where} m)`, "error", 5000);
+      if (COURSE_EVENTS.has(event.event)) return;
+      if (event.event === "crash") this.hud.showBanner(`Crash! ${event.message} (at ${where} m)`, "error", 6000);
+      else if (event.event === "collision") this.hud.showBanner(`Bump! ${event.message} (at ${where} m)`, "warn", 3000);
       else if (event.event === "blocked") this.hud.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
       this.hud.toast(`${event.event}: ${event.message}`, EVENT_KINDS[event.event] ?? "info");
     });
@@ -331,6 +338,7 @@ class App {
       const view = document.body.classList;
       if (!view.contains("layout-map") && !this.source?.session) this.ar.tick(now);
       if (!view.contains("layout-ar")) this.map.tick(now);
+      this.course.tick(now);
       if (now - lastHud > 250) {
         lastHud = now;
         this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
@@ -432,6 +440,7 @@ class App {
         intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },
       commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),
       liveSupport: this.liveSupport ?? null,
+      course: this.course.snapshot(),
     };
   }
 }

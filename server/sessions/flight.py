@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from server.geometry import Intrinsics, invert
+from server.sessions.course import COURSE_COMMANDS, CourseControl
 from server.sessions.errors import SessionError
 from server.sessions.failures import RateLimitedLog
 from server.simulation.config import SimulationConfig
@@ -86,6 +87,7 @@ class DroneUpdate:
     target: np.ndarray | None
     route: np.ndarray | None  # (N, 3) remaining route, world frame
     command_id: int | None
+    damage: float = 0.0  # bump damage points since spawn
 
 
 @dataclass
@@ -108,7 +110,8 @@ class _CameraFrame:
 class Flight:
     """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come
     from the session's workers, ``command`` from the transport; a thread of its own advances the
-    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``.
+    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects (and the course's
+    ``course`` messages, dicts: ``course``, server/sessions/course.py) to ``publish``.
 
     A flight step that raises is counted (``errors``) and logged, the first with its traceback,
     then at most one line per 10 s; after _MAX_FAILING_STEPS in a row the drone is stopped for
@@ -120,7 +123,7 @@ class Flight:
         config: SimulationConfig,
         K: Intrinsics,
         gravity_world: np.ndarray | None,
-        publish: Callable[[DroneUpdate | DroneNotice], None],
+        publish: Callable[[DroneUpdate | DroneNotice | dict], None],
         state_hz: float = 20.0,
         spawn_ahead_m: float = 0.8,
         log: logging.LoggerAdapter | logging.Logger = log,
@@ -136,6 +139,7 @@ class Flight:
         self.spawn_ahead_m = spawn_ahead_m
         self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
         self.sim = DroneSimulator(config, self.flight_map)
+        self.course = CourseControl(self)  # courses: server/sessions/course.py
         self._lock = threading.Lock()  # the simulator and flight map are used by one thread at once
         # Camera frames have their own lock: tracking never waits for planning or physics.
         self._frames_lock = threading.Lock()
@@ -237,15 +241,20 @@ class Flight:
         seq=None,
         sticks=None,
         speed=None,
+        **options,
     ) -> None:
-        """Carry out a pilot command (names and fields as the protocol's ``command``).
-        Raises CommandRefused (code bad_command or unreachable_target)."""
+        """Carry out a pilot command (names and fields as the protocol's ``command``; fields
+        no drone command reads arrive in ``options``). Raises CommandRefused (code
+        bad_command or unreachable_target)."""
         if self.fault is not None:
             raise CommandRefused(
                 "bad_command",
                 f"the drone's simulation failed and the drone is stopped ({self.fault}); "
                 "create a new session to fly again",
             )
+        if name in COURSE_COMMANDS:
+            self.course.command(name, command_id, speed=speed, **options)
+            return
         if not self.spawned and name != "sticks":
             raise CommandRefused(
                 "bad_command",
@@ -399,7 +408,7 @@ class Flight:
         )
         self.publish(final)
 
-    def _tick(self, dt: float) -> list[DroneNotice]:
+    def _tick(self, dt: float) -> list[DroneNotice | dict]:
         with self._lock:
             events = []
             with self._pending_lock:
@@ -415,11 +424,14 @@ class Flight:
             if grid is not None or region is not None:
                 if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
+            course = []
             if self.spawned:
                 events = self.sim.advance(dt)
-        notices = [self._notice(e) for e in events]
+                course = self.course.tick(events)  # gate notices and course messages
+        notices = [self._notice(e) for e in events] + course
         for n in notices:
-            self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
+            if isinstance(n, DroneNotice):
+                self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
         return notices
 
     def _latest_camera(self) -> tuple[int, np.ndarray] | None:
@@ -481,6 +493,7 @@ class Flight:
             target=None if s.target is None else self._to_world(s.target),
             route=route,
             command_id=s.command_id,
+            damage=s.damage,
         )
 
     def summary(self) -> dict:
@@ -495,6 +508,7 @@ class Flight:
             "mode": s.mode,
             "position": s.T_world_drone[:3, 3].tolist(),
             "clearance_m": s.clearance,
+            "damage": s.damage,
             "events": dict(self.event_counts),
             **health,
         }

@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState
 from server.registration.preprocess import resample_depth
 from server.sessions.config import SessionConfig
+from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, Flight
@@ -31,7 +33,7 @@ from server.sessions.mapping import (
     MapperLost,
     lower_this_threads_priority,
 )
-from server.sessions.store import SessionStore
+from server.sessions.store import SessionStore, StoreError
 from server.sessions.updates import (
     FrameData,
     FrameRefused,
@@ -147,11 +149,19 @@ class Session:
                 self.config.drone_state_hz,
                 log=SessionLog(logging.getLogger("server.sessions.flight"), self.id),
             )
+            self.flight.course.best_path = self._course_best_path()
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
         with self._lock:  # a new connection numbers its frames afresh (a reloaded page)
             self._last_seq = -1
+
+    def _course_best_path(self) -> Path | None:
+        """Where the drone's course results are kept (None: an id the store cannot hold)."""
+        try:
+            return self.store.file(self.id, COURSE_BEST_FILE)
+        except StoreError:
+            return None
 
     def _publish(self, update: Update) -> None:
         on_update = self.on_update

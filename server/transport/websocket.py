@@ -326,6 +326,11 @@ async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Out
     await ws.close(code=1000, reason="bye")
 
 
+_COMMAND_FIELDS = tuple(
+    f["name"] for f in proto.MESSAGES["command"]["fields"] if f["name"] not in ("id", "name")
+)
+
+
 def _drone_state(s: DroneUpdate) -> dict:
     return proto.make_drone_state(
         s.timestamp,
@@ -338,6 +343,7 @@ def _drone_state(s: DroneUpdate) -> dict:
         clearance=s.clearance,
         target=s.target,
         route=s.route,
+        damage=s.damage,
     )
 
 
@@ -443,5 +449,6 @@ async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: byte
     elif kind == "frame":
         session.submit(message["seq"], data)
     elif kind == "command":
-        fields = {k: message.get(k) for k in ("target", "pixel", "seq", "sticks", "speed")}
+        # Every field the protocol lists for a command (absent ones as None); others ignored.
+        fields = {k: message.get(k) for k in _COMMAND_FIELDS}
         await asyncio.to_thread(session.command, message["name"], message["id"], **fields)

@@ -12,6 +12,14 @@ Cases, from the bare dynamics up to the whole per-session simulator as the serve
   step is within reach of the wall, so every step queries the distance field).
 - ``simulator angle`` / ``simulator acro``: the pilot's flight modes (pilot_modes.py) turning
   on the spot with the yaw stick at half, sticks sent at 20 Hz as the page does.
+- ``simulator on a wall``: pushing into a wall below the crash speed, bumping again and again:
+  the worst case for collision queries (every step is within reach of the wall, so every step
+  queries the distance field, and contacts rewind).
+- ``simulator course``: the autopilot flying medium courses (server/simulation/course.py) in
+  the demo room (server/datasets/demo.py), judged after every frame slice as the session does
+  (``CourseRun.update`` on the drone's status, timed with ``advance``); a finished course is
+  followed by a new one from where the drone is (laying it is not timed: it happens once per
+  course_start, on the command's thread).
 
 Prints steps per second and microseconds per step, both per CPU second of this process (what
 one core delivers, even when other jobs share the machine) and per wall second, and the
@@ -40,6 +48,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from server.datasets.demo import DemoSpec, _room_boxes  # noqa: E402
 from server.simulation.config import SimulationConfig  # noqa: E402
 from server.simulation.control import (  # noqa: E402
     CascadedController,
@@ -47,7 +56,9 @@ from server.simulation.control import (  # noqa: E402
     ControlLimits,
     Setpoint,
 )
+from server.simulation.course import PRESETS, CourseRun, generate_course  # noqa: E402
 from server.simulation.drone import DroneEventKind, DroneSimulator  # noqa: E402
+from server.simulation.flight_map import FlightMap  # noqa: E402
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams  # noqa: E402
 from server.simulation.scenes import room_with_door  # noqa: E402
 
@@ -134,7 +145,59 @@ def bench_wall(config: SimulationConfig, seconds: float):
     scene = room_with_door(config.voxel_m)
     drone = DroneSimulator(config, scene.flight_map)
     drone.spawn([1.6, 0.6, 1.2])  # 0.3 m from the wall's face, facing it
-    return _timed_advance(drone, seconds, lambda d: d.command_sticks((0.0, 0.0, 1.0, 0.0)))
+    # 0.35 of full pitch: about 1 m/s into the wall, below crash_speed_m_s (a crash would end
+    # the pushing: the drone would lie on the floor, which costs nothing).
+    events: list = []
+    result = _timed_advance(
+        drone, seconds, lambda d: d.command_sticks((0.0, 0.0, 0.35, 0.0)), events=events
+    )
+    if any(e.kind == DroneEventKind.CRASH for e in events):
+        console.print("[red]the wall case crashed: it measured a drone at rest[/red]")
+    return result
+
+
+def demo_room(config: SimulationConfig) -> FlightMap:
+    """The demo room (6 x 5 x 2.8 m, furniture) as a flight map, all of it observed."""
+    rng = np.random.default_rng([DemoSpec().seed, 1])
+    boxes = [(np.array(lo), np.array(hi)) for lo, hi, _ in _room_boxes(rng)]
+    return FlightMap.from_boxes([-3.2, -2.7, -0.2], [3.2, 2.7, 3.0], boxes, config.voxel_m)
+
+
+def bench_course(config: SimulationConfig, seconds: float):
+    flight_map = demo_room(config)
+    drone = DroneSimulator(config, flight_map)
+    drone.spawn([0.3, -0.6, 1.2])
+    steps, wall_s, cpu_s, seed, courses, passed = 0, 0.0, 0.0, 0, 0, 0
+    events: list = []
+    run = None
+    laid_s = []
+    while steps * config.dt_s < seconds:
+        if run is None or run.finished:
+            if run is not None:
+                passed += run.passed
+            here = drone.status().T_flight_drone[:3, 3]
+            t = time.perf_counter()
+            course = generate_course(flight_map, here, PRESETS["medium"], seed, config)
+            laid_s.append(time.perf_counter() - t)
+            drone.command_route(course.route)
+            run = CourseRun(course, drone.time_s, here)
+            seed, courses = seed + 1, courses + 1
+        t0 = drone.time_s
+        wall, cpu = time.perf_counter(), time.process_time()
+        events += drone.advance(FRAME_S)
+        status = drone.status()
+        run.update(status.time_s, status.T_flight_drone[:3, 3])
+        wall_s += time.perf_counter() - wall
+        cpu_s += time.process_time() - cpu
+        steps += round((drone.time_s - t0) / config.dt_s)
+    if any(e.kind in (DroneEventKind.COLLISION, DroneEventKind.CRASH) for e in events):
+        console.print("[red]the course case collided[/red]")
+    console.print(
+        f"course case: {courses} medium courses flown, {passed} gates passed; laying one took "
+        f"{1e3 * np.mean(laid_s):.0f} ms on average, {1e3 * max(laid_s):.0f} ms at most "
+        "(not in the figures below)"
+    )
+    return steps, wall_s, cpu_s
 
 
 def bench_flight_mode(config: SimulationConfig, seconds: float, mode: str):
@@ -168,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         ("simulator on a wall", lambda: bench_wall(config, args.seconds)),
         ("simulator angle", lambda: bench_flight_mode(config, args.seconds, "angle")),
         ("simulator acro", lambda: bench_flight_mode(config, args.seconds, "acro")),
+        ("simulator course", lambda: bench_course(config, args.seconds)),
     ]
     table = Table(
         title=f"Physics, one drone, one core, {config.physics_hz} Hz "

@@ -154,19 +154,21 @@ def test_unreachable_target_raises_and_the_drone_keeps_hovering():
     assert np.abs(track - scene.start).max() < 0.005
 
 
-def test_full_pitch_into_a_wall_collides_and_stops_on_the_near_side():
+def test_pushing_into_a_wall_below_crash_speed_bumps_and_stops_on_the_near_side():
     scene = room_with_door()  # wall face at x = 1.9 for y < 1.2
     drone = spawned(scene)
     wall_x = 1.9
+    push = (0.0, 0.0, 0.35, 0.0)  # 1.05 m/s forward: below crash_speed_m_s (test_crash.py)
     xs, events = [], []
     for i in range(round(4.0 * CONFIG.physics_hz)):  # 4 s, one physics step per advance
         if i % (CONFIG.physics_hz // 10) == 0:
-            drone.command_sticks(FULL_PITCH)  # sticks at 10 Hz, full forward (+x)
+            drone.command_sticks(push)  # sticks at 10 Hz, forward (+x)
         events += drone.advance(CONFIG.dt_s)
         xs.append(drone.status().T_flight_drone[0, 3])
     xs = np.array(xs)
     collisions = kinds(events).count(DroneEventKind.COLLISION)
-    assert 1 <= collisions <= 4  # pushing on: stopped again and again, reported once a second
+    assert 1 <= collisions <= 4  # pushing on: bumped again and again, reported once a second
+    assert DroneEventKind.CRASH not in kinds(events)
     hit = next(e for e in events if e.kind == DroneEventKind.COLLISION)
     assert wall_x - R - 0.05 < hit.position[0] <= wall_x - R
     assert xs.max() <= wall_x - R + 1e-9  # the sphere never entered the wall, at any step
@@ -175,9 +177,18 @@ def test_full_pitch_into_a_wall_collides_and_stops_on_the_near_side():
     status = drone.status()
     assert np.linalg.norm(status.velocity) < 0.02  # stopped
     assert status.T_flight_drone[0, 3] <= wall_x - R + 1e-6
+    assert status.mode == DroneMode.MANUAL and status.damage > 0
 
 
-def test_checking_steps_in_chunks_rewinds_to_exactly_the_stepwise_result():
+@pytest.mark.parametrize(
+    "sticks, contact",
+    [
+        ((0.1, 0.0, 0.4, 0.3), DroneEventKind.COLLISION),
+        ((0.1, 0.0, 1.0, 0.3), DroneEventKind.CRASH),
+    ],
+    ids=["bump", "crash"],
+)
+def test_checking_steps_in_chunks_rewinds_to_exactly_the_stepwise_result(sticks, contact):
     scene = room_with_door()
     runs = []
     for per_call in (1, 40):  # one physics step per advance, or 0.1 s (chunks near the wall)
@@ -185,16 +196,17 @@ def test_checking_steps_in_chunks_rewinds_to_exactly_the_stepwise_result():
         events = []
         for _ in range(round(1.5 * CONFIG.physics_hz / per_call)):
             if round(drone.time_s / CONFIG.dt_s) % 40 == 0:
-                drone.command_sticks((0.1, 0.0, 1.0, 0.3))
+                drone.command_sticks(sticks)
             events += drone.advance(per_call * CONFIG.dt_s)
         runs.append((events, drone.status()))
     (events_a, status_a), (events_b, status_b) = runs
-    assert DroneEventKind.COLLISION in kinds(events_a)
+    assert contact in kinds(events_a)
     assert [(e.kind, e.time_s) for e in events_a] == [(e.kind, e.time_s) for e in events_b]
     for a, b in zip(events_a, events_b, strict=True):
         np.testing.assert_array_equal(a.position, b.position)
     np.testing.assert_array_equal(status_a.T_flight_drone, status_b.T_flight_drone)
     np.testing.assert_array_equal(status_a.velocity, status_b.velocity)
+    assert status_a.damage == status_b.damage
 
 
 def test_manual_flight_follows_the_sticks_then_centred_sticks_hold_position():

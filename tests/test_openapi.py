@@ -14,7 +14,7 @@ from conftest import Stream, auth
 from server.config import Config, ServerConfig
 from server.datasets import open_dataset
 from server.transport.app import create_app
-from server.transport.schemas import ErrorBody, SessionCreated, SessionStatus
+from server.transport.schemas import CourseBest, ErrorBody, SessionCreated, SessionStatus
 
 SESSION = "/api/sessions/{session_id}"
 
@@ -165,3 +165,5 @@ def test_a_real_servers_answers_validate_against_their_models(live_server, share
     lines = [line for line in r.text.splitlines() if not line.startswith("#")]
     assert len(lines) == closed.trajectory_poses == 15
     assert float(lines[0].split()[0]) == pytest.approx(ds[0].timestamp, abs=1e-6)
+    r = http.get(f"{url}/course/best", headers=headers)  # no course flown: an empty list
+    assert strictly(CourseBest, r.json()).results == []

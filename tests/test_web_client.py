@@ -285,6 +285,21 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         np.ones((2, 3), np.float32), np.ones((2, 3), np.uint8), 0, total_points=2
     )
     error = proto.make_error("bad_depth", "all zero", seq=3)
+    course = proto.make_course(
+        1,
+        "running",
+        "easy",
+        7,
+        np.ones((2, 7)),
+        ["passed", "pending"],
+        1,
+        3.5,
+        9.0,
+        0,
+        0,
+        100,
+        True,
+    )
     C, S = proto.CLIENT_TO_SERVER, proto.SERVER_TO_CLIENT
     cases = [
         (hello, C, True),
@@ -293,6 +308,7 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         (state, S, False),
         (chunk, S, False),
         (error, S, False),
+        (course, S, False),
         ({"type": "command", "id": 1, "name": "goto", "target": [1, 2, 3]}, C, True),
         (
             {"type": "command", "id": 2, "name": "goto_pixel", "pixel": [10.5, 20], "seq": 3},
@@ -302,6 +318,12 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         ({"type": "command", "id": 3, "name": "sticks", "sticks": [0, 0.5, -1, 1]}, C, True),
         ({"type": "command", "id": 4, "name": "land"}, C, True),
         ({"type": "command", "id": 4, "name": "flight_mode", "flight_mode": "acro"}, C, True),
+        (
+            {"type": "command", "id": 4, "name": "course_start", "difficulty": "hard", "seed": 3},
+            C,
+            True,
+        ),
+        ({"type": "command", "id": 4, "name": "course_start", "autopilot": True}, C, True),
         ({"type": "bye"}, C, True),
         # bad ones
         ({"type": "command", "id": 5, "name": "goto"}, C, True),  # bad_command: no target
@@ -330,6 +352,10 @@ def _validation_cases() -> list[tuple[dict, str | None, bool]]:
         ({**chunk, "count": 3}, S, False),
         ({**error, "code": 201}, S, False),
         ({**state, "mode": "flying"}, S, False),
+        ({**course, "gate_states": ["passed", "lost"]}, S, False),
+        ({**course, "gates": [0.0] * 141}, S, False),
+        ({"type": "command", "id": 4, "name": "course_start", "difficulty": "insane"}, C, True),
+        ({"type": "command", "id": 4, "name": "course_start", "gates": 21}, C, True),
         ({**state, "route": [0.0] * 1539}, S, False),
         ({**pose, "timings_ms": {"total": -1}}, S, False),
         (pose, C, False),  # a server message from a client: unknown_type

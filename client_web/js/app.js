@@ -6,6 +6,7 @@ import { ARView } from "./ar_view.js";
 import { SessionClient, State } from "./connection.js";
 import { FPVView } from "./fpv_view.js";
 import { FrameDepths } from "./frame_depths.js";
+import { CourseView } from "./course_view.js";
 import { upFromGravity } from "./geometry.js";
 import { Hud } from "./hud.js";
 import { MapMesh } from "./map_mesh.js";
@@ -22,7 +23,9 @@ import { ViewerClient, viewerLink } from "./viewer.js";
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
 const MESH_AFTER_NO_DEPTH_MS = 1000; // live AR without depth this long: occlusion by the map's mesh
-const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "error" };
+const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "warn",
+  crash: "error" };
+const COURSE_EVENTS = new Set(["gate_passed", "gate_missed", "course_finished"]); // course_view.js shows them
 
 class App {
   async init() {
@@ -41,6 +44,7 @@ class App {
     });
     this.frameDepths = new FrameDepths(this.ar);
     this.pilot = new Pilot(this.client, { left: $("#stick-left"), right: $("#stick-right"), modes: $("#flight-mode") });
+    this.course = new CourseView({ client: this.client, ar: this.ar, map: this.map, hud: this.hud });
     this.streamer = null;
     this.source = null;
     this.seen = this.#emptySeen();
@@ -204,6 +208,7 @@ class App {
     this.mapMesh.clear();
     this.ar.clearDrone();
     this.map.setDroneState(null);
+    this.course.clear();
     this.seen = this.#emptySeen();
     this.hud.drone(null);
   }
@@ -262,7 +267,9 @@ class App {
       this.seen.events.push(event);
       if (this.seen.events.length > 200) this.seen.events.shift();
       const where = event.position.map((v) => v.toFixed(2)).join(", ");
-      if (event.event === "collision") this.hud.showBanner(`Collision! ${event.message} (at ${where} m)`, "error", 5000);
+      if (COURSE_EVENTS.has(event.event)) return;
+      if (event.event === "crash") this.hud.showBanner(`Crash! ${event.message} (at ${where} m)`, "error", 6000);
+      else if (event.event === "collision") this.hud.showBanner(`Bump! ${event.message} (at ${where} m)`, "warn", 3000);
       else if (event.event === "blocked") this.hud.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
       this.hud.toast(`${event.event}: ${event.message}`, EVENT_KINDS[event.event] ?? "info");
     });
@@ -377,6 +384,7 @@ class App {
       if (!view.contains("layout-ar") && !fpv) this.map.tick(now);
       if (fpv) this.fpv.tick(now);
       this.flights.tick(now);
+      this.course.tick(now);
       // The mesh is fetched only while a view draws it: FPV, or live AR's occlusion when the XR
       // frames have had no depth for a while (not for one frame without it).
       const noDepth = this.ar.occlusion.depthMissingSince;
@@ -490,6 +498,7 @@ class App {
       liveSupport: this.liveSupport ?? null,
       viewer: this.client.viewer === true,
       ...this.flights.snapshot(),
+      course: this.course.snapshot(),
     };
   }
 }

@@ -56,6 +56,10 @@ export class ARView {
     this.scene.add(this.root);
     this.occlusion = new Occlusion(); // real surfaces hide the drone (occlusion.js)
     this.root.add(this.occlusion.quad, this.occlusion.mesh);
+    // Objects placed in world coordinates (a course's gates): moved with the shown frame.
+    this.world = new THREE.Group();
+    this.world.matrixAutoUpdate = false;
+    this.root.add(this.world);
     for (const name of ["drone", "marker", "target"]) {
       this[name] = { drone: createDrone, marker: createGroundMarker, target: createTargetMarker }[name]();
       this[name].matrixAutoUpdate = false;
@@ -127,7 +131,7 @@ export class ARView {
    * call every animation frame: an unchanged view is not redrawn (phones' batteries, and
    * software rendering in tests). */
   tick(now, minMs = 33) {
-    const spinning = this.drone.visible && this.droneState?.mode !== "landed";
+    const spinning = this.drone.visible && !["landed", "crashed"].includes(this.droneState?.mode);
     if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
     this.render(Math.min(0.1, (now - this.lastRender) / 1000));
     this.lastRender = now;
@@ -177,11 +181,13 @@ export class ARView {
       if (anchor) this.root.matrix.copy(anchor);
     }
     this.root.matrixWorldNeedsUpdate = true;
+    this.world.visible = frame !== null;
+    if (frame) this.world.matrix.multiplyMatrices(CV_TO_GL, frame.T_camera_world);
     this.drone.visible = Tcd !== null;
     this.lastDraw = { droneVisible: false };
     if (Tcd) {
       this.drone.matrix.multiplyMatrices(CV_TO_GL, Tcd);
-      this.drone.userData.update(dt, s.mode !== "landed");
+      this.drone.userData.update(dt, s.mode !== "landed" && s.mode !== "crashed");
       const p = new THREE.Vector3().setFromMatrixPosition(Tcd);
       const pixel = projectPoint(this.intrinsics ?? [1, 1, 0, 0], [p.x, p.y, p.z]);
       this.lastDraw = { droneVisible: true, seq: frame.seq, cameraPoint: p.toArray(), pixel };

@@ -5,8 +5,11 @@
 import * as THREE from "three";
 
 export const DRONE_COLOUR = 0xff00cc; // bright magenta: rare in rooms, easy to find in a picture
-const ARM_LENGTH = 0.16; // centre to motor, metres (a 0.32 m wheelbase)
-const ROTOR_RADIUS = 0.07;
+// The airframe the simulator flies (server/simulation/config.py): arms of arm_length_m, and
+// rotors whose tips reach its collision sphere (radius_m, 0.12 m) and no further, so that what
+// touches a wall on screen is what collides (shared/PROTOCOL.md, "The drone").
+const ARM_LENGTH = 0.09; // centre to motor, metres (a 0.18 m wheelbase)
+const ROTOR_RADIUS = 0.03; // ARM_LENGTH + ROTOR_RADIUS = the collision radius, 0.12 m
 
 function mesh(geometry, material, position = [0, 0, 0]) {
   const m = new THREE.Mesh(geometry, material);
@@ -40,7 +43,7 @@ export function createDrone() {
     arm.rotation.z = angle;
     drone.add(arm);
     const tip = dir.clone().multiplyScalar(ARM_LENGTH);
-    const motor = mesh(new THREE.CylinderGeometry(0.018, 0.018, 0.035, 14), dark);
+    const motor = mesh(new THREE.CylinderGeometry(0.014, 0.014, 0.03, 14), dark);
     motor.rotation.x = Math.PI / 2; // cylinder axis (y) -> body z
     motor.position.copy(tip).setZ(0.01);
     drone.add(motor);

@@ -73,7 +73,7 @@ export class Hud {
       return;
     }
     const flying = ["manual", "goto", "hover", "landing"].includes(state.mode);
-    this.#set("drone", `drone ${state.mode}`, flying ? "flying" : "none");
+    this.#set("drone", `drone ${state.mode}`, state.mode === "crashed" ? "bad" : flying ? "flying" : "none");
     if (state.flight_mode) this.#set("flight-mode", `sticks ${state.flight_mode}`, state.flight_mode === "position" ? "none" : "warn");
     if (state.clearance === undefined) {
       this.#set("clearance", "clear —", "none");

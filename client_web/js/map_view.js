@@ -72,7 +72,8 @@ export class MapView {
     this.drone.scale.setScalar(1);
     this.drone.visible = false;
     this.scene.add(this.drone);
-    this.droneHalo = new THREE.Mesh(new THREE.SphereGeometry(0.2, 20, 14),
+    // The halo is the drone's collision sphere (the simulation's radius_m, 0.12 m by default).
+    this.droneHalo = new THREE.Mesh(new THREE.SphereGeometry(0.12, 20, 14),
       new THREE.MeshBasicMaterial({ color: DRONE_COLOUR, transparent: true, opacity: 0.18, depthWrite: false }));
     this.droneHalo.visible = false;
     this.scene.add(this.droneHalo);
@@ -200,7 +201,7 @@ export class MapView {
     this.drone.visible = true;
     this.droneHalo.position.setFromMatrixPosition(this.drone.matrix);
     this.droneHalo.visible = true;
-    this.drone.userData.spinning = s.mode !== "landed";
+    this.drone.userData.spinning = s.mode !== "landed" && s.mode !== "crashed";
     if (s.route && s.route.length >= 6) {
       this.route.geometry.dispose();
       this.route.geometry = new THREE.BufferGeometry().setFromPoints(pointsFromFlat(s.route));

@@ -2,7 +2,8 @@
 
 Targets are places the camera looked at from close by (a little ahead of past camera poses):
 space the map has seen free. An unreachable target is swapped for the nearest reachable point
-the server suggests; after a few refusals in a row the pilot waits for more of the map.
+the server suggests; after a few refusals in a row the pilot waits for more of the map. While a
+course runs (a ``course`` message in state running) it keeps its hands off the drone.
 """
 
 from __future__ import annotations
@@ -25,9 +26,18 @@ class TourPilot:
         self.next_id = 1
         self.refusals = 0
         self.resume_at: int | None = None  # number of cameras after which to fly again
+        self.course_running = False
 
     def __call__(self, msg: dict) -> dict | None:
         kind = msg["type"]
+        if kind == "course":
+            self.course_running = msg["state"] == "running"
+            return None
+        if self.course_running:
+            if kind == "pose" and msg["state"] != "lost":
+                T = proto.pose_matrix(msg)
+                self.cameras.append(T[:3, 3] + AHEAD_M * T[:3, 2])
+            return None
         if kind == "pose" and msg["state"] != "lost":
             T = proto.pose_matrix(msg)
             self.cameras.append(T[:3, 3] + AHEAD_M * T[:3, 2])
@@ -42,6 +52,10 @@ class TourPilot:
         ):
             self.refusals = 0
             return self._goto(self._pick())
+        elif kind == "drone_event" and msg["event"] == "landed":  # after a crash: fly on
+            self.resume_at = len(self.cameras) + WAIT_POSES
+            self.next_id += 1
+            return proto.make_command(self.next_id, "takeoff")
         elif kind == "error" and msg.get("command_id") is not None:
             self.refusals += 1
             if self.refusals >= MAX_REFUSALS:

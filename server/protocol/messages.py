@@ -116,10 +116,12 @@ def make_command(
     seq: int | None = None,
     sticks: ArrayLike | None = None,
     flight_mode: str | None = None,
+    **course: str | int | float | bool | None,
 ) -> dict:
     """target: world [x, y, z] metres (goto); pixel: [u, v] of frame seq (goto_pixel);
     sticks: [throttle, yaw, pitch, roll] in -1..1 (sticks); flight_mode: position, angle or
-    acro (flight_mode)."""
+    acro (flight_mode); ``course``: course_start's difficulty, seed, gates, spacing,
+    ring_radius, autopilot (as the protocol names them)."""
     return _message(
         "command",
         id=int(command_id),
@@ -130,6 +132,7 @@ def make_command(
         sticks=None if sticks is None else _floats(sticks, 4, "sticks"),
         speed=None if speed is None else float(speed),
         flight_mode=flight_mode,
+        **course,
     )
 
 
@@ -197,9 +200,11 @@ def make_drone_state(
     route: np.ndarray | None = None,
     flight_mode: str | None = None,
     attitude: ArrayLike | None = None,
+    damage: float | None = None,
 ) -> dict:
     """Transforms 4x4 (metres, sent row-major); route (N, 3) world metres, at most 512 points;
-    flight_mode: position, angle or acro; attitude: [roll, pitch, yaw] degrees (flight frame)."""
+    flight_mode: position, angle or acro; attitude: [roll, pitch, yaw] degrees (flight frame);
+    damage: bump damage points."""
     return _message(
         "drone_state",
         timestamp=float(timestamp),
@@ -218,6 +223,7 @@ def make_drone_state(
         target=None if target is None else _floats(target, 3, "target"),
         route=None if route is None else np.asarray(route, dtype=np.float64).ravel().tolist(),
         command_id=None if command_id is None else int(command_id),
+        damage=None if damage is None else float(damage),
     )
 
 
@@ -234,6 +240,44 @@ def make_drone_event(
         timestamp=float(timestamp),
         position=_floats(position, 3, "position"),
         message=message[:1024],
+        command_id=None if command_id is None else int(command_id),
+    )
+
+
+def make_course(
+    course_id: int,
+    state: str,
+    difficulty: str,
+    seed: int,
+    gates: ArrayLike,
+    gate_states: Sequence[str],
+    next_gate: int,
+    elapsed_s: float,
+    par_s: float,
+    bumps: int,
+    crashes: int,
+    score: int,
+    autopilot: bool,
+    rank: int | None = None,
+    command_id: int | None = None,
+) -> dict:
+    """gates: (N, 7) world frame, per gate centre, unit normal (the way through), radius (m)."""
+    return _message(
+        "course",
+        course_id=int(course_id),
+        state=str(state),
+        difficulty=str(difficulty),
+        seed=int(seed),
+        gates=np.asarray(gates, dtype=np.float64).ravel().tolist(),
+        gate_states=[str(getattr(s, "value", s)) for s in gate_states],
+        next_gate=int(next_gate),
+        elapsed_s=max(0.0, float(elapsed_s)),
+        par_s=max(0.0, float(par_s)),
+        bumps=int(bumps),
+        crashes=int(crashes),
+        score=int(score),
+        autopilot=bool(autopilot),
+        rank=None if rank is None else int(rank),
         command_id=None if command_id is None else int(command_id),
     )
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from server.geometry import Intrinsics, invert
+from server.sessions.course import COURSE_COMMANDS, CourseControl
 from server.sessions.errors import SessionError
 from server.sessions.failures import RateLimitedLog
 from server.simulation.config import SimulationConfig
@@ -65,6 +66,11 @@ def flight_frame(gravity_world: np.ndarray | None) -> np.ndarray:
     return np.stack([x, np.cross(up, x), up])
 
 
+# What a flight recording keeps of a course message (PROTOCOL.md, "Flight recordings").
+_COURSE_FIELDS = ("course_id", "difficulty", "seed", "gates", "par_s", "autopilot")
+_RESULT_FIELDS = ("course_id", "elapsed_s", "par_s", "score", "bumps", "crashes", "rank")
+
+
 class CommandRefused(SessionError):
     """A pilot command that cannot be carried out. ``nearest``: a reachable point close to the
     asked target (world frame, metres), when there is one."""
@@ -90,6 +96,7 @@ class DroneUpdate:
     command_id: int | None
     flight_mode: str = "position"  # how sticks fly the drone: position, angle or acro
     attitude: np.ndarray | None = None  # (3,) roll, pitch, yaw in degrees, flight frame
+    damage: float = 0.0  # bump damage points since spawn
 
 
 @dataclass
@@ -112,7 +119,8 @@ class _CameraFrame:
 class Flight:
     """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come
     from the session's workers, ``command`` from the transport; a thread of its own advances the
-    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects to ``publish``.
+    simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects (and the course's
+    ``course`` messages, dicts: ``course``, server/sessions/course.py) to ``publish``.
 
     A flight step that raises is counted (``errors``) and logged, the first with its traceback,
     then at most one line per 10 s; after _MAX_FAILING_STEPS in a row the drone is stopped for
@@ -124,7 +132,7 @@ class Flight:
         config: SimulationConfig,
         K: Intrinsics,
         gravity_world: np.ndarray | None,
-        publish: Callable[[DroneUpdate | DroneNotice], None],
+        publish: Callable[[DroneUpdate | DroneNotice | dict], None],
         state_hz: float = 20.0,
         spawn_ahead_m: float = 0.8,
         log: logging.LoggerAdapter | logging.Logger = log,
@@ -140,6 +148,7 @@ class Flight:
         self.spawn_ahead_m = spawn_ahead_m
         self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
         self.sim = DroneSimulator(config, self.flight_map)
+        self.course = CourseControl(self)  # courses: server/sessions/course.py
         self._lock = threading.Lock()  # the simulator and flight map are used by one thread at once
         # Camera frames have their own lock: tracking never waits for planning or physics.
         self._frames_lock = threading.Lock()
@@ -162,6 +171,7 @@ class Flight:
         # course judge attaches its course and result here: recorder.set_course(course_dict),
         # recorder.finish(result_dict) (plain JSON-able dicts; finish ends the flight).
         self.recorder: FlightRecorder | None = None
+        self._recorded_course: int | None = None  # course_id attached to the recording
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -246,15 +256,20 @@ class Flight:
         sticks=None,
         speed=None,
         flight_mode=None,
+        **options,
     ) -> None:
-        """Carry out a pilot command (names and fields as the protocol's ``command``).
-        Raises CommandRefused (code bad_command or unreachable_target)."""
+        """Carry out a pilot command (names and fields as the protocol's ``command``; fields
+        no drone command reads arrive in ``options``). Raises CommandRefused (code
+        bad_command or unreachable_target)."""
         if self.fault is not None:
             raise CommandRefused(
                 "bad_command",
                 f"the drone's simulation failed and the drone is stopped ({self.fault}); "
                 "create a new session to fly again",
             )
+        if name in COURSE_COMMANDS:
+            self.course.command(name, command_id, speed=speed, **options)
+            return
         if not self.spawned and name not in ("sticks", "flight_mode"):
             raise CommandRefused(
                 "bad_command",
@@ -407,12 +422,43 @@ class Flight:
                 self.publish(state)
             self._record(notices, state)
 
-    def _record(self, notices: list[DroneNotice], state: DroneUpdate | None) -> None:
-        """Hand the step's events and state to the flight recorder, if there is one."""
+    def record_course(self, message: dict) -> None:
+        """Attach a ``course`` message's course to the flight being recorded; a finished
+        course's result (score, time, gates, bumps, crashes, rank) ends that flight, a stopped
+        one is detached. Called with each course message sent (under the flight's lock only for
+        a start or a stop, which write nothing to disk)."""
+        recorder = self.recorder
+        if recorder is None:
+            return
+        try:
+            state = message["state"]
+            if state == "running" and message["course_id"] != self._recorded_course:
+                recorder.set_course({k: message[k] for k in _COURSE_FIELDS})
+                self._recorded_course = message["course_id"]
+            elif state == "finished" and message["course_id"] == self._recorded_course:
+                result = {k: message[k] for k in _RESULT_FIELDS}
+                result["gates_passed"] = message["gate_states"].count("passed")
+                result["gates_missed"] = message["gate_states"].count("missed")
+                recorder.finish(result)
+                recorder.set_course(None)
+                self._recorded_course = None
+            elif state == "stopped" and self._recorded_course is not None:
+                recorder.set_course(None)
+                self._recorded_course = None
+        except Exception:  # a recording that fails must not stop the course: counted, logged
+            self.errors += 1
+            self._failed_steps.failure("recording a course")
+
+    def _record(self, notices: list[DroneNotice | dict], state: DroneUpdate | None) -> None:
+        """Hand the step's events, course messages and state to the flight recorder, if any."""
         if self.recorder is None:
             return
         try:
             for n in notices:
+                if isinstance(n, dict):
+                    if n.get("type") == "course":
+                        self.record_course(n)
+                    continue
                 self.recorder.event(n.timestamp, n.event, n.position, n.message, n.command_id)
             if state is not None:
                 self.recorder.state(
@@ -443,7 +489,7 @@ class Flight:
         self.publish(final)
         self._record([notice], final)
 
-    def _tick(self, dt: float) -> list[DroneNotice]:
+    def _tick(self, dt: float) -> list[DroneNotice | dict]:
         with self._lock:
             events = []
             with self._pending_lock:
@@ -459,11 +505,14 @@ class Flight:
             if grid is not None or region is not None:
                 if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
+            course = []
             if self.spawned:
                 events = self.sim.advance(dt)
-        notices = [self._notice(e) for e in events]
+                course = self.course.tick(events)  # gate notices and course messages
+        notices = [self._notice(e) for e in events] + course
         for n in notices:
-            self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
+            if isinstance(n, DroneNotice):
+                self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
         return notices
 
     def _latest_camera(self) -> tuple[int, np.ndarray] | None:
@@ -527,6 +576,7 @@ class Flight:
             command_id=s.command_id,
             flight_mode=s.flight_mode.value,
             attitude=np.degrees(euler_from_rotation(tuple(s.T_flight_drone[:3, :3].ravel()))),
+            damage=s.damage,
         )
 
     def summary(self) -> dict:
@@ -541,6 +591,7 @@ class Flight:
             "mode": s.mode,
             "position": s.T_world_drone[:3, 3].tolist(),
             "clearance_m": s.clearance,
+            "damage": s.damage,
             "events": dict(self.event_counts),
             **health,
         }

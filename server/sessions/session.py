@@ -33,6 +33,7 @@ from server.rooms.room import (
     write_room_meta,
 )
 from server.sessions.config import SessionConfig
+from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, Flight
@@ -44,7 +45,7 @@ from server.sessions.mapping import (
     MapperLost,
     lower_this_threads_priority,
 )
-from server.sessions.store import SessionStore
+from server.sessions.store import SessionStore, StoreError
 from server.sessions.updates import (
     FrameData,
     FrameRefused,
@@ -182,6 +183,7 @@ class Session:
                 self.config.flights_kept,
             )
             self.flight.recorder = self.flight_log.recorder
+            self.flight.course.best_path = self._course_best_path()
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
@@ -204,6 +206,13 @@ class Session:
         self._room_sessions = list(room.sessions)
         self.log.info("continues in the room %s (%d keyframes)", self.room_dir, len(room.keyframes))
         return tracker
+
+    def _course_best_path(self) -> Path | None:
+        """Where the drone's course results are kept (None: an id the store cannot hold)."""
+        try:
+            return self.store.file(self.id, COURSE_BEST_FILE)
+        except StoreError:
+            return None
 
     def _publish(self, update: Update) -> None:
         on_update = self.on_update

@@ -1,8 +1,9 @@
 """Session files under the data directory, every write atomic (temp file + rename).
 
 Layout: ``<data_dir>/sessions/<id>/`` with ``meta.json``, ``trajectory.tum``, ``map.npz`` (the
-TSDF) and ``map.ply`` (its surface points, ready to download), and ``flights/`` (the drone's
-flight recordings, written by ``server/sessions/flight_log.py``).
+TSDF), ``map.ply`` (its surface points, ready to download), ``course_best.json`` (the drone's
+best course runs, written by the session as runs finish: ``server/sessions/course.py``) and
+``flights/`` (the drone's flight recordings, written by ``server/sessions/flight_log.py``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from server.atomic import atomic_write_bytes
 from server.errors import DroneSimError
 
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
-FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json")
+FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json", "course_best.json")
 STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
 
 
@@ -75,7 +76,7 @@ class SessionStore:
             raise StoreError(f"session {session_id}: unreadable meta.json ({exc})") from exc
 
     def file(self, session_id: str, name: str) -> Path:
-        """Path of one of the session's files (``trajectory.tum``, ``map.npz``, ``map.ply``)."""
+        """Path of one of the session's files (``FILES``)."""
         if name not in FILES:
             raise StoreError(f"unknown session file {name!r}")
         return self.folder(session_id) / name

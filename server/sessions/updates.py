@@ -75,5 +75,6 @@ class SessionFailed:
     saved: bool = False
 
 
-# What a session hands its client, from its worker threads.
-Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed
+# What a session hands its client, from its worker threads; a dict is a protocol message built
+# already (a course's, server/sessions/course.py), sent as it is.
+Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed | dict

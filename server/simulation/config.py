@@ -79,6 +79,12 @@ class SimulationConfig:
     voxel_m: float = 0.05  # occupancy / distance-field cell, m
     unknown_is_free: bool = False  # plan and fly through unobserved space (dangerous)
 
+    # Crashes and bumps (a contact's speed is its component along the surface normal)
+    crash_speed_m_s: float = 1.5  # this fast or faster into the map is a crash: motors off, fall
+    bump_restitution: float = 0.3  # a bump sends back this share of the normal speed
+    bump_friction: float = 0.5  # ... and takes this share off the speed along the surface
+    bump_damage_per_m_s: float = 10.0  # damage points a bump adds per m/s of normal speed
+
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
@@ -129,6 +135,9 @@ class SimulationConfig:
                 f"simulation.radius_m ({self.radius_m}) must be at least one voxel "
                 f"({self.voxel_m}) so that the distance field can see contact"
             )
+        for name in ("bump_restitution", "bump_friction"):
+            if getattr(self, name) >= 1:
+                raise ConfigError(f"simulation.{name} must be below 1, got {getattr(self, name)}")
         if self.max_speed_m_s / self.physics_hz > self.radius_m:
             raise ConfigError("one physics step at max_speed_m_s must move less than radius_m")
 

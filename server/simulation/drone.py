@@ -11,8 +11,16 @@ at its start needs no query per step; near obstacles a few steps are run and eve
 is checked in one query, rewinding to the step before a contact. A step moves at most
 max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
 between two checks (the swept segment is covered), and ``segments_free`` guards longer steps.
-On contact the drone goes back to its last collision-free position, level and at rest, hovers,
-and a ``collision`` event says where; while landing, contact is the touchdown instead.
+
+A contact is judged by its speed along the surface normal (the distance field's gradient where
+the drone touched): at ``crash_speed_m_s`` or more it is a **crash** (``crash`` event; motors
+off, the drone tumbles down in mode ``crashed`` until it rests on the map, ``landed``, and the
+pilot takes off again); below it a **bump** (``collision`` event, at most one a second at one
+place): the drone goes back to its last collision-free position with its normal velocity
+reflected (times ``bump_restitution``) and its speed along the surface damped (``bump_friction``),
+``damage`` grows by ``bump_damage_per_m_s`` per m/s of normal speed, and a position it was
+holding moves ``planning_margin_m`` off the surface (a goto stops there). While landing, contact
+is the touchdown instead.
 
 Commands come from one thread and ``advance`` from another: a lock guards the state.
 """
@@ -60,6 +68,10 @@ NEAR_CHUNK_STEPS = 16  # near obstacles, steps checked together in one query
 # at the same place (the stop itself happens every time).
 COLLISION_REPEAT_S = 1.0
 COLLISION_REPEAT_M = 0.05
+BUMP_STANDOFF_M = 0.01  # a bump puts the drone this far off the surface (resting contacts)
+CRASH_TUMBLE_RAD_S = 4.0  # a crashed drone tumbles at this rate while it falls
+CRASH_REST_NORMAL_Z = 0.5  # a crashed drone rests on a surface whose normal is this far up
+CRASH_REST_SPEED_M_S = 0.3  # ... or on any surface once slower than this
 ROUTE_CLIMB_SHARE = 0.7  # routes climb and descend at this share of max_climb_rate_m_s
 # The status's route is the path's corners: straight lines between them stay this close to the
 # smoothed path (m), well under the drone's radius, with a few points instead of hundreds.
@@ -74,6 +86,7 @@ class DroneMode(str, Enum):
     MANUAL = "manual"
     GOTO = "goto"
     LANDING = "landing"
+    CRASHED = "crashed"  # motors off after a crash, falling until it rests on the map
 
 
 class DroneEventKind(str, Enum):
@@ -85,6 +98,7 @@ class DroneEventKind(str, Enum):
     REPLANNED = "replanned"
     BLOCKED = "blocked"
     LANDED = "landed"
+    CRASH = "crash"
 
 
 class DroneCommandError(DroneSimError):
@@ -130,6 +144,7 @@ class DroneStatus:
     route: FloatArray | None
     command_id: int | None
     flight_mode: FlightMode = FlightMode.POSITION  # how sticks fly the drone (pilot_modes.py)
+    damage: float = 0.0  # damage points from bumps since spawn
 
 
 @dataclass(frozen=True)
@@ -144,6 +159,8 @@ class _Saved:
     goal: FloatArray | None
     time_s: float
     n_events: int
+    damage: float
+    replan: Callable[[FloatArray], Route] | None
     pilot: tuple[object, ...] = ()  # PilotController.state()
 
 
@@ -194,12 +211,14 @@ class DroneSimulator:
         self._tracker: RouteTracker | None = None
         self._corners: IndexArray = np.zeros(0, dtype=np.intp)  # indices into the route's path
         self._goal: FloatArray | None = None
+        self._replan: Callable[[FloatArray], Route] | None = None  # command_route's planner
         self._speed = config.cruise_speed_m_s
         self._planned_at = 0.0
         # manual
         self._sticks: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self._sticks_at = -math.inf
         self._last_collision: tuple[float, FloatArray] = (-math.inf, np.zeros(3))  # time, position
+        self.damage = 0.0  # bump damage points since spawn
         self._a_max = 4 * params.max_motor_thrust_n / params.mass_kg + params.gravity_m_s2
 
     # Commands
@@ -220,6 +239,7 @@ class DroneSimulator:
             self._hold(position)
             self._time_s = self._carry_s = 0.0
             self._last_collision = (-math.inf, np.zeros(3))
+            self.damage = 0.0
             self._command_id = None
             self._emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
             return np.array(position)  # a copy
@@ -240,6 +260,7 @@ class DroneSimulator:
                 raise DroneCommandError(f"goto speed must be a positive number, got {speed}")
             speed = min(speed, self.config.max_speed_m_s)
             self._command_id = command_id
+            self._replan = None
             try:
                 route = self._plan(goal, speed)
             except PlanningError:
@@ -247,6 +268,25 @@ class DroneSimulator:
                 raise
             self._goal = goal
             self._speed = speed
+            self._start_route(route)
+
+    def command_route(
+        self,
+        route: Route,
+        replan: Callable[[FloatArray], Route] | None = None,
+        command_id: int | None = None,
+    ) -> None:
+        """Fly a route planned elsewhere (a course's autopilot: through its gates in order) as a
+        goto to the route's end. When the map changes, ``replan(start)`` (flight frame) plans
+        the rest anew from where the drone is, in place of a route straight to the end; it
+        raises PlanningError when there is none (the drone then holds: ``blocked``)."""
+        with self._lock:
+            self._require_flying("a route")
+            if len(route.path) == 0:
+                raise DroneCommandError("an empty route")
+            self._command_id = command_id
+            self._goal = np.array(route.path[-1], dtype=float)
+            self._replan = replan
             self._start_route(route)
 
     def command_sticks(
@@ -274,6 +314,8 @@ class DroneSimulator:
             self._sticks = values
             self._sticks_at = self._time_s if now_s is None else float(now_s)
             active = any(values)
+            if self._mode == DroneMode.CRASHED:
+                return  # falling with the motors off: nothing to steer until it has landed
             if self._mode == DroneMode.LANDED:
                 if values[0] <= 0.5:  # throttle
                     return
@@ -313,7 +355,7 @@ class DroneSimulator:
         with self._lock:
             self._require_spawned()
             self._command_id = command_id
-            if self._mode in (DroneMode.LANDED, DroneMode.LANDING):
+            if self._mode in (DroneMode.LANDED, DroneMode.LANDING, DroneMode.CRASHED):
                 return
             self._clear_route()
             self._mode = DroneMode.LANDING
@@ -464,6 +506,7 @@ class DroneSimulator:
                 route=route,
                 command_id=self._command_id,
                 flight_mode=self._flight_mode,
+                damage=self.damage,
             )
 
     @property
@@ -551,12 +594,16 @@ class DroneSimulator:
             self._goal,
             self._time_s,
             len(self._events),
+            self.damage,
+            self._replan,
             self._pilot.state(),
         )
 
     def _restore(self, saved: _Saved) -> None:
         self._mode, self._tracker, self._goal = saved.mode, saved.tracker, saved.goal
         self._time_s = saved.time_s
+        self.damage = saved.damage
+        self._replan = saved.replan
         if self._tracker is not None:
             self._tracker.t_s = saved.tracker_t_s
         self._quad.set_state(saved.quad)
@@ -580,10 +627,16 @@ class DroneSimulator:
                 self._time_s += q.dt
                 return
             fly_sticks(q, self._sp, self._current_sticks(), self._limits, q.dt)
+        elif mode == DroneMode.CRASHED:
+            q.step(0.0, 0.0, 0.0, 0.0)  # motors off: it falls
+            self._time_s += q.dt
+            return
         q.step(*self._ctrl.update(q, self._sp))
         self._time_s += q.dt
 
     def _contact(self, last_free: FloatArray) -> None:
+        """The step after ``last_free`` touched the map: a touchdown while landing, else a crash
+        or a bump by the speed along the surface normal (module docstring)."""
         q = self._quad
         yaw = q.yaw_rad
         if self._mode == DroneMode.LANDING:
@@ -592,18 +645,110 @@ class DroneSimulator:
             self._mode = DroneMode.LANDED
             self._emit(DroneEventKind.LANDED, "touched down, motors off")
             return
-        speed = math.sqrt(q.vx * q.vx + q.vy * q.vy + q.vz * q.vz)
-        q.reset(last_free, yaw, hovering=True)
-        self._hold(last_free)
+        v = np.array([q.vx, q.vy, q.vz])
+        normal = self._surface_normal(last_free, v)
+        v_n = float(v @ normal)  # negative: towards the surface
+        impact = max(0.0, -v_n)
+        if self._mode == DroneMode.CRASHED:
+            self._crash_contact(last_free, v, normal, v_n)
+            return
+        if impact >= self.config.crash_speed_m_s:
+            self._crash(last_free, v, normal, v_n, impact)
+            return
+        self._bump(last_free, v, normal, v_n, impact)
+
+    def _surface_normal(self, where: FloatArray, v: FloatArray) -> FloatArray:
+        """Unit normal of the map's surface nearest to ``where`` (the distance field's
+        gradient, pointing away from it); against the velocity where the field is flat."""
+        g = self.flight_map.gradient(where[None])[0]
+        n = float(np.linalg.norm(g))
+        if n > 1e-6:
+            return np.asarray(g / n, dtype=float)
+        speed = float(np.linalg.norm(v))
+        return -v / speed if speed > 1e-9 else np.array([0.0, 0.0, 1.0])
+
+    def _bump(
+        self, last_free: FloatArray, v: FloatArray, normal: FloatArray, v_n: float, impact: float
+    ) -> None:
+        """Bounce: back to the last free position, normal velocity reflected and damped."""
+        cfg, q = self.config, self._quad
+        tangential = v - v_n * normal
+        bounced = (1.0 - cfg.bump_friction) * tangential - cfg.bump_restitution * v_n * normal
+        # A little off the surface, so that a drone pushed on against it (resting contact)
+        # touches again after some steps, not at every one (each contact rewinds a chunk).
+        off_surface = last_free + BUMP_STANDOFF_M * normal
+        d_from, d_to = self.flight_map.distance(np.stack([last_free, off_surface]))
+        if d_to > d_from:
+            last_free = off_surface
+        q.px, q.py, q.pz = (float(c) for c in last_free)
+        q.vx, q.vy, q.vz = (float(c) for c in bounced)
+        added = cfg.bump_damage_per_m_s * impact
+        self.damage += added
+        # A held position (or the goto's route) must not push it into the wall again.
+        off = last_free + cfg.planning_margin_m * normal
+        sp = self._sp
+        if self._mode == DroneMode.GOTO:
+            self._hold(off)
+        elif self._mode in (DroneMode.HOVER, DroneMode.MANUAL):
+            held = np.array([sp.x, sp.y, sp.z])
+            if float(self.flight_map.distance(held[None])[0]) < cfg.planning_radius_m:
+                if sp.hold_xy:
+                    sp.x, sp.y = float(off[0]), float(off[1])
+                if sp.hold_z:
+                    sp.z = float(off[2])
         t_last, p_last = self._last_collision
         if (
             self._time_s - t_last > COLLISION_REPEAT_S
             or np.linalg.norm(last_free - p_last) > COLLISION_REPEAT_M
         ):
             self._emit(
-                DroneEventKind.COLLISION, f"hit the map at {speed:.2f} m/s; stopped and hovering"
+                DroneEventKind.COLLISION,
+                f"bumped into the map at {impact:.2f} m/s (+{added:.1f} damage, "
+                f"{self.damage:.0f} in all); bounced back",
             )
             self._last_collision = (self._time_s, last_free)
+
+    def _crash(
+        self, last_free: FloatArray, v: FloatArray, normal: FloatArray, v_n: float, impact: float
+    ) -> None:
+        """Motors off at the last free position, a small bounce and a tumble: it falls."""
+        q = self._quad
+        self._clear_route()
+        self._mode = DroneMode.CRASHED
+        bounced = (v - v_n * normal) * (1.0 - self.config.bump_friction)
+        bounced -= self.config.bump_restitution * v_n * normal
+        q.px, q.py, q.pz = (float(c) for c in last_free)
+        q.vx, q.vy, q.vz = (float(c) for c in bounced)
+        q.f0 = q.f1 = q.f2 = q.f3 = 0.0
+        # Tumble about the horizontal axis along the surface (body frame), a fixed rate.
+        axis = np.cross([0.0, 0.0, 1.0], normal)
+        if float(np.linalg.norm(axis)) < 1e-6:
+            axis = np.array([1.0, 0.0, 0.0])
+        axis = q.R_flight_body.T @ (axis / np.linalg.norm(axis))
+        q.wx, q.wy, q.wz = (float(c) for c in CRASH_TUMBLE_RAD_S * axis)
+        self._emit(
+            DroneEventKind.CRASH,
+            f"crashed into the map at {impact:.2f} m/s (crash speed "
+            f"{self.config.crash_speed_m_s:.2f} m/s): motors off; take off again once it has "
+            "landed",
+        )
+
+    def _crash_contact(
+        self, last_free: FloatArray, v: FloatArray, normal: FloatArray, v_n: float
+    ) -> None:
+        """A crashed drone touches the map: it rests when that is ground below it or it is
+        nearly still, else it slides off (normal velocity reflected and damped)."""
+        q = self._quad
+        if normal[2] >= CRASH_REST_NORMAL_Z or float(np.linalg.norm(v)) < CRASH_REST_SPEED_M_S:
+            q.reset(last_free, q.yaw_rad, hovering=False)
+            self._sp.hold(last_free, q.yaw_rad)
+            self._mode = DroneMode.LANDED
+            self._emit(DroneEventKind.LANDED, "came to rest after the crash; take off to fly on")
+            return
+        bounced = (v - v_n * normal) * (1.0 - self.config.bump_friction)
+        bounced -= self.config.bump_restitution * v_n * normal
+        q.px, q.py, q.pz = (float(c) for c in last_free)
+        q.vx, q.vy, q.vz = (float(c) for c in bounced)
 
     def _leave_obstacle(self) -> None:
         """If the map grew into the drone, move it to the nearest free point (a collision)."""
@@ -629,6 +774,7 @@ class DroneSimulator:
     def _clear_route(self) -> None:
         self._tracker = None
         self._goal = None
+        self._replan = None
 
     def _require_spawned(self) -> DroneMode:
         """The mode; raises DroneCommandError before spawn."""
@@ -647,8 +793,15 @@ class DroneSimulator:
         self._require_spawned()
         if self._mode == DroneMode.LANDED:
             raise DroneCommandError(f"{what} needs a flying drone; it is landed (take off first)")
+        if self._mode == DroneMode.CRASHED:
+            raise DroneCommandError(
+                f"{what} needs a flying drone; it crashed and is falling (take off again once "
+                "it has landed)"
+            )
 
     def _plan(self, goal: FloatArray, speed: float) -> Route:
+        if self._replan is not None:
+            return self._replan(self._quad.position)
         return plan_route(self.flight_map, self._quad.position, goal, self.config, speed)
 
     def _start_route(self, route: Route) -> None:

@@ -508,8 +508,25 @@ def plan_path(
         return Route(raw, raw.copy(), np.zeros(1), np.zeros(1), 0.0, 0.0, zero, zero.copy())
     clear_raw = np.asarray(flight_map.distance(raw))
     corners = _shortcut(flight_map, raw, clear_raw, required, wanted, 0.9 * lattice.cell_m)
+    return timed_route(
+        flight_map, corners, required, max_speed_m_s, max_accel_m_s2, max_climb_rate_m_s
+    )
+
+
+def timed_route(
+    flight_map: FlightMap,
+    corners: FloatArray,
+    clearance_m: float,
+    max_speed_m_s: float,
+    max_accel_m_s2: float,
+    max_climb_rate_m_s: float | None = None,
+) -> Route:
+    """Steps 4 and 5 for a polyline of corners (K >= 2, (K, 3) flight frame, metres, no two in
+    a row equal) already clear of the map: each corner blended where the blend keeps
+    ``clearance_m`` (or what its segments have), then timed from rest to rest. ``plan_path``
+    ends with it; a course's autopilot joins its legs and gates with it."""
     step = min(0.02, 0.5 * flight_map.voxel_m)
-    path, tangents, kvecs, stops = _smooth(flight_map, corners, required, step)
+    path, tangents, kvecs, stops = _smooth(flight_map, corners, clearance_m, step)
     if len(path) == 2:  # shorter than one step: a midpoint lets the speed rise and fall again
         path = np.stack([path[0], path.mean(axis=0), path[1]])
         tangents, kvecs = tangents[[0, 0, 1]], np.zeros((3, 3))

@@ -17,8 +17,15 @@ from fastapi.responses import JSONResponse
 
 from server.mapping.tsdf import MapError, TSDFMap
 from server.sessions import LiveSession
+from server.sessions.course import BEST_FILE, read_best
 from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
-from server.transport.schemas import SessionCreate, SessionCreated, SessionStatus, error_response
+from server.transport.schemas import (
+    CourseBest,
+    SessionCreate,
+    SessionCreated,
+    SessionStatus,
+    error_response,
+)
 from server.transport.websocket import end_connection
 
 PLY = "application/octet-stream"
@@ -197,3 +204,17 @@ def download_trajectory(session_id: str, session: SessionDep, manager: ManagerDe
     else:
         data = manager.store.file(session_id, "trajectory.tum").read_bytes()
     return _download(data, f"{session_id}-trajectory.tum", "text/plain")
+
+
+@router.get(
+    "/{session_id}/course/best",
+    response_model=CourseBest,
+    responses=_TOKEN_ERRORS,
+)
+def course_best(session_id: str, session: SessionDep, manager: ManagerDep) -> JSONResponse:
+    """The drone's best finished course runs in this session (live or closed), best first:
+    score, time, gates passed and missed, bumps, crashes, the course's difficulty and seed
+    (PROTOCOL.md, "Courses"). Empty before the first finished run. The session writes them
+    to its files as each run finishes, so they survive a restart of the server."""
+    del session  # the dependency checked the token
+    return JSONResponse({"results": read_best(manager.store.file(session_id, BEST_FILE))})

@@ -103,7 +103,7 @@ class DroneSummary(_Body):
     mode: str | None = Field(
         None,
         description="flight mode as drone_state.mode: landed, hover, manual, goto, landing, "
-        "faulted",
+        "crashed, faulted",
     )
     position: list[float] | None = Field(
         None,
@@ -115,6 +115,9 @@ class DroneSummary(_Body):
         None,
         description="distance from the drone's centre to the nearest occupied or unobserved "
         "cell of the flight map, m",
+    )
+    damage: float | None = Field(
+        None, description="damage points from bumps since the drone spawned (drone_state.damage)"
     )
     events: dict[str, int] | None = Field(
         None, description="drone_event messages sent so far, by event name"
@@ -130,6 +133,32 @@ class DroneSummary(_Body):
         None,
         description="why the drone was stopped for good after failing steps (mode faulted); "
         "null while it flies",
+    )
+
+
+class CourseResult(_Body):
+    """One finished course run (PROTOCOL.md, "Courses")."""
+
+    score: int = Field(description="the run's score (the course message's formula), >= 0")
+    time_s: float = Field(description="simulation time from the start to the last gate, s")
+    par_s: float = Field(description="the course's own route's time to its last gate, s")
+    gates: int = Field(description="gates in the course")
+    passed: int = Field(description="gates flown through in order")
+    missed: int = Field(description="gates left out")
+    bumps: int = Field(description="collision events during the run")
+    crashes: int = Field(description="crash events during the run")
+    difficulty: str = Field(description="easy, medium, hard, or custom")
+    seed: int = Field(description="the course generator's seed")
+    autopilot: bool = Field(description="the planner flew it (a demonstration), not the pilot")
+    finished_at: float = Field(description="when it finished, Unix seconds (the server's clock)")
+
+
+class CourseBest(_Body):
+    """``GET /api/sessions/{id}/course/best``: the session's best finished runs."""
+
+    results: list[CourseResult] = Field(
+        description="at most 10, highest score first (equal scores: the faster, then the "
+        "earlier); kept in the session's files, so they outlast restarts"
     )
 
 

@@ -333,6 +333,11 @@ async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Out
     await ws.close(code=1000, reason="bye")
 
 
+_COMMAND_FIELDS = tuple(
+    f["name"] for f in proto.MESSAGES["command"]["fields"] if f["name"] not in ("id", "name")
+)
+
+
 def _drone_state(s: DroneUpdate) -> dict:
     return proto.make_drone_state(
         s.timestamp,
@@ -347,6 +352,7 @@ def _drone_state(s: DroneUpdate) -> dict:
         route=s.route,
         flight_mode=s.flight_mode,
         attitude=s.attitude,
+        damage=s.damage,
     )
 
 
@@ -452,6 +458,6 @@ async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: byte
     elif kind == "frame":
         session.submit(message["seq"], data)
     elif kind == "command":
-        names = ("target", "pixel", "seq", "sticks", "speed", "flight_mode")
-        fields = {k: message.get(k) for k in names}
+        # Every field the protocol lists for a command (absent ones as None); others ignored.
+        fields = {k: message.get(k) for k in _COMMAND_FIELDS}
         await asyncio.to_thread(session.command, message["name"], message["id"], **fields)

@@ -1,0 +1,345 @@
+"""The session's course: ``course_start`` lays one in the drone's map (server.simulation.course),
+each flight step judges the drone's way through it, an autopilot may fly it, and finished runs
+go into the session's best list (``course_best.json`` beside its other files).
+
+``Flight`` owns one ``CourseControl``: ``command`` comes from the worker's main thread (like a
+goto), ``tick`` from the flight thread after each physics advance, both around ``Flight._lock``
+as the simulator needs. What it hands out goes through ``Flight.publish``: ``DroneNotice`` for
+gate_passed, gate_missed and course_finished, and ready ``course`` protocol messages (dicts,
+sent as they are).
+
+The course is laid on a copy of the flight map taken under the lock and generated outside it
+(up to a few hundred milliseconds; the flight thread flies on meanwhile). With ``autopilot`` the
+drone first stops where it is and the course starts there; the route it then flies is planned
+anew through the gates left (``plan_course_route``) when the map changes under it.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import secrets
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from server import protocol as proto
+from server.atomic import atomic_write_bytes
+from server.simulation.course import (
+    Course,
+    CourseError,
+    CourseRun,
+    GateEvent,
+    course_spec,
+    generate_course,
+    plan_course_route,
+)
+from server.simulation.drone import DroneCommandError, DroneEvent, DroneEventKind, DroneMode
+from server.simulation.planner import PlanningError, Reason
+
+if TYPE_CHECKING:
+    from server.sessions.flight import Flight
+
+log = logging.getLogger(__name__)
+
+COURSE_COMMANDS = frozenset({"course_start", "course_stop"})
+BEST_FILE = "course_best.json"  # in the session's folder (SessionStore.file)
+BEST_KEPT = 10  # finished runs kept in the best list
+STATE_PERIOD_S = 0.5  # a running course's message at least this often (simulation time)
+AUTOPILOT_RETRIES = 3  # an interrupted autopilot route is planned anew this often a course
+_FLYING = (DroneMode.HOVER, DroneMode.MANUAL, DroneMode.GOTO)
+
+
+@dataclass(frozen=True)
+class CourseResult:
+    """One finished run, as the best list keeps it (``GET .../course/best``)."""
+
+    score: int
+    time_s: float
+    par_s: float
+    gates: int
+    passed: int
+    missed: int
+    bumps: int
+    crashes: int
+    difficulty: str
+    seed: int
+    autopilot: bool
+    finished_at: float  # Unix seconds, the server's clock
+
+
+def read_best(path: Path | None) -> list[dict[str, Any]]:
+    """The best list in ``path``, best first; [] when there is none (or it is unreadable)."""
+    if path is None:
+        return []
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError) as exc:
+        log.warning("the course best list %s is unreadable (%s); starting a new one", path, exc)
+        return []
+    results = data.get("results") if isinstance(data, dict) else None
+    return [r for r in results if isinstance(r, dict)] if isinstance(results, list) else []
+
+
+def _ranked(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Highest score first; equal scores: the faster, then the earlier."""
+    return sorted(results, key=lambda r: (-r["score"], r["time_s"], r["finished_at"]))
+
+
+class CourseControl:
+    """The course of one session's drone (module docstring)."""
+
+    def __init__(self, flight: Flight, best_path: Path | None = None) -> None:
+        self.flight = flight
+        self.best_path = best_path  # None: the best list lives in memory only
+        self._best: list[dict[str, Any]] | None = None  # read from best_path on first use
+        self.run: CourseRun | None = None
+        self.state = "stopped"
+        self.autopilot = False
+        self.course_id = 0
+        self.command_id: int | None = None
+        self.rank: int | None = None
+        self._sent_at = -np.inf  # simulation time of the last course message
+        self._speed: float | None = None
+        self._retries = 0  # autopilot routes resumed in this course
+
+    # ------------------------------------------------------------------ commands
+    def command(self, name: str, command_id: int, **options: Any) -> None:
+        """course_start or course_stop (protocol names and fields); raises CommandRefused."""
+        from server.sessions.flight import CommandRefused
+
+        if name == "course_stop":
+            with self.flight._lock:
+                if self.run is None or self.state != "running":
+                    raise CommandRefused("bad_command", "no course is running")
+                self._stop(hold=True)
+            return
+        try:
+            spec = course_spec(
+                options.get("difficulty") or "medium",
+                options.get("gates"),
+                options.get("spacing"),
+                options.get("ring_radius"),
+            )
+        except CourseError as exc:
+            raise CommandRefused("bad_command", str(exc)) from None
+        seed = options.get("seed")
+        seed = secrets.randbelow(2**31) if seed is None else int(seed)
+        autopilot = bool(options.get("autopilot"))
+        speed = options.get("speed")
+        sim = self.flight.sim
+        with self.flight._lock:
+            if not sim.spawned:
+                raise CommandRefused("bad_command", "no drone yet: it spawns with the first map")
+            mode = sim.mode
+            if autopilot and mode not in _FLYING:
+                raise CommandRefused(
+                    "bad_command",
+                    f"the autopilot needs a flying drone; it is {mode.value if mode else 'absent'}"
+                    " (take off first)",
+                )
+            if autopilot:
+                sim.command_hold(command_id=command_id)  # the course starts where it stops
+            start = sim.status().T_flight_drone[:3, 3]
+            snapshot = copy.deepcopy(self.flight.flight_map)
+        t0 = time.perf_counter()
+        try:
+            course = generate_course(snapshot, start, spec, seed, sim.config, speed)
+        except CourseError as exc:
+            raise CommandRefused("bad_command", str(exc)) from None
+        self.flight.log.info(
+            "course %s seed %d: %d gates, %.1f m, par %.1f s, laid in %.0f ms",
+            spec.name,
+            seed,
+            len(course.gates),
+            course.length_m,
+            course.par_s,
+            (time.perf_counter() - t0) * 1e3,
+        )
+        with self.flight._lock:
+            if self.run is not None and self.state == "running":
+                self._stop(hold=self.autopilot)
+            if autopilot:
+                try:
+                    sim.command_route(course.route, self._replanner(), command_id=command_id)
+                except DroneCommandError as exc:
+                    raise CommandRefused("bad_command", str(exc)) from None
+            status = sim.status()
+            self.run = CourseRun(course, status.time_s, status.T_flight_drone[:3, 3])
+            self.state, self.autopilot, self.rank = "running", autopilot, None
+            self._retries = 0
+            self.course_id += 1
+            self.command_id = command_id
+            self._speed = speed
+            self._publish_state(status.time_s)
+
+    def _replanner(self):
+        """The autopilot's replan(start): the course's route from ``start`` through the gates
+        left (called by the simulator, under its lock, when the map changes)."""
+        flight = self.flight
+
+        def replan(start: np.ndarray):
+            run = self.run
+            gates = () if run is None else run.course.gates[run.next_gate :]
+            if run is None or not gates:  # as the simulator expects of a planner
+                raise PlanningError(Reason.UNREACHABLE, "no gate of the course is left")
+            return plan_course_route(
+                flight.flight_map, start, gates, run.course.lead_m, flight.config, self._speed
+            )
+
+        return replan
+
+    def _resume_autopilot(self) -> None:
+        """The autopilot's route ended early (a bump, a blocked route): fly on from here through
+        the gates left, at most AUTOPILOT_RETRIES times a course; else the pilot takes over."""
+        self._retries += 1
+        replan = self._replanner()
+        try:
+            if self._retries > AUTOPILOT_RETRIES:
+                raise CourseError("too many interruptions")
+            route = replan(self.flight.sim.status().T_flight_drone[:3, 3])
+            self.flight.sim.command_route(route, replan, command_id=self.command_id)
+        except (CourseError, PlanningError, DroneCommandError) as exc:
+            self.flight.log.warning("the course autopilot gives up: %s", exc)
+            self.autopilot = False
+
+    def _stop(self, hold: bool) -> None:
+        """End the running course (no result); the autopilot's drone stops where it is."""
+        self.state = "stopped"
+        if hold and self.autopilot and self.flight.sim.mode == DroneMode.GOTO:
+            self.flight.sim.command_hold(command_id=self.command_id)
+        self.autopilot = False
+        self._publish_state(self.flight.sim.time_s)
+
+    # ------------------------------------------------------------------ the flight thread
+    def tick(self, events: list[DroneEvent]) -> list:
+        """After a physics advance (``events`` are its drone events; Flight's lock held): judge
+        the way since the last tick; returns DroneNotices and course messages to publish."""
+        from server.sessions.flight import DroneNotice
+
+        run = self.run
+        if run is None or self.state != "running":
+            return []
+        sim = self.flight.sim
+        out: list = []
+        interrupted = False
+        for event in events:
+            if event.kind == DroneEventKind.COLLISION:
+                run.collision(crash=False)
+                interrupted = True  # a bump stops a goto
+            elif event.kind == DroneEventKind.CRASH:
+                run.collision(crash=True)
+                self.autopilot = False  # the crash ended its route: the pilot takes over
+            elif event.kind == DroneEventKind.BLOCKED:
+                interrupted = True
+        if self.autopilot and interrupted and sim.mode == DroneMode.HOVER:
+            self._resume_autopilot()
+        status = sim.status()
+        gate_events = run.update(status.time_s, status.T_flight_drone[:3, 3])
+        for ge in gate_events:
+            out.append(
+                DroneNotice(
+                    ge.kind,
+                    ge.time_s,
+                    self.flight._to_world(ge.point),
+                    self._message(ge),
+                    self.command_id,
+                )
+            )
+        if run.finished:
+            self.state = "finished"
+            self.rank = self._keep(run)
+        if gate_events or run.finished or status.time_s - self._sent_at >= STATE_PERIOD_S:
+            out.append(self.message(status.time_s))
+        return out
+
+    def _message(self, event: GateEvent) -> str:
+        run = self.run
+        assert run is not None
+        n = len(run.course.gates)
+        t = event.time_s - run.start_time_s
+        if event.kind == "gate_passed":
+            return f"gate {event.gate + 1} of {n} passed at {t:.2f} s"
+        if event.kind == "gate_missed":
+            return f"gate {event.gate + 1} of {n} missed"
+        return (
+            f"course finished: {run.passed} of {n} gates in {run.elapsed_s():.2f} s (par "
+            f"{run.course.par_s:.2f} s), {run.bumps} bumps, {run.crashes} crashes, score "
+            f"{run.score()}"
+        )
+
+    # ------------------------------------------------------------------ state and results
+    def message(self, now_s: float) -> dict:
+        """The ``course`` message for the current course (world frame)."""
+        run = self.run
+        assert run is not None
+        course: Course = run.course
+        rows = course.rows()
+        rows[:, 0:3] = self.flight._to_world(rows[:, 0:3])
+        rows[:, 3:6] = self.flight._to_world(rows[:, 3:6])  # a rotation: normals stay unit
+        self._sent_at = now_s
+        return proto.make_course(
+            self.course_id,
+            self.state,
+            course.spec.name,
+            course.seed,
+            rows,
+            run.states,
+            run.next_gate,
+            run.elapsed_s(),
+            course.par_s,
+            run.bumps,
+            run.crashes,
+            run.score(),
+            self.autopilot,
+            rank=self.rank if self.state == "finished" else None,
+            command_id=self.command_id,
+        )
+
+    def _publish_state(self, now_s: float) -> None:
+        if self.run is not None:
+            message = self.message(now_s)
+            self.flight.publish(message)
+            self.flight.record_course(message)
+
+    def best(self) -> list[dict[str, Any]]:
+        """The session's best finished runs, best first."""
+        if self._best is None:
+            self._best = _ranked(read_best(self.best_path))
+        return list(self._best)
+
+    def _keep(self, run: CourseRun) -> int | None:
+        """Put a finished run in the best list (and its file); its rank, or None."""
+        course = run.course
+        result = asdict(
+            CourseResult(
+                score=run.score(),
+                time_s=round(run.elapsed_s(), 3),
+                par_s=round(course.par_s, 3),
+                gates=len(course.gates),
+                passed=run.passed,
+                missed=run.missed,
+                bumps=run.bumps,
+                crashes=run.crashes,
+                difficulty=course.spec.name,
+                seed=course.seed,
+                autopilot=self.autopilot,
+                finished_at=time.time(),
+            )
+        )
+        ranked = _ranked([*self.best(), result])
+        self._best = ranked[:BEST_KEPT]
+        if self.best_path is not None:
+            try:
+                atomic_write_bytes(
+                    self.best_path, json.dumps({"results": self._best}, indent=1).encode()
+                )
+            except OSError as exc:  # the run still counts here; the disk is the store's worry
+                self.flight.log.error("the course best list could not be saved: %s", exc)
+        return ranked.index(result) + 1 if result in self._best else None

@@ -122,6 +122,16 @@ def test_an_autopilot_course_over_the_wire_and_its_best_list_after_a_restart(liv
         or abs(result.time_s - finished["elapsed_s"]) < 1e-3
     )
 
+    # The flight recording holds the course and its result: the finished course ended it.
+    flights = f"{server.url}/api/sessions/{out['sid']}/flights"
+    listed_flights = httpx.get(flights, headers=auth(out["token"])).json()["flights"]
+    (flown,) = [f for f in listed_flights if f["end"] == "course_finished"]
+    recording = httpx.get(f"{flights}/{flown['id']}.json", headers=auth(out["token"])).json()
+    assert recording["course"]["gates"] == laid["gates"]
+    assert recording["course"]["seed"] == laid["seed"]
+    assert recording["result"]["score"] == finished["score"] == flown["result"]["score"]
+    assert recording["result"]["gates_passed"] == n and recording["result"]["gates_missed"] == 0
+
     # A restart: the server stops (saving the session), a new one reads the same folder.
     server.stop()
     again = live_server(data_dir)

@@ -429,7 +429,10 @@ OCCLUDER_JS = """async ([surfaceM, transposed]) => {
   for (let i = 0; i < px.length; i += 4) {
     const [r, g, b] = [px[i], px[i + 1], px[i + 2]];
     if (!(r > 130 && b > 95 && g < 90 && r - g > 90 && b - g > 60)) continue;
-    if ((i / 4) % 320 < 160) left++; else right++;
+    // Columns next to the edge are left out: hole filling carries the surface up to 2 depth
+    // pixels (4 view pixels here) into the unmeasured half.
+    const column = (i / 4) % 320;
+    if (column < 152) left++; else if (column >= 168) right++;
   }
   const source = ar.lastDraw.occlusion;
   ar.renderer.dispose();

@@ -9,9 +9,8 @@ import asyncio
 
 import httpx
 import numpy as np
-import websockets
 from conftest import auth
-from test_drone_server import Pilot, drone_position, flight_map_caught_up
+from test_drone_server import drone_position, flight_map_caught_up, piloting
 
 from server import protocol as proto
 from server.datasets import open_dataset
@@ -22,16 +21,7 @@ from server.transport.schemas import CourseBest
 
 async def fly_a_course(server, dataset) -> dict:
     sid, token = server.create_session()
-    K = dataset.intrinsics
-    async with websockets.connect(
-        f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-    ) as ws:
-        pilot = Pilot(ws)
-        receiver = asyncio.create_task(pilot.receive())
-        await pilot.send(
-            proto.make_hello("course-test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
-        )
-        await pilot.wait_for("welcome")
+    async with piloting(server, sid, token, dataset, "course-test") as pilot:
         # The whole walk (every other frame: half the time, the same room seen).
         for i in range(0, len(dataset), 2):
             frame = dataset[i]
@@ -69,8 +59,6 @@ async def fly_a_course(server, dataset) -> dict:
             "events": pilot.of("drone_event"),
             "states": pilot.of("drone_state"),
         }
-        await pilot.send(proto.make_bye())
-        await asyncio.wait_for(receiver, 10)
     return out
 
 

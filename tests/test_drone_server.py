@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 
 import numpy as np
@@ -81,18 +82,26 @@ async def flight_map_caught_up(server, sid: str, token: str, timeout_s: float = 
         await asyncio.sleep(0.2)
 
 
-async def fly(server, dataset) -> dict:
-    sid, token = server.create_session()
+@contextlib.asynccontextmanager
+async def piloting(server, sid: str, token: str, dataset, client_name: str):
+    """Our socket to session ``sid``, its hello welcomed, and a Pilot keeping every message the
+    server sends; on leaving: bye, and the receiver ends with the server's close."""
     K = dataset.intrinsics
-    async with websockets.connect(
-        f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-    ) as ws:
+    url = f"{server.ws_url}/ws/sessions/{sid}?token={token}"
+    async with websockets.connect(url, max_size=None) as ws:
         pilot = Pilot(ws)
         receiver = asyncio.create_task(pilot.receive())
-        await pilot.send(
-            proto.make_hello("pilot-test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
-        )
+        hello = proto.make_hello(client_name, (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        await pilot.send(hello)
         await pilot.wait_for("welcome")
+        yield pilot
+        await pilot.send(proto.make_bye())
+        await asyncio.wait_for(receiver, 10)
+
+
+async def fly(server, dataset) -> dict:
+    sid, token = server.create_session()
+    async with piloting(server, sid, token, dataset, "pilot-test") as pilot:
         for i in range(FRAMES):
             frame = dataset[i]
             await pilot.send(proto.make_frame(i, frame.timestamp, frame.colour, frame.depth))
@@ -137,8 +146,6 @@ async def fly(server, dataset) -> dict:
         out["landed"] = await pilot.wait_for("drone_event", timeout=20.0, event="landed")
         out["collisions"] = pilot.of("drone_event", event="collision")
         out["states"] = pilot.of("drone_state")
-        await pilot.send(proto.make_bye())
-        await asyncio.wait_for(receiver, 10)
     return out
 
 

@@ -11,9 +11,8 @@ import time
 
 import httpx
 import numpy as np
-import websockets
 from conftest import auth
-from test_drone_server import Pilot
+from test_drone_server import piloting
 from test_openapi import strictly
 
 from server import protocol as proto
@@ -117,16 +116,7 @@ async def _fly_and_land(server, dataset) -> tuple[str, str, dict]:
     """Stream FRAMES frames, fly by sticks for 2 s, land, then take off again (a second flight
     that is still in the air when the server stops)."""
     sid, token = server.create_session()
-    K = dataset.intrinsics
-    async with websockets.connect(
-        f"{server.ws_url}/ws/sessions/{sid}?token={token}", max_size=None
-    ) as ws:
-        pilot = Pilot(ws)
-        receiver = asyncio.create_task(pilot.receive())
-        await pilot.send(
-            proto.make_hello("rec-test", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
-        )
-        await pilot.wait_for("welcome")
+    async with piloting(server, sid, token, dataset, "rec-test") as pilot:
         for i in range(FRAMES):
             frame = dataset[i]
             await pilot.send(proto.make_frame(i, frame.timestamp, frame.colour, frame.depth))
@@ -149,8 +139,6 @@ async def _fly_and_land(server, dataset) -> tuple[str, str, dict]:
             "states": pilot.of("drone_state"),
             "errors": pilot.of("error"),
         }
-        await pilot.send(proto.make_bye())
-        await asyncio.wait_for(receiver, 10)
     return sid, token, out
 
 

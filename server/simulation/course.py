@@ -53,8 +53,9 @@ from numpy.typing import ArrayLike, NDArray
 from server.errors import DroneSimError
 from server.geometry.arrays import FloatArray
 from server.simulation.config import SimulationConfig
+from server.simulation.drone import ROUTE_CLIMB_SHARE, plan_route
 from server.simulation.flight_map import FlightMap
-from server.simulation.planner import PlanningError, Route, plan_path, timed_route
+from server.simulation.planner import PlanningError, Route, timed_route
 
 MAX_GATES = 20
 MAX_TRIES = 150  # places tried for gates (each plans a leg) before giving up
@@ -64,7 +65,6 @@ FIRST_GATE_REACH_M = 4.0  # the first gate lies within spacing_m of the start, e
 RING_MARGIN_M = 0.03  # a gate's centre keeps ring radius + drone radius + this from the map
 SPACING_SPREAD = 0.35  # a leg's straight length lies within +-35 % of spacing_m
 MAX_PITCH_DEG = 30.0  # a gate's normal climbs or descends at most this much
-ROUTE_CLIMB_SHARE = 0.7  # as drone.plan_route: the route's climb rate under the controller's
 
 # Score (module docstring).
 POINTS_PASSED = 100
@@ -174,16 +174,7 @@ def _plan_leg(
     flight_map: FlightMap, a: FloatArray, b: FloatArray, config: SimulationConfig, speed: float
 ) -> FloatArray:
     """The corners (K, 3) of a planned route from a to b; raises PlanningError."""
-    leg = plan_path(
-        flight_map,
-        a,
-        b,
-        config.radius_m,
-        margin_m=config.planning_margin_m,
-        max_speed_m_s=speed,
-        max_accel_m_s2=config.route_accel_m_s2,
-        max_climb_rate_m_s=ROUTE_CLIMB_SHARE * config.max_climb_rate_m_s,
-    )
+    leg = plan_route(flight_map, a, b, config, speed)
     return np.asarray(leg.points, dtype=float)
 
 

@@ -37,7 +37,6 @@ import argparse  # noqa: E402
 import datetime  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
@@ -50,6 +49,10 @@ import open3d.core as o3c  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
+
+# The commit line every registration benchmark writes (benchmarks/ is on sys.path as the
+# script's folder).
+from registration import git_commit  # noqa: E402
 
 from server.datasets import RGBDDataset, open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
@@ -277,15 +280,6 @@ def model_bias_from_gt(
     if not moves:
         return np.full(3, np.nan), float("nan")
     return np.mean(moves, axis=0), float(np.sqrt(np.mean(np.sum(np.square(moves), axis=1))))
-
-
-def git_commit() -> str:
-    def git(*a: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", *a], cwd=REPO_ROOT, capture_output=True, text=True)
-
-    head = git("rev-parse", "--short", "HEAD").stdout.strip() or "unknown"
-    dirty = git("diff", "--quiet", "HEAD", "--", "server", "benchmarks").returncode != 0
-    return head + (" + uncommitted changes" if dirty else "")
 
 
 def main(argv: list[str] | None = None) -> int:

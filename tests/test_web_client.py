@@ -44,6 +44,9 @@ from conftest import LoopThread
 
 from server import protocol as proto
 from server.client.connection import Connection
+from server.datasets.replay_export import replay_index
+from server.geometry import Intrinsics
+from server.transport.routes_client import there_and_back
 
 # The browser fixtures, for pytest to find in this module.
 chromium, demo_ready, open_page = browser.chromium, browser.demo_ready, browser.open_page
@@ -92,6 +95,17 @@ def test_the_server_serves_the_page_its_modules_protocol_and_demo(live_server, d
         assert colour[:3] == b"\xff\xd8\xff" and depth[:8] == b"\x89PNG\r\n\x1a\n"
         assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
         assert http.get("/api/demo", params={"preset": "huge"}).status_code == 404
+
+
+def test_the_loop_demo_plays_the_demo_forward_then_back_to_its_first_frame():
+    frames = [{"timestamp": 10.0 + i / 30, "colour": f"c{i}", "depth": f"d{i}"} for i in range(5)]
+    index = replay_index("demo", Intrinsics(525, 525, 319.5, 239.5, 640, 480), 5000.0, None, frames)
+    played = there_and_back(index)["frames"]
+    assert [f["colour"] for f in played] == ["c0", "c1", "c2", "c3", "c4", "c3", "c2", "c1", "c0"]
+    assert [f["depth"] for f in played][-1] == "d0"
+    stamps = np.array([f["timestamp"] for f in played])
+    assert stamps[0] == 10.0 and np.allclose(np.diff(stamps), 1 / 30, atol=1e-5)
+    assert index["frames"] == frames  # the demo's own index is left as it was
 
 
 # ---- unit tests of the live mode's packing, in the browser ----------------------------------

@@ -25,6 +25,8 @@ const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there afte
 const MESH_AFTER_NO_DEPTH_MS = 1000; // live AR without depth this long: occlusion by the map's mesh
 const EVENT_KINDS = { spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn", collision: "warn",
   crash: "error" };
+// The server's demo sequences (routes_client.py DEMO_PRESETS), by capture mode.
+const DEMO_URLS = { demo: "/api/demo", "demo-small": "/api/demo?preset=small", "demo-loop": "/api/demo?preset=loop" };
 const COURSE_EVENTS = new Set(["gate_passed", "gate_missed", "course_finished"]); // course_view.js shows them
 
 class App {
@@ -79,14 +81,14 @@ class App {
 
   #emptySeen() {
     return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
-      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null };
+      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [] };
   }
 
   // ---- session and streaming --------------------------------------------------------------------
 
   /**
    * Start streaming from a capture mode into a session.
-   * @param {{mode?: "demo"|"demo-small"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
+   * @param {{mode?: "demo"|"demo-small"|"demo-loop"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
    *   room?: boolean, files?: FileList, recording?: File}} options
    */
   async start({ mode = "demo", fps = 15, fresh = false, room = false, files = null, recording = null } = {}) {
@@ -103,11 +105,11 @@ class App {
         this.setView("ar"); // the camera fills the screen; the Map button overlays the map
         source.info = await source.start();
       } else {
-        if (mode === "demo" || mode === "demo-small") this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
+        if (mode in DEMO_URLS) this.hud.toast("loading the demo sequence (the server makes it on first use, up to a minute)…");
         let sequence;
         if (mode === "folder") sequence = await ReplaySequence.fromFiles(files);
         else if (mode === "iphone") sequence = await this.#uploadRecording(recording);
-        else sequence = await ReplaySequence.fromServer(mode === "demo-small" ? "/api/demo?preset=small" : "/api/demo");
+        else sequence = await ReplaySequence.fromServer(DEMO_URLS[mode] ?? DEMO_URLS.demo);
         source = new ReplaySource(sequence);
         source.prefetch(0);
       }
@@ -249,6 +251,7 @@ class App {
       this.hud.points(this.map.pointCount);
       this.ar.setGroundHeight(this.map.groundHeight());
     });
+    c.addEventListener("map_corrected", ({ detail: correction }) => this.#mapCorrected(correction));
     c.addEventListener("drone_state", ({ detail: state }) => {
       this.seen.droneStates += 1;
       if (this.seen.lastDrone?.mode !== state.mode) {
@@ -290,6 +293,18 @@ class App {
     this.frameDepths.shown(pose.seq);
     bitmap?.close?.();
     s.shownSeq = pose.seq;
+  }
+
+  /** The server closed a loop: its keyframes moved, and the map is re-fused (the chunks that
+   * follow start with reset). Poses from correction.from_seq on are in the corrected world;
+   * the trail is redrawn through the corrected keyframes, as the poses before are not resent. */
+  #mapCorrected(correction) {
+    const s = this.seen;
+    s.corrections.push({ loops: correction.loops, from_seq: correction.from_seq, keyframes: correction.keyframes.length });
+    if (s.corrections.length > 50) s.corrections.shift();
+    this.map.replaceTrajectory(correction.keyframes.map((k) => k.T_world_keyframe));
+    const shift = Math.hypot(correction.T_correction[3], correction.T_correction[7], correction.T_correction[11]);
+    this.hud.toast(`loop closed (${correction.loops}): map corrected by ${(100 * shift).toFixed(1)} cm here, re-fusing`, "ok", 5000);
   }
 
   #serverError(error) {

@@ -126,16 +126,24 @@ export class MapView {
   }
 
   clear() {
-    for (const g of [this.positions, this.rgb, this.heights, this.trajectory]) g.count = 0;
-    this.range = null;
+    this.clearPoints();
     this.fitted = false;
-    this.#rebuildAttributes();
+    this.trajectory.count = 0;
     this.trajectoryLine.geometry.setDrawRange(0, 0);
   }
 
-  /** Add map_chunk points (Float32Array xyz, world frame, metres) with colours (Uint8Array rgb). */
+  /** Drop the map's points (a rebuilt map is resent); the trajectory stays. */
+  clearPoints() {
+    for (const g of [this.positions, this.rgb, this.heights]) g.count = 0;
+    this.range = null;
+    this.#rebuildAttributes();
+    this.dirty = true;
+  }
+
+  /** Add map_chunk points (Float32Array xyz, world frame, metres) with colours (Uint8Array rgb);
+   * reset: they replace the points so far (the server rebuilt its map). */
   addPoints(points, colours, reset = false) {
-    if (reset) this.clear();
+    if (reset) this.clearPoints();
     const n = points.length / 3;
     const heights = new Float32Array(n);
     for (let i = 0; i < n; i++) {
@@ -175,6 +183,18 @@ export class MapView {
     this.addTrajectoryPoint(p.toArray());
     this.cameraMarker.matrix.copy(m);
     this.cameraMarker.visible = true;
+  }
+
+  /** Redraw the trajectory through these poses (T_world_camera, 16 numbers row-major each): the
+   * corrected keyframes after a loop closure; later poses extend it. */
+  replaceTrajectory(poses) {
+    this.trajectory.count = 0;
+    for (const T of poses) this.trajectory.append([T[3], T[7], T[11]]);
+    const g = this.trajectoryLine.geometry;
+    g.setAttribute("position", new THREE.BufferAttribute(this.trajectory.array, 3));
+    g.setDrawRange(0, this.trajectory.count);
+    g.boundingSphere = null;
+    this.dirty = true;
   }
 
   /** Extend the camera trajectory by a position [x, y, z], world frame, metres. */

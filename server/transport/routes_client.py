@@ -68,12 +68,16 @@ MEDIA_TYPES = {
 # The page is small and changes with the server: revalidate every time (ETag / Last-Modified).
 NO_CACHE = {"Cache-Control": "no-cache"}
 
-# The demo sequences the page can replay: the bundled default (640x480, 150 frames), and a
-# small one (320x240, 90 frames: a quarter of the bytes, for slow links and quick tests).
+# The demo sequences the page can replay: the bundled default (640x480, 150 frames), a small
+# one (320x240, 90 frames: a quarter of the bytes, for slow links and quick tests), and the
+# default played forward then back ("loop", 299 frames: it returns to where it started, so
+# the server's loop closure has a loop to find and the page shows the map corrected).
 DEMO_PRESETS = {
     "default": DemoSpec(),
     "small": DemoSpec(frames=90, width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5),
+    "loop": DemoSpec(),
 }
+THERE_AND_BACK = {"loop"}  # presets whose frames play forward, then backward to the first
 
 _demo_lock = threading.Lock()
 _demo_indexes: dict[str, tuple[Path, dict]] = {}
@@ -154,6 +158,20 @@ def build_demo_index(folder: Path, files_url: str = "/api/demo/files", query: st
     return replay_index(folder.name, K, depth_scale, _gravity(folder), frames)
 
 
+def there_and_back(index: dict) -> dict:
+    """A replay index whose frames play forward, then backward to the first (the last is not
+    repeated), stamped on at the sequence's own rate: a camera that walks a path and comes back
+    along it, as a user who returns to where they started."""
+    frames = index["frames"]
+    if len(frames) < 2:
+        return index
+    step = 1.0 / index["fps"]
+    start = frames[0]["timestamp"]
+    order = [*frames, *frames[-2::-1]]
+    played = [{**f, "timestamp": round(start + i * step, 6)} for i, f in enumerate(order)]
+    return {**index, "name": f"{index['name']} there and back", "frames": played}
+
+
 def _demo(preset: str) -> tuple[Path, dict]:
     """A demo preset's folder and index; the first call generates the sequence (cached on
     disk, ~/.cache/dronesim)."""
@@ -164,7 +182,10 @@ def _demo(preset: str) -> tuple[Path, dict]:
         if preset not in _demo_indexes:
             folder = demo_sequence_path(spec, progress=False)
             query = "" if preset == "default" else f"?preset={preset}"
-            _demo_indexes[preset] = (folder, build_demo_index(folder, query=query))
+            index = build_demo_index(folder, query=query)
+            if preset in THERE_AND_BACK:
+                index = there_and_back(index)
+            _demo_indexes[preset] = (folder, index)
             log.info("demo preset %s for the page's replay: %s", preset, folder)
         return _demo_indexes[preset]
 
@@ -174,7 +195,7 @@ async def demo_index(preset: str = "default") -> dict:
     """A bundled demo sequence (generated on first use, then cached): intrinsics, image sizes,
     depth scale, gravity in the first camera frame, and per frame the URLs of its colour JPEG
     and 16-bit depth PNG, for the page's replay mode. ``preset``: default (640x480, 150
-    frames) or small (320x240, 90 frames)."""
+    frames), small (320x240, 90 frames) or loop (the default forward then back, 299 frames)."""
     _, index = await asyncio.to_thread(_demo, preset)
     return index
 

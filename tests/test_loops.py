@@ -6,45 +6,15 @@ from __future__ import annotations
 import numpy as np
 
 from server.datasets import open_dataset
-from server.datasets.base import RGBDDataset, RGBDFrame
-from server.evaluation.trajectory import Trajectory
+from server.datasets.there_and_back import ThereAndBack
 from server.pipeline import run_odometry
 from server.registration.config import RegistrationConfig
-
-
-class ForwardBack(RGBDDataset):
-    """The first ``n`` frames of a sequence, then the same frames backwards (the last not twice),
-    with timestamps that go on at the sequence's frame rate and the ground truth to match."""
-
-    def __init__(self, ds: RGBDDataset, n: int) -> None:
-        self.ds = ds
-        self.name, self.path = f"{ds.name}_forward_back", ds.path
-        self.intrinsics, self.depth_scale = ds.intrinsics, ds.depth_scale
-        t = np.asarray(ds.timestamps[:n])
-        self.order = list(range(n)) + list(range(n - 2, -1, -1))
-        self._t = t[0] + float(np.median(np.diff(t))) * np.arange(len(self.order))
-        gt = ds.ground_truth
-        assert gt is not None
-        nearest = [int(np.argmin(np.abs(gt.timestamps - t[i]))) for i in self.order]
-        self.ground_truth = Trajectory(self._t.copy(), gt.poses[nearest])
-        self.device_poses = None
-
-    def __len__(self) -> int:
-        return len(self.order)
-
-    def __getitem__(self, k: int) -> RGBDFrame:
-        f = self.ds[self.order[k]]
-        return RGBDFrame(k, float(self._t[k]), f.colour, f.depth)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._t
 
 
 def test_a_loop_back_to_the_start_is_found_and_its_correction_does_not_add_error(shared_data):
     # 100 frames forward and back: 16 keyframes, of which the way back makes new ones once the
     # tracker's recent keyframes no longer reach the start (without loops it never returns).
-    ds = ForwardBack(open_dataset(shared_data / "synthetic_room0"), 100)
+    ds = ThereAndBack(open_dataset(shared_data / "synthetic_room0"), 100)
     cfg = RegistrationConfig().with_overrides(loops={"enabled": True, "min_separation": 8})
     run = run_odometry(ds, cfg, progress=False)
     loops = run.summary["loops"]

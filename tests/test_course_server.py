@@ -126,3 +126,11 @@ def test_an_autopilot_course_over_the_wire_and_its_best_list_after_a_restart(liv
     assert best(again, out["sid"], out["token"]).results == listed.results
     r = httpx.get(f"{again.url}/api/sessions/{out['sid']}/course/best", headers=auth("x" * 43))
     assert r.status_code == 404  # the token still guards it
+
+    # The session left a room; a return visit to it has the room's best list to beat.
+    r = httpx.post(
+        f"{again.url}/api/sessions", json={"room": out["sid"]}, headers=auth(out["token"])
+    )
+    assert r.status_code == 201, r.text
+    visit = r.json()
+    assert best(again, visit["id"], visit["token"]).results == listed.results

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from server.atomic import atomic_write_bytes
 from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
@@ -149,6 +150,8 @@ class Session:
         self._dirty = False
         self._last_snapshot = time.monotonic()
         self.snapshot_error: str | None = None  # why the latest snapshot failed, if it did
+        if room_dir is not None:
+            self._inherit_course_best(room_dir)
 
     # ------------------------------------------------------------------ access
     def configure(
@@ -206,6 +209,21 @@ class Session:
         self._room_sessions = list(room.sessions)
         self.log.info("continues in the room %s (%d keyframes)", self.room_dir, len(room.keyframes))
         return tracker
+
+    def _inherit_course_best(self, room_dir: Path) -> None:
+        """The best course runs flown in the room so far become this session's best list to
+        beat (pilots compete per room, not per visit); a room without any starts empty."""
+        source = room_dir / COURSE_BEST_FILE
+        target = self._course_best_path()
+        if target is None or not source.is_file() or target.exists():
+            return
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(target, source.read_bytes())
+        except OSError:
+            self.log.exception("the room's course best list could not be carried over")
+            with self._lock:
+                self.failures.snapshots_failed += 1
 
     def _course_best_path(self) -> Path | None:
         """Where the drone's course results are kept (None: an id the store cannot hold)."""
@@ -509,6 +527,10 @@ class Session:
             link_keyframes(self.room_dir, room, self._room_base_ids)
         (room / MAP_FILE).unlink(missing_ok=True)
         os.link(folder / MAP_FILE, room / MAP_FILE)
+        best = self._course_best_path()  # the course results go with the room
+        (room / COURSE_BEST_FILE).unlink(missing_ok=True)
+        if best is not None and best.is_file():
+            os.link(best, room / COURSE_BEST_FILE)
         sessions = [*self._room_sessions, {"session": self.id, "keyframes_after": len(keyframes)}]
         write_room_meta(room, self.intrinsics, keyframes, sessions)
         return True

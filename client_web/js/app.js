@@ -81,7 +81,7 @@ class App {
 
   #emptySeen() {
     return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
-      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [] };
+      chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [], mapResets: 0 };
   }
 
   // ---- session and streaming --------------------------------------------------------------------
@@ -246,6 +246,7 @@ class App {
       this.map.addPoints(points, colours, chunk.reset === true);
       this.mapMesh.noteMapPoints(this.map.pointCount, chunk.reset === true);
       this.seen.chunks += 1;
+      if (chunk.reset === true) this.seen.mapResets += 1;
       this.seen.chunkPoints += chunk.count;
       this.seen.mapPoints = this.map.pointCount;
       this.hud.points(this.map.pointCount);
@@ -509,6 +510,8 @@ class App {
       occlusion: { enabled: this.ar.occlusion.enabled, source: this.ar.lastDraw.occlusion ?? "none",
         depthSeq: this.ar.occlusion.depth?.seq ?? null, depthFailures: this.frameDepths.failures },
       fpv: { ...this.fpv.lastDraw }, mesh: this.mapMesh.summary(),
+      trail: { points: this.map.trajectory.count, last: this.map.trajectory.count
+        ? Array.from(this.map.trajectory.array.subarray(3 * this.map.trajectory.count - 3, 3 * this.map.trajectory.count)) : null },
       commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),
       liveSupport: this.liveSupport ?? null,
       viewer: this.client.viewer === true,

@@ -78,7 +78,9 @@ def run_odometry(
     relocalised by place recognition until one is found, and tracked from there in the room's
     world frame; the frames before have no pose and are left out of the trajectory. The room
     gains this run's keyframes (``run.room`` is the same object) and its map is cleared, to be
-    re-fused from all keyframes when saved. ``keep_room=False`` keeps no keyframes (no place
+    re-fused from all keyframes when saved. With loop closure (``config.loops.enabled``) every
+    frame moves with its keyframe's correction and the map is fused again from the same frames
+    at the corrected poses. ``keep_room=False`` keeps no keyframes (no place
     features computed; ``run.room`` stays as it was), unless loop closure needs them.
     """
     mapping = mapping or MappingConfig()
@@ -98,6 +100,7 @@ def run_odometry(
         room.map = None
     world_map = PointCloudMap(voxel_m=voxel_m)
     results, stamps = [], []
+    fused: list[tuple[int, int]] = []  # (frame index, result index) of each frame in the map
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
     with_device_pose = 0  # frames that had a device pose to give
@@ -122,6 +125,7 @@ def run_odometry(
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
             world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, result.T_world_camera)
+            fused.append((i, len(results) - 1))
         bar.set_postfix(
             state=result.state.value,
             inliers=result.inliers,
@@ -136,6 +140,11 @@ def run_odometry(
     if closer is not None:
         odometry = trajectory
         trajectory = _close_loops(closer, room, results, trajectory)
+        if closer.loops:  # the map follows the corrected poses: the same frames fused again
+            world_map = PointCloudMap(voxel_m=voxel_m)
+            for i, k in fused:
+                frame = dataset[i]
+                world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, trajectory.poses[k])
         loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
         if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
             loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)

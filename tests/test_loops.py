@@ -7,6 +7,8 @@ import numpy as np
 
 from server.datasets import open_dataset
 from server.datasets.there_and_back import ThereAndBack
+from server.mapping.config import MappingConfig
+from server.mapping.pointcloud import PointCloudMap
 from server.pipeline import run_odometry
 from server.registration.config import RegistrationConfig
 
@@ -25,10 +27,29 @@ def test_a_loop_back_to_the_start_is_found_and_its_correction_does_not_add_error
     before = loops["odometry_metrics"]["ate_rmse_m"]
     after = run.metrics["ate_rmse_m"]
     assert after <= before, (before, after)
+    # The map followed: the same frames fused again at the corrected poses (which differ from
+    # the odometry's).
+    odometry = np.array([r.T_world_camera for r in run.results])
+    assert np.abs(run.trajectory.poses - odometry).max() > 1e-5
+    refused = _refused(ds, run)
+    assert run.map.points.shape == refused.shape
+    assert np.allclose(run.map.points, refused, atol=1e-9)
     # The room's keyframes took the corrected poses (its map is re-fused from them when saved).
     assert run.room.map is None
     first = run.room.keyframes[0].T_world_keyframe
     assert np.allclose(first, ds.ground_truth.poses[0], atol=1e-6)  # the fixed reference
+
+
+def _refused(ds, run) -> np.ndarray:
+    """The run's map made again from the frames it fused (keyframes and every fuse_every-th
+    tracked frame) at the corrected poses."""
+    every = MappingConfig().fuse_every
+    world = PointCloudMap(voxel_m=MappingConfig().tsdf.voxel_m)
+    for k, r in enumerate(run.results):
+        if r.state.value != "lost" and (r.new_keyframe or k % every == 0):
+            frame = ds[k]
+            world.fuse(frame.colour, frame.depth, ds.intrinsics, run.trajectory.poses[k])
+    return world.points
 
 
 def test_without_loop_closure_the_tracker_is_unchanged(shared_data):

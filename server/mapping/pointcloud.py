@@ -42,7 +42,10 @@ class PointCloudMap:
             self._downsample()
 
     def _downsample(self) -> None:
-        self.cloud = self.cloud.voxel_down_sample(self.voxel_m)
+        # Only when points came: downsampling a downsampled cloud again moves its points (each
+        # voxel's mean shifts the grid's share), so reading the map twice would differ.
+        if self._pending:
+            self.cloud = self.cloud.voxel_down_sample(self.voxel_m)
         self._pending = 0
 
     @property

@@ -36,6 +36,13 @@ class FlowConfig:
     max_iterations: int = 30
     epsilon: float = 0.01  # px, LK convergence
     max_fb_error_px: float = 1.0  # forward-backward round-trip error
+    # Corners followed frame to frame wander (each step adds a little LK error). With this on,
+    # each chained track is re-aligned straight against the keyframe's image (LK from the
+    # keyframe corner, starting at the chained position, this many pyramid levels above the full
+    # image; -1 = off), so its error no longer grows with the keyframe's age.
+    keyframe_refine_levels: int = -1
+    # A re-aligned track further than this from the chained one is dropped (a wrong match).
+    keyframe_refine_max_px: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,11 @@ class DepthConfig:
     axial_noise_a_m: float = 0.0012
     axial_noise_b_per_m: float = 0.0019
     lateral_noise_px: float = 0.8  # pixel error of a tracked corner
+    # Colour focal length over depth focal length, for colour images not registered to depth
+    # (raw Kinect): a colour pixel maps to depth pixel c + scale * (uv - c). 1 = registered.
+    colour_focal_scale: float = 1.0
+    colour_offset_u_px: float = 0.0  # ... plus this offset (depth pixels)
+    colour_offset_v_px: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -84,6 +96,21 @@ class KeyframeConfig:
     max_translation_m: float = 0.25
     max_rotation_deg: float = 15.0
     recent_keyframes: int = 8  # kept for relocalisation after a lost frame
+    # Which earlier keyframe a due keyframe change tries first: "nearest" (pose distance) or
+    # "oldest" (least drift accumulated along the keyframe chain), among those in reach.
+    switch_order: str = "nearest"
+    # Windowed keyframe refinement: a frame about to become a keyframe is also registered
+    # against up to this many other recent keyframes (newest first, within window_reach times
+    # max_translation_m and max_rotation_deg), and its pose is solved jointly over all of them,
+    # each keyframe's sparse terms weighted by their own information (0 = off: the pose from the
+    # current keyframe alone).
+    window: int = 0
+    window_reach: float = 2.0
+    # Switching back needs this many of the old keyframe's corners tracked, as a multiple of
+    # min_tracked_ratio (and at least min_tracked), and the pose within this share of
+    # max_translation_m / max_rotation_deg.
+    switch_tracked_factor: float = 1.5
+    switch_reach: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -189,7 +189,9 @@ def test_windowed_keyframe_refinement_pulls_a_new_keyframe_towards_older_ones(de
     error_joint = relative_error(T_joint, gt_at(ds, 3))[0]
     assert error_joint < 0.7 * error_b, (error_joint, error_b)
     # With the window off, the frame keeps the pose from B alone.
-    tracker.cfg = RegistrationConfig().with_overrides(solver={"dense": False})
+    tracker.cfg = RegistrationConfig().with_overrides(
+        solver={"dense": False}, keyframes={"window": 0}
+    )
     np.testing.assert_array_equal(tracker._refine_in_window(*frames[3], T_via_b, reg), T_via_b)
 
 

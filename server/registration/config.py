@@ -103,9 +103,12 @@ class KeyframeConfig:
     # against up to this many other recent keyframes (newest first, within window_reach times
     # max_translation_m and max_rotation_deg), and its pose is solved jointly over all of them,
     # each keyframe's sparse terms weighted by their own information (0 = off: the pose from the
-    # current keyframe alone).
-    window: int = 0
-    window_reach: float = 2.0
+    # current keyframe alone). One keyframe within 3x: synthetic_room0 ATE 0.264 -> 0.204 cm
+    # (sparse), 0.243 -> 0.185 cm (sparse + dense); 7scenes_a 3.90 -> 3.82, 4.48 -> 4.45 cm;
+    # two keyframes helped the synthetic room more but made 7scenes_a sparse + dense worse
+    # (benchmarks/README.md, "Drift").
+    window: int = 1
+    window_reach: float = 3.0
     # Switching back needs this many of the old keyframe's corners tracked, as a multiple of
     # min_tracked_ratio (and at least min_tracked), and the pose within this share of
     # max_translation_m / max_rotation_deg.

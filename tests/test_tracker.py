@@ -235,3 +235,28 @@ def test_keyframe_switch_order(demo_clean, order, expected_frame):
     switched = tracker._switch_keyframe(*images[1], gt_at(ds, 1))
     assert switched is not None
     assert switched.frame_index == expected_frame
+
+
+def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean):
+    """depth.estimate_colour_registration: a colour image with 0.9x the depth camera's focal
+    length is found as such; registered images keep the identity."""
+    import time
+
+    from server.registration.calibration import estimate_colour_registration
+    from server.registration.preprocess import to_grey
+
+    ds = open_dataset(demo_clean)
+    f = ds[0]
+    assert estimate_colour_registration(to_grey(f.colour), f.depth, ds.intrinsics) is None
+    t = time.perf_counter()
+    grey = to_grey(unregistered_colour(f.colour, ds.intrinsics, 0.9))
+    found = estimate_colour_registration(grey, f.depth, ds.intrinsics)
+    assert time.perf_counter() - t < 5.0
+    assert found is not None
+    assert abs(found.scale - 0.9) <= 0.015
+    assert abs(found.offset_u_px) <= 2 and abs(found.offset_v_px) <= 2
+    # The tracker picks it up from its first frame.
+    config = RegistrationConfig().with_overrides(depth={"estimate_colour_registration": True})
+    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+    tracker.track(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
+    assert tracker.cfg.depth.colour_focal_scale == found.scale

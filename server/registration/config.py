@@ -63,6 +63,9 @@ class DepthConfig:
     colour_focal_scale: float = 1.0
     colour_offset_u_px: float = 0.0  # ... plus this offset (depth pixels)
     colour_offset_v_px: float = 0.0
+    # Estimate the three above from the first frame (colour edges laid on depth edges,
+    # server/registration/calibration.py); kept only when clearly better than the identity.
+    estimate_colour_registration: bool = False
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from server.geometry import (
     rotation_angle_deg,
 )
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, GreyImage, IndexArray
+from server.registration.calibration import estimate_colour_registration
 from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
@@ -361,6 +362,8 @@ class Tracker:
         prior: FloatArray | None,
     ) -> TrackResult:
         t = time.perf_counter()
+        if self.cfg.depth.estimate_colour_registration:
+            self._register_colour(grey, depth)
         kf = self._new_keyframe(index, grey, depth, self.T_world_first)
         timings["keyframe"] = _ms(t)
         # A first frame without texture or depth cannot anchor tracking.
@@ -384,6 +387,29 @@ class Tracker:
             kf.id,
             state is TrackingState.OK,
             timings,
+        )
+
+    def _register_colour(self, grey: GreyImage, depth: Float32Array) -> None:
+        """Estimate how colour pixels map to depth pixels from this frame (unregistered
+        sensors) and use it from now on; the configuration is left as it is when the images
+        look registered."""
+        found = estimate_colour_registration(grey, depth, self.K)
+        if found is None:
+            return
+        log.info(
+            "colour not registered to depth: focal scale %.3f, offset (%.0f, %.0f) px "
+            "(edge score %.2fx the identity's)",
+            found.scale,
+            found.offset_u_px,
+            found.offset_v_px,
+            found.gain,
+        )
+        self.cfg = self.cfg.with_overrides(
+            depth={
+                "colour_focal_scale": found.scale,
+                "colour_offset_u_px": found.offset_u_px,
+                "colour_offset_v_px": found.offset_v_px,
+            }
         )
 
     def _track_keyframe(

@@ -111,3 +111,152 @@ def test_real_and_shared_sequences_track_without_loss(shared_data, sequence, fra
     stamps = ds.timestamps[:frames]
     metrics = evaluate(ds.ground_truth, Trajectory(stamps, np.array(est)))
     assert metrics["ate_rmse_m"] < max_ate_m
+
+
+def test_colour_pixels_map_to_depth_pixels_by_focal_scale_and_offset():
+    from server.geometry import Intrinsics
+    from server.registration.preprocess import colour_to_depth_pixels, depth_to_colour_pixels
+
+    K = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+    uv = np.array([[320.0, 240.0], [20.0, 400.0]], np.float32)
+    depth_cfg = RegistrationConfig().depth
+    np.testing.assert_array_equal(colour_to_depth_pixels(uv, K, depth_cfg), uv)  # registered
+    cfg = RegistrationConfig().with_overrides(
+        depth={"colour_focal_scale": 0.9, "colour_offset_u_px": 4.0, "colour_offset_v_px": -2.0}
+    )
+    # A colour camera with 0.9x the depth focal length sees the border ray 1/0.9 further out.
+    expected = [[324.0, 238.0], [320.0 - 300.0 / 0.9 + 4.0, 240.0 + 160.0 / 0.9 - 2.0]]
+    np.testing.assert_allclose(colour_to_depth_pixels(uv, K, cfg.depth), expected, atol=1e-4)
+    back = depth_to_colour_pixels(np.array(expected), K, cfg.depth)
+    np.testing.assert_allclose(back, uv, atol=1e-4)
+
+
+def unregistered_colour(colour: np.ndarray, K, scale: float) -> np.ndarray:
+    """The colour image a camera with ``scale`` x the depth focal length (same centre) sees."""
+    import cv2
+
+    h, w = colour.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    # Colour pixel u_c shows what depth pixel c + (u_c - c) / scale shows.
+    map_u = (K.cx + (u - K.cx) / scale).astype(np.float32)
+    map_v = (K.cy + (v - K.cy) / scale).astype(np.float32)
+    return cv2.remap(colour, map_u, map_v, cv2.INTER_LINEAR)
+
+
+def test_colour_focal_scale_undoes_unregistered_colour(demo_clean):
+    """A colour camera with a wider view than the depth camera (raw Kinect: 525 against 585 px)
+    makes the tracker under-estimate rotation; mapping colour pixels into the depth image with the
+    right focal scale recovers it."""
+    ds = open_dataset(demo_clean)
+    errors = {}
+    for scale in (1.0, 0.9):
+        config = RegistrationConfig().with_overrides(
+            solver={"dense": False}, depth={"colour_focal_scale": scale}
+        )
+        tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+        for i in (0, 4):
+            f = ds[i]
+            result = tracker.track(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
+        assert result.state is not TrackingState.LOST
+        errors[scale] = relative_error(result.T_world_camera, gt_at(ds, 4))
+    true_rotation = rotation_angle_deg(invert(gt_at(ds, 0)) @ gt_at(ds, 4))
+    assert true_rotation > 1.0  # the frames rotate enough for the bias to show
+    assert errors[0.9][1] < 0.5 * errors[1.0][1], errors
+    assert errors[0.9][1] < 0.1, errors
+
+
+def test_windowed_keyframe_refinement_pulls_a_new_keyframe_towards_older_ones(demo_clean):
+    """keyframes.window: a frame registered against a keyframe whose pose is 1 cm off is solved
+    jointly with an older, correct keyframe; the joint pose lies between the two estimates,
+    much nearer the truth than the current keyframe alone puts it."""
+    from server.registration.preprocess import clean_depth, to_grey
+
+    ds = open_dataset(demo_clean)
+    config = RegistrationConfig().with_overrides(solver={"dense": False}, keyframes={"window": 2})
+    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+    f0 = ds[0]
+    tracker.track(f0.colour, f0.depth)  # keyframe A at the true pose
+    frames = {i: (to_grey(ds[i].colour), clean_depth(ds[i].depth, config.depth)) for i in (2, 3)}
+    off = np.eye(4)
+    off[:3, 3] = [0.01, 0.0, 0.0]
+    kf_b = tracker._new_keyframe(2, *frames[2], gt_at(ds, 2) @ off)  # keyframe B, 1 cm off
+    reg = tracker._track_keyframe(kf_b, *frames[3], gt_at(ds, 3), chained=False)
+    assert reg is not None
+    T_via_b = kf_b.T_world_keyframe @ reg.solution.T
+    error_b = relative_error(T_via_b, gt_at(ds, 3))[0]
+    assert error_b > 0.008  # B's error passes to the frame
+    T_joint = tracker._refine_in_window(*frames[3], T_via_b, reg)
+    error_joint = relative_error(T_joint, gt_at(ds, 3))[0]
+    assert error_joint < 0.7 * error_b, (error_joint, error_b)
+    # With the window off, the frame keeps the pose from B alone.
+    tracker.cfg = RegistrationConfig().with_overrides(
+        solver={"dense": False}, keyframes={"window": 0}
+    )
+    np.testing.assert_array_equal(tracker._refine_in_window(*frames[3], T_via_b, reg), T_via_b)
+
+
+def test_keyframe_realignment_pulls_wandered_tracks_back_onto_the_keyframe_corner(demo_clean):
+    """flow.keyframe_refine_levels: a chained track that wandered 1.4 px off is re-aligned
+    straight against the keyframe image; one moved beyond keyframe_refine_max_px is dropped."""
+
+    ds = open_dataset(demo_clean)
+    config = RegistrationConfig().with_overrides(
+        flow={"keyframe_refine_levels": 1, "keyframe_refine_max_px": 2.0}
+    )
+    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+    f0 = ds[0]
+    tracker.track(f0.colour, f0.depth)
+    kf = tracker.keyframe
+    assert kf is not None
+    ids = np.arange(len(kf.uv))
+    wandered = kf.uv + np.float32(1.0) * np.where(ids % 2 == 0, 1, -1)[:, None].astype(np.float32)
+    kept, uv = tracker._refine_from_keyframe(kf, kf.grey, ids, wandered)
+    assert len(kept) > 0.8 * len(ids)
+    assert np.median(np.linalg.norm(uv - kf.uv[kept], axis=1)) < 0.1
+    far = kf.uv + np.float32(3.0)  # the true corner lies 4.2 px away: beyond the limit
+    kept_far, _ = tracker._refine_from_keyframe(kf, kf.grey, ids, far)
+    assert len(kept_far) < 0.2 * len(ids)
+
+
+@pytest.mark.parametrize("order, expected_frame", [("nearest", 1), ("oldest", 0)])
+def test_keyframe_switch_order(demo_clean, order, expected_frame):
+    """keyframes.switch_order: among earlier keyframes that see the view, "nearest" goes back to
+    the one nearest the pose, "oldest" to the oldest (least drift along the chain)."""
+    from server.registration.preprocess import clean_depth, to_grey
+
+    ds = open_dataset(demo_clean)
+    config = RegistrationConfig().with_overrides(
+        solver={"dense": False}, keyframes={"switch_order": order}
+    )
+    tracker = Tracker(ds.intrinsics, config)
+    images = {i: (to_grey(ds[i].colour), clean_depth(ds[i].depth, config.depth)) for i in (0, 1, 3)}
+    for i in (0, 1, 3):
+        tracker._new_keyframe(i, *images[i], gt_at(ds, i))  # the last one is current
+    switched = tracker._switch_keyframe(*images[1], gt_at(ds, 1))
+    assert switched is not None
+    assert switched.frame_index == expected_frame
+
+
+def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean):
+    """depth.estimate_colour_registration: a colour image with 0.9x the depth camera's focal
+    length is found as such; registered images keep the identity."""
+    import time
+
+    from server.registration.calibration import estimate_colour_registration
+    from server.registration.preprocess import to_grey
+
+    ds = open_dataset(demo_clean)
+    f = ds[0]
+    assert estimate_colour_registration(to_grey(f.colour), f.depth, ds.intrinsics) is None
+    t = time.perf_counter()
+    grey = to_grey(unregistered_colour(f.colour, ds.intrinsics, 0.9))
+    found = estimate_colour_registration(grey, f.depth, ds.intrinsics)
+    assert time.perf_counter() - t < 5.0
+    assert found is not None
+    assert abs(found.scale - 0.9) <= 0.015
+    assert abs(found.offset_u_px) <= 2 and abs(found.offset_v_px) <= 2
+    # The tracker picks it up from its first frame.
+    config = RegistrationConfig().with_overrides(depth={"estimate_colour_registration": True})
+    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+    tracker.track(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
+    assert tracker.cfg.depth.colour_focal_scale == found.scale

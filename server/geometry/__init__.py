@@ -1,5 +1,6 @@
 from server.geometry.camera import Intrinsics, backproject, backproject_pixels, project
 from server.geometry.se3 import (
+    adjoint,
     exp_se3,
     hat,
     invert,
@@ -14,6 +15,7 @@ __all__ = [
     "backproject",
     "backproject_pixels",
     "project",
+    "adjoint",
     "exp_se3",
     "hat",
     "invert",

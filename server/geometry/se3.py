@@ -35,6 +35,16 @@ def exp_se3(xi: RealArray) -> FloatArray:
     return T
 
 
+def adjoint(T: FloatArray) -> FloatArray:
+    """The 6x6 adjoint of a transform for twists ``(omega, t)``: T exp(xi) T^-1 = exp(Ad_T xi)."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, :3] = hat(t) @ R
+    A[3:, 3:] = R
+    return A
+
+
 def invert(T: FloatArray) -> FloatArray:
     """Inverse of a rigid transform, without a general matrix inverse."""
     Ti = np.eye(4)

@@ -36,6 +36,13 @@ class FlowConfig:
     max_iterations: int = 30
     epsilon: float = 0.01  # px, LK convergence
     max_fb_error_px: float = 1.0  # forward-backward round-trip error
+    # Corners followed frame to frame wander (each step adds a little LK error). With this on,
+    # each chained track is re-aligned straight against the keyframe's image (LK from the
+    # keyframe corner, starting at the chained position, this many pyramid levels above the full
+    # image; -1 = off), so its error no longer grows with the keyframe's age.
+    keyframe_refine_levels: int = -1
+    # A re-aligned track further than this from the chained one is dropped (a wrong match).
+    keyframe_refine_max_px: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,14 @@ class DepthConfig:
     axial_noise_a_m: float = 0.0012
     axial_noise_b_per_m: float = 0.0019
     lateral_noise_px: float = 0.8  # pixel error of a tracked corner
+    # Colour focal length over depth focal length, for colour images not registered to depth
+    # (raw Kinect): a colour pixel maps to depth pixel c + scale * (uv - c). 1 = registered.
+    colour_focal_scale: float = 1.0
+    colour_offset_u_px: float = 0.0  # ... plus this offset (depth pixels)
+    colour_offset_v_px: float = 0.0
+    # Estimate the three above from the first frame (colour edges laid on depth edges,
+    # server/registration/calibration.py); kept only when clearly better than the identity.
+    estimate_colour_registration: bool = False
 
 
 @dataclass(frozen=True)
@@ -69,7 +84,11 @@ class SolverConfig:
     # iteration, and one of 3e-5 (0.03 mm at 1 m) is far below the per-frame error.
     dense_convergence_step: float = 3e-5
     dense_max_distance_m: float = 0.05
-    dense_weight: float = 0.05  # weight of one dense residual relative to one sparse one
+    # Weight of one dense residual relative to one sparse one. 0.2 rather than 0.05 (with
+    # keyframes.window=1): synthetic_room0 ATE 0.185 -> 0.159 cm, 7scenes_a 4.45 -> 4.42 cm,
+    # and at stride 2 / 3 0.213 -> 0.19 / 4.51 -> 4.07 cm; 1.0 and above drift on 7scenes_a
+    # (5.1-5.3 cm), whose colour is not registered to depth (benchmarks/README.md, "Drift").
+    dense_weight: float = 0.2
     # Photometric term: intensity of current pixels against the keyframe image (0 = off).
     photometric_weight: float = 0.0
     photometric_sigma: float = 4.0  # intensity noise, grey levels 0-255
@@ -84,6 +103,24 @@ class KeyframeConfig:
     max_translation_m: float = 0.25
     max_rotation_deg: float = 15.0
     recent_keyframes: int = 8  # kept for relocalisation after a lost frame
+    # Which earlier keyframe a due keyframe change tries first: "nearest" (pose distance) or
+    # "oldest" (least drift accumulated along the keyframe chain), among those in reach.
+    switch_order: str = "nearest"
+    # Windowed keyframe refinement: a frame about to become a keyframe is also registered
+    # against up to this many other recent keyframes (newest first, within window_reach times
+    # max_translation_m and max_rotation_deg), and its pose is solved jointly over all of them,
+    # each keyframe's sparse terms weighted by their own information (0 = off: the pose from the
+    # current keyframe alone). One keyframe within 3x: synthetic_room0 ATE 0.264 -> 0.204 cm
+    # (sparse), 0.243 -> 0.185 cm (sparse + dense); 7scenes_a 3.90 -> 3.82, 4.48 -> 4.45 cm;
+    # two keyframes helped the synthetic room more but made 7scenes_a sparse + dense worse
+    # (benchmarks/README.md, "Drift").
+    window: int = 1
+    window_reach: float = 3.0
+    # Switching back needs this many of the old keyframe's corners tracked, as a multiple of
+    # min_tracked_ratio (and at least min_tracked), and the pose within this share of
+    # max_translation_m / max_rotation_deg.
+    switch_tracked_factor: float = 1.5
+    switch_reach: float = 0.5
 
 
 @dataclass(frozen=True)

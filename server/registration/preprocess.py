@@ -7,6 +7,7 @@ from typing import cast
 import cv2
 import numpy as np
 
+from server.geometry import Intrinsics
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage, RealArray
 from server.registration.config import DepthConfig
 
@@ -59,3 +60,25 @@ def resample_depth(depth: Float32Array, width: int, height: int) -> Float32Array
         return depth
     # cv2.resize keeps the dtype; its stubs do not say so.
     return cast(Float32Array, cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST))
+
+
+def colour_to_depth_pixels(uv: Float32Array, K: Intrinsics, cfg: DepthConfig) -> Float32Array:
+    """Depth-image pixels (N, 2) of colour pixels ``uv`` (N, 2) when colour and depth differ in
+    focal length (cfg.colour_focal_scale = colour focal / depth focal)."""
+    s = cfg.colour_focal_scale
+    d = np.array([cfg.colour_offset_u_px, cfg.colour_offset_v_px], dtype=np.float32)
+    if s == 1.0 and not d.any():
+        return uv
+    c = np.array([K.cx, K.cy], dtype=np.float32)
+    return cast(Float32Array, (c + (uv - c) / np.float32(s) + d).astype(np.float32))
+
+
+def depth_to_colour_pixels(uv: FloatArray, K: Intrinsics, cfg: DepthConfig) -> FloatArray:
+    """The inverse of :func:`colour_to_depth_pixels`: colour pixels (N, 2) of depth pixels."""
+    s = cfg.colour_focal_scale
+    d = np.array([cfg.colour_offset_u_px, cfg.colour_offset_v_px])
+    if s == 1.0 and not d.any():
+        return uv
+    c = np.array([K.cx, K.cy])
+    out: FloatArray = c + (uv - d - c) * s
+    return out

@@ -13,25 +13,34 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
 
 from server.geometry import (
     Intrinsics,
+    adjoint,
     backproject_pixels,
+    exp_se3,
     invert,
     orthonormalize,
     project,
     rotation_angle_deg,
 )
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, GreyImage, IndexArray
+from server.registration.calibration import estimate_colour_registration
 from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
-from server.registration.preprocess import clean_depth, sample_stable_depth, to_grey
+from server.registration.preprocess import (
+    clean_depth,
+    colour_to_depth_pixels,
+    depth_to_colour_pixels,
+    sample_stable_depth,
+    to_grey,
+)
 from server.registration.prior import DeviceAlignment, prior_motion
 from server.registration.sparse import (
     NormalEquations,
@@ -82,6 +91,7 @@ class _PendingKeyframe:
     depth: Float32Array  # cleaned, metres
     T_world_camera: FloatArray
     result: TrackResult  # updated in place when the change is made
+    registration: _Registration | None = None  # against the current keyframe
 
 
 @dataclass
@@ -282,7 +292,7 @@ class Tracker:
             prior_used=found.guess_from_prior,
         )
         if due:
-            self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result)
+            self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result, found)
         return result
 
     def update_keyframe(self) -> bool:
@@ -301,7 +311,11 @@ class Tracker:
         kf = self._switch_keyframe(p.grey, p.depth, p.T_world_camera)
         new_kf = kf is None
         if kf is None:
-            kf = self._new_keyframe(p.index, p.grey, p.depth, p.T_world_camera)
+            T_world_kf = p.T_world_camera
+            if self.cfg.keyframes.window > 0 and p.registration is not None:
+                T_world_kf = self._refine_in_window(p.grey, p.depth, T_world_kf, p.registration)
+                self.T_world_last = T_world_kf
+            kf = self._new_keyframe(p.index, p.grey, p.depth, T_world_kf)
         ms = _ms(t)
         r = p.result
         r.new_keyframe, r.keyframe_id, r.keyframe_due = new_kf, kf.id, False
@@ -348,6 +362,8 @@ class Tracker:
         prior: FloatArray | None,
     ) -> TrackResult:
         t = time.perf_counter()
+        if self.cfg.depth.estimate_colour_registration:
+            self._register_colour(grey, depth)
         kf = self._new_keyframe(index, grey, depth, self.T_world_first)
         timings["keyframe"] = _ms(t)
         # A first frame without texture or depth cannot anchor tracking.
@@ -373,6 +389,29 @@ class Tracker:
             timings,
         )
 
+    def _register_colour(self, grey: GreyImage, depth: Float32Array) -> None:
+        """Estimate how colour pixels map to depth pixels from this frame (unregistered
+        sensors) and use it from now on; the configuration is left as it is when the images
+        look registered."""
+        found = estimate_colour_registration(grey, depth, self.K)
+        if found is None:
+            return
+        log.info(
+            "colour not registered to depth: focal scale %.3f, offset (%.0f, %.0f) px "
+            "(edge score %.2fx the identity's)",
+            found.scale,
+            found.offset_u_px,
+            found.offset_v_px,
+            found.gain,
+        )
+        self.cfg = self.cfg.with_overrides(
+            depth={
+                "colour_focal_scale": found.scale,
+                "colour_offset_u_px": found.offset_u_px,
+                "colour_offset_v_px": found.offset_v_px,
+            }
+        )
+
     def _track_keyframe(
         self,
         kf: Keyframe,
@@ -395,15 +434,19 @@ class Tracker:
         # Where the prediction puts the corners in this frame: the start of the LK search.
         T_cur_kf = invert(T_kf_pred)
         guess, z = project(kf.points[ids] @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3], self.K)
+        guess = depth_to_colour_pixels(guess, self.K, self.cfg.depth)
         guess = np.where(np.isfinite(guess) & (z[:, None] > 0), guess, uv_from)
         uv, ok = track_points(grey_from, grey, uv_from, self.cfg.flow, guess)
         ids, uv = ids[ok], uv[ok]
-        zc = sample_stable_depth(depth, uv, self.cfg.depth)
+        if grey_from is not kf.grey and self.cfg.flow.keyframe_refine_levels >= 0 and len(ids):
+            ids, uv = self._refine_from_keyframe(kf, grey, ids, uv)
+        uv_d = colour_to_depth_pixels(uv, self.K, self.cfg.depth)
+        zc = sample_stable_depth(depth, uv_d, self.cfg.depth)
         with_depth = zc > 0
         if with_depth.sum() < self.cfg.state.lost_inliers:
             return None
         d_ids = ids[with_depth]
-        Q = backproject_pixels(uv[with_depth].astype(np.float64), zc[with_depth], self.K)
+        Q = backproject_pixels(uv_d[with_depth].astype(np.float64), zc[with_depth], self.K)
         solution = solve_sparse(
             kf.points[d_ids],
             Q,
@@ -413,6 +456,80 @@ class Tracker:
             self.cfg.solver,
         )
         return _Registration(kf, ids, uv, with_depth, Q, solution)
+
+    def _refine_from_keyframe(
+        self, kf: Keyframe, grey: GreyImage, ids: IndexArray, uv: Float32Array
+    ) -> tuple[IndexArray, Float32Array]:
+        """Re-align chained tracks straight against the keyframe image (flow.keyframe_refine_*):
+        LK from the keyframe's corners, starting where the chain put them; a track that moves
+        more than ``keyframe_refine_max_px`` or fails the forward-backward check is dropped."""
+        f = self.cfg.flow
+        cfg = replace(f, pyramid_levels=f.keyframe_refine_levels, fb_pyramid_levels=0)
+        uv_kf, ok = track_points(kf.grey, grey, kf.uv[ids], cfg, uv)
+        ok &= np.linalg.norm(uv_kf - uv, axis=1) <= f.keyframe_refine_max_px
+        return ids[ok], uv_kf[ok]
+
+    def _refine_in_window(
+        self, grey: GreyImage, depth: Float32Array, T_world_cur: FloatArray, reg: _Registration
+    ) -> FloatArray:
+        """The pose of a frame about to become a keyframe, solved jointly against the current
+        keyframe and up to ``keyframes.window`` other recent ones (keyframes.window).
+
+        The current keyframe's estimate enters as a quadratic prior (its sparse information about
+        ``T_world_cur``, which may carry the dense refinement); each other keyframe that registers
+        the frame ok adds its sparse terms. A new keyframe then hangs on several older ones
+        instead of one, so one poor registration no longer passes all its error down the chain.
+        """
+        c = self.cfg.keyframes
+        others: list[_Registration] = []
+        for kf in reversed(self.recent):
+            if len(others) >= c.window:
+                break
+            if kf is reg.kf:
+                continue
+            T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
+            if (
+                float(np.linalg.norm(T_kf_cur[:3, 3])) > c.window_reach * c.max_translation_m
+                or rotation_angle_deg(T_kf_cur) > c.window_reach * c.max_rotation_deg
+            ):
+                continue
+            found = self._track_keyframe(kf, grey, depth, T_world_cur, chained=False)
+            # A weak registration (few inliers) still adds what it knows: its information says
+            # how little that is.
+            if found is not None and self._judge(found.solution) is not TrackingState.LOST:
+                others.append(found)
+                log.debug(
+                    "window: keyframe %d adds %d inliers", kf.id, found.solution.inliers.sum()
+                )
+        if not others:
+            return T_world_cur
+        # The current keyframe's information about the pose, moved to world-frame twists.
+        A0 = adjoint(invert(reg.kf.T_world_keyframe))
+        H0 = A0.T @ reg.solution.equations.H @ A0
+        T: FloatArray = T_world_cur.copy()
+        xi_total = np.zeros(6)
+        for _ in range(self.cfg.solver.max_iterations):
+            H, g = H0.copy(), H0 @ xi_total
+            for o in others:
+                inl = o.solution.inliers
+                P = o.kf.points[o.ids[o.with_depth][inl]]
+                cov_P = o.kf.covariances[o.ids[o.with_depth][inl]]
+                Q = o.points[inl]
+                T_kf_cur = invert(o.kf.T_world_keyframe) @ T
+                W = information(
+                    cov_P, point_information(Q, self.K, self.cfg.depth), T_kf_cur[:3, :3]
+                )
+                weights = robust_weights(mahalanobis(P, Q, W, T_kf_cur), self.cfg.solver, True)
+                eq = sparse_equations(P, Q, W, T_kf_cur, weights)[0]
+                A = adjoint(invert(o.kf.T_world_keyframe))
+                H += A.T @ eq.H @ A
+                g += A.T @ eq.g
+            xi = np.linalg.lstsq(H, -g, rcond=None)[0]
+            T = orthonormalize(exp_se3(xi) @ T)
+            xi_total += xi
+            if np.linalg.norm(xi) < self.cfg.solver.convergence_step:
+                break
+        return T
 
     def _relocalise(
         self,
@@ -566,19 +683,25 @@ class Tracker:
         c = self.cfg.keyframes
         recent = list(self.recent)
         candidates = recent + [k for k in self.map_keyframes if all(k is not r for r in recent)]
-        for kf in sorted(candidates, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur)):
+        near = sorted(candidates, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur))
+        if c.switch_order == "oldest":
+            near.sort(key=lambda k: k.id)
+        for kf in near:
             if kf is self.keyframe:
                 continue
             T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
-            if np.linalg.norm(T_kf_cur[:3, 3]) > 0.5 * c.max_translation_m:
-                break
-            if rotation_angle_deg(T_kf_cur) > 0.5 * c.max_rotation_deg:
+            if np.linalg.norm(T_kf_cur[:3, 3]) > c.switch_reach * c.max_translation_m:
+                if c.switch_order == "nearest":
+                    break
+                continue
+            if rotation_angle_deg(T_kf_cur) > c.switch_reach * c.max_rotation_deg:
                 continue
             reg = self._track_keyframe(kf, grey, depth, T_world_cur, chained=False)
             if reg is None or self._judge(reg.solution) is not TrackingState.OK:
                 continue
             keep = reg.surviving()
-            if keep.sum() < max(c.min_tracked, 1.5 * c.min_tracked_ratio * len(kf.points)):
+            need = c.switch_tracked_factor * c.min_tracked_ratio * len(kf.points)
+            if keep.sum() < max(c.min_tracked, need):
                 continue
             self.keyframe = kf
             self.tracks = _Tracks(reg.ids[keep], reg.uv[keep], grey)

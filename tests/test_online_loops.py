@@ -152,3 +152,208 @@ class _First:
 
     def __getitem__(self, i: int):
         return self.ds[i]
+
+
+# ---- the parts, one by one ------------------------------------------------------------------
+
+
+def _turn(yaw_rad: float, t) -> np.ndarray:
+    """4x4: a turn about z by ``yaw_rad``, then a shift by ``t`` (metres)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = t
+    return T
+
+
+def test_a_corrected_tracker_tracks_on_in_the_corrected_world(shared_data):
+    """Tracker.apply_correction between two frames: the keyframes the graph knows take their
+    corrected poses, the rest and the last pose move by the correction, and the next frames come
+    out exactly as the uncorrected tracker's, moved by the correction."""
+    import copy
+
+    from server.registration import Tracker
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    a = Tracker(ds.intrinsics)
+    for i in range(24):
+        a.track(ds[i].colour, ds[i].depth)
+        a.update_keyframe()
+    b = copy.deepcopy(a)
+    held = {kf.id: kf for kf in [a.keyframe, *a.recent]}
+    assert len(held) >= 2
+    oldest, newest = min(held), max(held)
+    delta = _turn(np.radians(4.0), [0.2, -0.1, 0.05])
+    known = {i: delta @ held[i].T_world_keyframe for i in held if i != newest}
+    b.apply_correction(known, delta)
+    b_held = {kf.id: kf for kf in [b.keyframe, *b.recent]}
+    assert np.allclose(b_held[oldest].T_world_keyframe, known[oldest])
+    assert np.allclose(b_held[newest].T_world_keyframe, delta @ held[newest].T_world_keyframe)
+    assert np.allclose(b.T_world_last, delta @ a.T_world_last)
+    assert np.allclose(b.velocity, a.velocity)  # a motion in the camera's frame: unchanged
+    for i in range(24, 36):
+        ra, rb = a.track(ds[i].colour, ds[i].depth), b.track(ds[i].colour, ds[i].depth)
+        a.update_keyframe(), b.update_keyframe()
+        assert ra.state == rb.state and ra.keyframe_id == rb.keyframe_id
+        assert np.allclose(rb.T_world_camera, delta @ ra.T_world_camera, atol=1e-6), i
+
+
+def test_a_rebuild_replaces_the_map_with_the_keyframes_at_their_corrected_poses(
+    shared_data, tmp_path
+):
+    """Mapper: fused at drifted poses, rebuilt from the keyframe files at corrected ones (a
+    frame fused during the rebuild goes into both), swapped in at once with a fresh preview."""
+    from server.mapping.tsdf import MapError
+    from server.rooms.room import room_keyframe, write_keyframe
+    from server.sessions.mapping import Mapper
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    K, gt = ds.intrinsics, ds.ground_truth
+    drift = _turn(0.0, [0.5, 0.0, 0.0])
+    frames = [0, 8, 16]
+    mapper = Mapper(MappingConfig())
+    for i in frames:
+        f = ds[i]
+        write_keyframe(tmp_path, room_keyframe(i, i, gt.poses[i], f.colour, f.depth, K, LOOPS))
+        mapper.fuse(f.colour, f.depth, K, drift @ gt.poses[i])
+    old_points = _occupied(mapper.map)
+    with np.testing.assert_raises(MapError):
+        mapper.rebuild_step()  # none started
+
+    mapper.rebuild_start(tmp_path, [(i, gt.poses[i]) for i in frames], K)
+    assert mapper.rebuild_step(1) == 2
+    f = ds[24]  # fused meanwhile: the old map at its drifted pose, the new one at the true one
+    mapper.fuse(f.colour, f.depth, K, drift @ gt.poses[24], rebuild_pose=gt.poses[24])
+    assert mapper.map.stats()["frames_integrated"] == 4  # the old map serves until the swap
+    rebuilt = mapper.rebuild_finish((0.1, np.eye(3)))
+    assert rebuilt.keyframes == 3 and rebuilt.stats["frames_integrated"] == 4
+    assert mapper.map.stats()["frames_integrated"] == 4 and mapper.map is not None
+    # The rebuilt map is the one fused at the true poses; the old one was half a metre off.
+    reference = Mapper(MappingConfig())
+    for i in [*frames, 24]:
+        reference.fuse(ds[i].colour, ds[i].depth, K, gt.poses[i])
+    truth = _occupied(reference.map)
+    new_match, old_match = _overlap(_occupied(mapper.map), truth), _overlap(old_points, truth)
+    assert new_match > 0.95 and old_match < 0.85, (new_match, old_match)  # 1.0, 0.76
+    assert len(rebuilt.points) == rebuilt.total_points > 1000
+    assert rebuilt.occupancy is not None and rebuilt.occupancy[1].any()
+    with np.testing.assert_raises(MapError):
+        mapper.rebuild_finish()  # it is over
+
+
+def _occupied(tsdf, cell_m: float = 0.05) -> np.ndarray:
+    """Centres (N, 3) of the map's occupied cells, world metres."""
+    origin, occupied, _ = tsdf.occupancy(cell_m)
+    return origin + (np.argwhere(occupied) + 0.5) * cell_m
+
+
+def _overlap(points: np.ndarray, truth: np.ndarray, cell_m: float = 0.05) -> float:
+    """Share of ``points`` within one cell of a point of ``truth``."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(truth).query(points)
+    return float(np.mean(d <= cell_m * 1.01))
+
+
+def _room_drone():
+    from server.simulation.config import SimulationConfig
+    from server.simulation.drone import DroneSimulator
+    from server.simulation.flight_map import FlightMap
+
+    config = SimulationConfig()
+    lo, hi = np.array([-0.1, -0.1, -0.1]), np.array([6.1, 4.1, 2.5])
+    walls = [
+        ((-0.1, -0.1, -0.1), (6.1, 4.1, 0.0)),
+        ((-0.1, -0.1, 2.4), (6.1, 4.1, 2.5)),
+        ((-0.1, -0.1, 0.0), (0.0, 4.1, 2.4)),
+        ((6.0, -0.1, 0.0), (6.1, 4.1, 2.4)),
+        ((0.0, -0.1, 0.0), (6.0, 0.0, 2.4)),
+        ((0.0, 4.0, 0.0), (6.0, 4.1, 2.4)),
+    ]
+
+    def grid(t=(0.0, 0.0, 0.0)):
+        t = np.asarray(t)
+        moved = [(np.add(a, t), np.add(b, t)) for a, b in walls]
+        m = FlightMap.from_boxes(lo + t, hi + t, moved, config.voxel_m)
+        return m.origin, m.blocked, np.ones(m.shape, bool)
+
+    drone = DroneSimulator(config, FlightMap.from_boxes(lo, hi, walls, config.voxel_m))
+    drone.spawn(np.array([1.0, 2.0, 1.2]), yaw_rad=0.3)
+    return drone, grid
+
+
+def test_the_drone_moves_with_a_corrected_world_and_replans_its_goto():
+    from server.simulation.drone import DroneEventKind, DroneMode
+
+    drone, grid = _room_drone()
+    drone.advance(0.5)
+    before = drone.status()
+    delta = _turn(0.1, [0.3, -0.2, 0.05])
+    # The hovering drone moves with its world: position, heading and the point it holds.
+    drone.move_with_world(delta, *grid(delta[:3, 3]))
+    after = drone.status()
+    p = delta[:3, :3] @ before.T_flight_drone[:3, 3] + delta[:3, 3]
+    assert np.allclose(after.T_flight_drone[:3, 3], p, atol=1e-9)
+    yaw = lambda T: np.arctan2(T[1, 0], T[0, 0])  # noqa: E731
+    assert abs(yaw(after.T_flight_drone) - yaw(before.T_flight_drone) - 0.1) < 1e-6
+    drone.advance(1.0)
+    assert np.linalg.norm(drone.status().T_flight_drone[:3, 3] - p) < 0.02  # holds it there
+    assert after.mode == DroneMode.HOVER
+
+    # A goto in flight: re-planned on the new map to the moved target, and flown there.
+    goal = np.array([4.5, 2.0, 1.2])
+    drone.command_goto(goal)
+    drone.advance(0.5)
+    delta2 = _turn(-0.05, [-0.2, 0.1, 0.0])
+    drone.move_with_world(delta2, *grid(delta[:3, 3] + delta2[:3, 3]))
+    events = drone.advance(0.0)
+    moved_goal = delta2[:3, :3] @ goal + delta2[:3, 3]
+    assert DroneEventKind.REPLANNED in [e.kind for e in events]
+    assert np.allclose(drone.status().target, moved_goal)
+    for _ in range(200):
+        events += drone.advance(0.1)
+        if DroneEventKind.ARRIVED in [e.kind for e in events]:
+            break
+    assert DroneEventKind.ARRIVED in [e.kind for e in events]
+    assert np.linalg.norm(drone.status().T_flight_drone[:3, 3] - moved_goal) < 0.15
+
+
+def test_a_course_route_in_flight_is_not_followed_into_a_corrected_world():
+    """A route planned elsewhere (a course's autopilot, through gates laid in the old world):
+    the drone holds where the correction put it, and says so (blocked)."""
+    from server.simulation.drone import DroneEventKind, DroneMode, plan_route
+
+    drone, grid = _room_drone()
+    start = drone.status().T_flight_drone[:3, 3]
+    route = plan_route(drone.flight_map, start, np.array([4.5, 3.0, 1.2]), drone.config, 1.0)
+
+    def replan(at):
+        return plan_route(drone.flight_map, at, np.array([4.5, 3.0, 1.2]), drone.config, 1.0)
+
+    drone.command_route(route, replan)
+    drone.advance(0.5)
+    assert drone.status().mode == DroneMode.GOTO
+    drone.move_with_world(_turn(0.0, [0.1, 0.0, 0.0]), *grid((0.1, 0.0, 0.0)))
+    events = drone.advance(0.0)
+    assert DroneEventKind.BLOCKED in [e.kind for e in events]
+    assert drone.status().mode == DroneMode.HOVER and drone.status().target is None
+
+
+def test_a_viewers_map_backlog_restarts_at_a_rebuilt_maps_preview():
+    from server.sessions.updates import MapCorrected, MapUpdate
+    from server.sessions.viewers import Viewers, ViewerSocket
+
+    viewers = Viewers()
+    got: list = []
+    viewers.listen(ViewerSocket("v", got.append, lambda code, message: None))
+    pts, rgb = np.zeros((10, 3), np.float32), np.zeros((10, 3), np.uint8)
+    for seq in range(3):
+        viewers.deliver(MapUpdate(seq, pts, rgb, 10 * (seq + 1)))
+    corrected = MapCorrected(1, 3, np.eye(4), [(0, 0, np.eye(4))], 0)
+    viewers.deliver(corrected)
+    viewers.deliver(MapUpdate(3, pts[:4], rgb[:4], 4, reset=True))
+    viewers.deliver(MapUpdate(4, pts, rgb, 14))
+    assert corrected in got  # a viewer is told of the correction as the owner is
+    backlog = viewers.listen(ViewerSocket("w", lambda item: None, lambda code, message: None))
+    maps = [u for u in backlog if isinstance(u, MapUpdate)]
+    assert [u.seq for u in maps] == [3, 4] and viewers.map_points == 14

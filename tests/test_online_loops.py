@@ -357,3 +357,59 @@ def test_a_viewers_map_backlog_restarts_at_a_rebuilt_maps_preview():
     backlog = viewers.listen(ViewerSocket("w", lambda item: None, lambda code, message: None))
     maps = [u for u in backlog if isinstance(u, MapUpdate)]
     assert [u.seq for u in maps] == [3, 4] and viewers.map_points == 14
+
+
+def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on(
+    shared_data, tmp_path
+):
+    """The loop closer raises on the 2nd keyframe and the map's rebuild on its first step: each
+    is counted in loops_failed (status and the poses after it), the keyframe is left out of the
+    graph, the old map stays, and frames go on being tracked and fused."""
+    from server.geometry import Intrinsics
+    from server.sessions.faults import inject
+    from server.sessions.loop_closing import Correction
+    from server.sessions.session import Session
+    from server.sessions.store import SessionStore
+    from server.sessions.updates import FrameData, MapCorrected, MapUpdate, PoseUpdate
+    from tests.conftest import Updates
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    K = ds.intrinsics
+    session = Session("1" * 16, "hash", SessionStore(tmp_path / "data"))
+    session.configure(Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height))
+    assert session.loops is not None  # on by default
+    inject(session, {"loop_keyframe": [2], "rebuild": [1]})
+    updates = Updates()
+    session.start(updates)
+
+    def send(seqs) -> None:
+        for seq in seqs:
+            f = ds[seq]
+            session.submit(FrameData(seq, f.timestamp, f.colour, f.depth.astype(np.float32)))
+            assert session.drain(30)
+
+    send(range(40))
+    deadline = time.monotonic() + 30
+    while session.loop_figures()["keyframes"] < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    status = session.status()
+    assert status["failures"]["loops_failed"] == 1 and status["loops"]["keyframes"] >= 2
+    assert 1 not in session.loops.closer._index  # left out of the graph (its id is 1)
+
+    # A correction (the world as it is) whose rebuild fails: counted; the old map stays.
+    poses = session.loops.poses()
+    correction = Correction(1, poses, {i: 0 for i in poses}, np.eye(4), 1, 0, 1.0)
+    session.loops.worlds.add(correction)
+    frames_before = session.status()["map"]["frames_integrated"]
+    session._loop_corrected(correction)
+    updates.wait_for(MapCorrected)
+    while session.failure_counts()["loops_failed"] < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    send(range(40, 50))
+    status = session.status()
+    assert status["failures"]["loops_failed"] == 2 and status["loops"]["rebuilds"] == 0
+    assert status["map"]["frames_integrated"] >= frames_before and status["failure"] is None
+    assert not [u for u in updates.items if isinstance(u, MapUpdate) and u.reset]
+    last = updates.wait_for(PoseUpdate, 50)[-1]
+    assert last.seq == 49 and last.failures["loops_failed"] == 2
+    session.stop(save=False)

@@ -40,7 +40,10 @@ class LoopEdge:
 class _Node:
     kf_id: int
     T_world_keyframe: FloatArray  # as tracked (odometry), in the world it was tracked in
-    cloud: o3d.geometry.PointCloud  # depth points in the keyframe's camera frame, with normals
+    cloud: o3d.geometry.PointCloud  # depth points in the keyframe's camera frame
+    # Normals are estimated the first time the keyframe is a loop's ICP target (about half of
+    # a keyframe's cost when done for every one; most never are a target).
+    normals: bool = False
     # Where the graph puts it now: chained from the previous node's estimate by the odometry edge
     # until an optimisation corrects it (the initial value of the next optimisation).
     estimate: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -91,7 +94,9 @@ class LoopCloser:
         live session's tracker may have been corrected between the two); None: the previous
         node's own, which holds when nothing was corrected (offline)."""
         c = self.cfg.loops
-        node = _Node(kf_id, T_world_keyframe.copy(), self._cloud(depth), T_world_keyframe.copy())
+        node = _Node(
+            kf_id, T_world_keyframe.copy(), self._cloud(depth), estimate=T_world_keyframe.copy()
+        )
         if self.nodes:
             prev = self.nodes[-1]
             T_prev = prev.T_world_keyframe if T_world_previous is None else T_world_previous
@@ -173,10 +178,18 @@ class LoopCloser:
     # ---- helpers ---------------------------------------------------------------------------
     def _cloud(self, depth: Float32Array) -> o3d.geometry.PointCloud:
         points, _ = backproject(depth, self.K, stride=self.cfg.loops.cloud_stride)
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=20))
-        cloud.orient_normals_towards_camera_location(np.zeros(3))
-        return cloud
+        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+
+    @staticmethod
+    def _with_normals(node: _Node) -> o3d.geometry.PointCloud:
+        """The node's cloud with normals (point-to-plane ICP onto it needs them)."""
+        if not node.normals:
+            node.cloud.estimate_normals(
+                o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=20)
+            )
+            node.cloud.orient_normals_towards_camera_location(np.zeros(3))
+            node.normals = True
+        return node.cloud
 
     def _refine(self, old_id: int, new_id: int, T_old_new: FloatArray) -> FloatArray | None:
         """Point-to-plane ICP of the new keyframe's depth onto the old one's from the verified
@@ -186,7 +199,7 @@ class LoopCloser:
         c = self.cfg.loops
         result = _reg.registration_icp(
             new.cloud,
-            old.cloud,
+            self._with_normals(old),
             c.icp_distance_m,
             T_old_new,
             _reg.TransformationEstimationPointToPlane(),

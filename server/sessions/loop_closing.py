@@ -3,8 +3,8 @@ among the older ones, and on a verified loop optimises the pose graph and hands 
 corrected world (``Correction``).
 
 The numerical work is ``server/registration/loops.py``'s ``LoopCloser``; this module only
-feeds it from a queue (every keyframe, none dropped), at a low priority (as the mapping thread:
-when cores are short the loops fall behind, never the poses), and keeps the sequence of
+feeds it from a queue (every keyframe, none dropped), at a priority below the mapping thread's
+(when cores are short the loops fall behind the map, never the poses), and keeps the sequence of
 corrected worlds (``Worlds``), so that a pose tracked in one world can be carried into a later
 one exactly as the tracker was.
 
@@ -32,6 +32,10 @@ from server.registration.place import PlaceFeatures
 from server.sessions.mapping import MAPPING_NICE, lower_this_threads_priority
 
 log = logging.getLogger(__name__)
+
+# Below the mapping thread's priority: when the cores are short, loops fall behind the map,
+# and the map behind the poses (the drone flies in the map: it must not wait for loops).
+LOOPS_NICE = MAPPING_NICE + 5
 
 
 @dataclass
@@ -183,7 +187,7 @@ class LoopClosing:
 
     # ---- the thread ------------------------------------------------------------------------
     def _run(self) -> None:
-        lower_this_threads_priority(MAPPING_NICE)
+        lower_this_threads_priority(LOOPS_NICE)
         while True:
             keyframe = self._queue.get()
             if keyframe is None:

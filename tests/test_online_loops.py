@@ -7,6 +7,7 @@ odometry's, the drone's map is replaced and the saved room holds the corrected p
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import time
 
@@ -24,7 +25,7 @@ from tests.conftest import auth
 from tests.test_loops import ForwardBack
 
 FRAMES = 100  # forward, then back: 199 frames, 16 keyframes, a loop back to the first ones
-LOOPS = RegistrationConfig().with_overrides(loops={"min_separation": 8})
+LOOPS = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 8})
 # Keyframes and every 10th frame fused: the map is rebuilt from keyframes anyway, and the test
 # runs on a couple of shared cores.
 MAPPING = MappingConfig(fuse_every=10)
@@ -365,7 +366,9 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
     """The loop closer raises on the 2nd keyframe and the map's rebuild on its first step: each
     is counted in loops_failed (status and the poses after it), the keyframe is left out of the
     graph, the old map stays, and frames go on being tracked and fused."""
+    from server.config import Config
     from server.geometry import Intrinsics
+    from server.sessions.config import SessionConfig
     from server.sessions.faults import inject
     from server.sessions.loop_closing import Correction
     from server.sessions.session import Session
@@ -375,9 +378,10 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
 
     ds = open_dataset(shared_data / "synthetic_room0")
     K = ds.intrinsics
-    session = Session("1" * 16, "hash", SessionStore(tmp_path / "data"))
+    config = SessionConfig.from_config(Config(registration=LOOPS))
+    session = Session("1" * 16, "hash", SessionStore(tmp_path / "data"), config)
     session.configure(Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height))
-    assert session.loops is not None  # on by default
+    assert session.loops is not None
     inject(session, {"loop_keyframe": [2], "rebuild": [1]})
     updates = Updates()
     session.start(updates)
@@ -413,3 +417,26 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
     last = updates.wait_for(PoseUpdate, 50)[-1]
     assert last.seq == 49 and last.failures["loops_failed"] == 2
     session.stop(save=False)
+
+
+def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_room(tmp_path):
+    """Off by default; on with registration.loops.live, but never without the room's keyframe
+    files (the rebuild reads them) nor in a session continuing in a saved room (its keyframes
+    keep the room's world)."""
+    from server.config import Config
+    from server.sessions.config import SessionConfig
+    from server.sessions.session import Session
+    from server.sessions.store import SessionStore
+
+    store = SessionStore(tmp_path / "data")
+
+    def wanted(registration=None, room_dir=None, save_rooms=True) -> bool:
+        sections = {} if registration is None else {"registration": registration}
+        config = SessionConfig.from_config(Config(**sections))
+        config = dataclasses.replace(config, save_room=save_rooms)
+        return Session("2" * 16, "hash", store, config, room_dir=room_dir).loops_wanted
+
+    assert not wanted()
+    assert wanted(LOOPS)
+    assert not wanted(LOOPS, save_rooms=False)
+    assert not wanted(LOOPS, room_dir=tmp_path / "a_room")

@@ -127,6 +127,11 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
     assert set(fixed) <= set(room)
     assert _keyframe_ate(ds.ground_truth, room) <= before
     assert max(np.abs(room[s] - odometry[s]).max() for s in fixed) > 1e-3  # not the odometry
+    # The final snapshot (the room's map.npz is a link to it) came after the last rebuild.
+    final = json.loads((tmp_path / "data" / "sessions" / sid / "meta.json").read_text())
+    assert final["status"]["loops"]["rebuilds"] >= loops["rebuilds"] >= 1
+    saved_map = tmp_path / "data" / "sessions" / sid / "room" / "map.npz"
+    assert saved_map.samefile(tmp_path / "data" / "sessions" / sid / "map.npz")
 
 
 def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_data, tmp_path):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import time
 
 import httpx
 import numpy as np
@@ -52,13 +51,8 @@ def test_streamed_poses_match_offline_tracking_and_the_map_downloads(
     assert np.abs(streamed[:, :3, 3] - offline[:, :3, 3]).max() < 1e-6
     assert {p["state"] for p in stats.poses} <= {"ok", "weak"}
 
-    # The map fuses behind the poses (a busy machine, and the loop thread beside it, let it lag
-    # by seconds): the status shows it as of its latest fusion, so wait for it.
-    deadline = time.monotonic() + 30
-    while (status := session_status(server.url, sid, token))["map"]["frames_integrated"] <= 10:
-        assert time.monotonic() < deadline, status["map"]
-        time.sleep(0.2)
-    assert status["frames_processed"] == FRAMES
+    status = session_status(server.url, sid, token)
+    assert status["frames_processed"] == FRAMES and status["map"]["frames_integrated"] > 10
 
     r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
     assert r.status_code == 200

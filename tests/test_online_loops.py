@@ -141,7 +141,12 @@ def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_da
     ds = open_dataset(shared_data / "synthetic_room0")
     server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
     sid, token = server.create_session()
-    messages, poses = asyncio.run(_stream(server, sid, token, _First(ds, 60), 0))
+
+    def looked_up(_messages) -> bool:  # the loop thread (below the map's priority) caught up
+        loops = _status(server, sid, token)["loops"]
+        return loops["keyframes"] >= 3 and loops["queued"] == 0
+
+    messages, poses = asyncio.run(_stream(server, sid, token, _First(ds, 60), 0, looked_up))
     assert len(poses) >= 50  # (two frames in flight: the server may drop one now and then)
     kinds = _kinds(messages)
     assert "map_corrected" not in kinds and "map_chunk/reset" not in kinds

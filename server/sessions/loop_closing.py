@@ -169,6 +169,7 @@ class LoopClosing:
             s = self.stats
             return {
                 "keyframes": s.keyframes,
+                "queued": self._queue.qsize(),
                 "found": s.found,
                 "refused": s.refused,
                 "corrections": s.corrections,

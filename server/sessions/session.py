@@ -386,6 +386,7 @@ class Session:
         figures: dict[str, float | bool | None] = {
             "enabled": self.loops is not None,
             "keyframes": 0,
+            "queued": 0,
             "found": 0,
             "refused": 0,
             "corrections": 0,

@@ -149,6 +149,9 @@ class LoopClosure(_Body):
         "kept and not continuing in a saved room)"
     )
     keyframes: int = Field(description="keyframes looked up in the place database so far")
+    queued: int = Field(
+        0, description="keyframes waiting for the loop thread (it runs below the map's priority)"
+    )
     found: int = Field(description="verified loops (edges added to the pose graph)")
     refused: int = Field(description="keyframes whose loop candidates verification refused")
     corrections: int = Field(description="pose-graph optimisations that corrected the world")

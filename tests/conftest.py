@@ -121,7 +121,9 @@ def demo_clean(tmp_path_factory) -> Path:
 class LiveServer:
     """A real uvicorn server on a loopback port, in a background thread."""
 
-    def __init__(self, data_dir: Path, simulation=None, **settings) -> None:
+    def __init__(
+        self, data_dir: Path, simulation=None, registration=None, mapping=None, **settings
+    ) -> None:
         import socket
         import threading
 
@@ -132,10 +134,11 @@ class LiveServer:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
         server = ServerConfig(host="127.0.0.1", port=self.port, data_dir=data_dir, **settings)
-        # simulation: a SimulationConfig for the sessions' drones (default: the defaults)
-        self.config = Config(
-            server=server, **({} if simulation is None else {"simulation": simulation})
-        )
+        # simulation: a SimulationConfig for the sessions' drones, registration: a
+        # RegistrationConfig for their trackers, mapping: a MappingConfig for their maps
+        # (default: the defaults)
+        sections = {"simulation": simulation, "registration": registration, "mapping": mapping}
+        self.config = Config(server=server, **{k: v for k, v in sections.items() if v is not None})
         self.settings = self.config.server
         self.app = create_app(self.config)
         self.server = make_server(

@@ -102,6 +102,9 @@ def example_messages() -> dict[str, dict]:
         "map_chunk": P.make_map_chunk(
             rng.normal(size=(500, 3)), rng.integers(0, 256, (500, 3)), chunk=4, total_points=2500
         ),
+        "map_corrected": P.make_map_corrected(
+            2, 120, np.eye(4), [(0, 0, np.eye(4)), (7, 61, np.diag([1.0, -1.0, -1.0, 1.0]))], 3
+        ),
         "error": P.make_error("corrupt_image", "colour: not a complete JPEG", seq=3),
     }
 
@@ -115,6 +118,37 @@ def test_every_message_type_round_trips(kind):
     message = example_messages()[kind]
     direction = P.MESSAGES[kind]["direction"]
     assert P.decode(P.encode(message), direction=direction) == message
+
+
+def test_map_corrected_decodes_to_matrices_and_refuses_bad_keyframes():
+    message = example_messages()["map_corrected"]
+    decoded = P.decode(P.encode(message), direction=P.SERVER_TO_CLIENT)
+    T, keyframes = P.decode_map_corrected(decoded)
+    assert np.array_equal(T, np.eye(4)) and set(keyframes) == {0, 7}
+    assert keyframes[7][0] == 61 and keyframes[7][1][1, 1] == -1.0
+    for bad in ({"id": 1, "seq": 2}, {"id": -1, "seq": 2, "T_world_keyframe": [0.0] * 16}):
+        broken = {**message, "keyframes": [bad]}
+        with pytest.raises(P.ProtocolError) as exc:
+            P.validate(broken, P.SERVER_TO_CLIENT)
+        assert exc.value.code == "invalid_field"
+    short = {**message, "keyframes": [{"id": 1, "seq": 2, "T_world_keyframe": [0.0] * 15}]}
+    with pytest.raises(P.ProtocolError):
+        P.validate(short, P.SERVER_TO_CLIENT)
+
+
+def test_a_rebuilt_maps_preview_starts_with_a_reset_chunk_even_when_empty():
+    from server.sessions.updates import MapUpdate
+    from server.transport.websocket import update_messages
+
+    points = np.zeros((5, 3), np.float32)
+    colours = np.zeros((5, 3), np.uint8)
+    chunks, nxt = update_messages(MapUpdate(9, points, colours, 5, reset=True), 2, 10)
+    assert [c["chunk"] for c in chunks] == [10, 11, 12] and nxt == 13
+    assert [c.get("reset") for c in chunks] == [True, None, None]
+    empty, _ = update_messages(MapUpdate(9, points[:0], colours[:0], 0, reset=True), 2, 0)
+    assert len(empty) == 1 and empty[0]["reset"] is True and empty[0]["count"] == 0
+    plain, _ = update_messages(MapUpdate(9, points[:0], colours[:0], 0), 2, 0)
+    assert plain == []
 
 
 @pytest.mark.parametrize("depth_format", ["png", "zlib"])

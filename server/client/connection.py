@@ -16,8 +16,10 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import websockets
 
 from server import protocol as proto
@@ -144,12 +146,43 @@ class Socket:
 MessageHandler = Callable[[dict, "float | None"], "Awaitable[None] | None"]
 
 
+@dataclass
+class MapCorrection:
+    """A ``map_corrected`` message as numbers: poses from ``from_seq`` on are in the corrected
+    world; ``T_correction`` (4x4, metres) maps the old world into it; ``keyframes``: per id,
+    (seq, corrected T_world_keyframe 4x4); ``map_resets_before``: reset map chunks received
+    before it (the rebuilt map's preview comes after it)."""
+
+    loops: int
+    from_seq: int
+    T_correction: np.ndarray
+    keyframes: dict[int, tuple[int, np.ndarray]]
+    refused: int
+    map_resets_before: int = 0
+
+    @classmethod
+    def from_message(cls, message: dict, map_resets_before: int = 0) -> MapCorrection:
+        T, keyframes = proto.decode_map_corrected(message)
+        return cls(
+            message["loops"],
+            message["from_seq"],
+            T,
+            keyframes,
+            message["refused"],
+            map_resets_before,
+        )
+
+
 class Connection(Socket):
     """A session's conversation, client side.
 
     ``in_flight`` maps the seq of every frame sent and not yet answered to its monotonic send
     time. A pose answers its own frame and every earlier one (the server drops queued frames in
     favour of newer ones); an error naming a frame's seq answers that frame.
+
+    ``corrections`` holds every ``map_corrected`` received (loop closures: ``MapCorrection``)
+    and ``map_resets`` counts the map chunks with reset (a rebuilt map's preview), both kept
+    by ``note`` (the receiver task calls it for every message).
     """
 
     def __init__(self, ws: Any) -> None:
@@ -161,6 +194,8 @@ class Connection(Socket):
         self.failure: str | None = None  # what ended the receiver other than a close
         self._answered = asyncio.Event()  # set on every answer and when the receiver ends
         self._receiver: asyncio.Task | None = None
+        self.corrections: list[MapCorrection] = []
+        self.map_resets = 0
 
     @classmethod
     async def open(
@@ -213,6 +248,14 @@ class Connection(Socket):
             self._answered.set()
         return None
 
+    def note(self, message: dict) -> None:
+        """Keep what the connection remembers of a server message: corrections, map resets."""
+        kind = message["type"]
+        if kind == "map_corrected":
+            self.corrections.append(MapCorrection.from_message(message, self.map_resets))
+        elif kind == "map_chunk" and message.get("reset"):
+            self.map_resets += 1
+
     def start(self, on_message: MessageHandler | None = None) -> asyncio.Task:
         """Receive in a task until the connection ends: every server message updates the window,
         then goes to ``on_message(message, latency_ms)`` (which may be a coroutine function).
@@ -228,6 +271,7 @@ class Connection(Socket):
                         self.invalid.append(str(exc))
                         continue
                     latency_ms = self.acknowledge(message)
+                    self.note(message)
                     if on_message is not None:
                         handled = on_message(message, latency_ms)
                         if handled is not None:

@@ -17,7 +17,7 @@ import numpy as np
 import websockets
 
 from server import protocol as proto
-from server.client.connection import NORMAL_CLOSE, Connection, close_name
+from server.client.connection import NORMAL_CLOSE, Connection, MapCorrection, close_name
 from server.datasets import RGBDDataset
 
 log = logging.getLogger(__name__)
@@ -41,6 +41,8 @@ class ReplayStats:
     map_points: int = 0
     welcome: dict | None = None
     drone_events: list[dict] = field(default_factory=list)
+    corrections: list[MapCorrection] = field(default_factory=list)  # map_corrected received
+    map_resets: int = 0  # map chunks with reset (a rebuilt map's preview)
     missing: int = 0
     invalid: list[str] = field(default_factory=list)  # server messages that broke the protocol
     close_code: int | None = None
@@ -125,6 +127,9 @@ async def replay(
                 on_pose(msg)
         elif kind == "map_chunk":
             stats.map_points += msg["count"]
+            stats.map_resets = conn.map_resets
+        elif kind == "map_corrected":
+            stats.corrections = list(conn.corrections)
         elif kind == "error":
             stats.errors.append(msg)
         elif kind == "drone_event":

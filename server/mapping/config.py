@@ -64,6 +64,9 @@ class MappingConfig:
     # costs ~0.3 s of CPU on a room (extraction + distance transform), so 1 s would take a third
     # of a core per session.
     flight_map_interval_s: float = 3.0
+    # After a loop closure the map is re-fused from the keyframes (server/sessions/session.py)
+    # this many at a time between two fusions (30-50 ms each): new frames wait at most that.
+    rebuild_keyframes_per_step: int = 2
 
     def __post_init__(self) -> None:
         # A session's voxel: below 1 mm the grid outgrows any memory, above 20 cm the map and
@@ -78,6 +81,11 @@ class MappingConfig:
             raise ConfigError(
                 f"mapping.preview_points must be in [100, {MAX_PREVIEW_POINTS}] (the protocol's "
                 f"max_map_chunk_points), got {self.preview_points}"
+            )
+        if self.rebuild_keyframes_per_step < 1:
+            raise ConfigError(
+                "mapping.rebuild_keyframes_per_step must be >= 1, got "
+                f"{self.rebuild_keyframes_per_step}"
             )
         if not self.flight_map_interval_s > 0:
             raise ConfigError(

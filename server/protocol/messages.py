@@ -308,12 +308,49 @@ def make_map_chunk(
     )
 
 
+def make_map_corrected(
+    loops: int,
+    from_seq: int,
+    T_correction: ArrayLike,
+    keyframes: Sequence[tuple[int, int, ArrayLike]],
+    refused: int,
+) -> dict:
+    """keyframes: (id, seq, T_world_keyframe 4x4 metres) at their corrected poses;
+    T_correction: 4x4, old world to new (both sent row-major)."""
+    return _message(
+        "map_corrected",
+        loops=int(loops),
+        from_seq=max(0, int(from_seq)),
+        T_correction=_floats(T_correction, 16, "T_correction"),
+        keyframes=[
+            {
+                "id": int(i),
+                "seq": int(seq),
+                "T_world_keyframe": _floats(T, 16, "T_world_keyframe"),
+            }
+            for i, seq, T in keyframes
+        ],
+        refused=int(refused),
+    )
+
+
 # ---- message readers --------------------------------------------------------------------------
 
 
 def pose_matrix(message: Mapping, key: str = "T_world_camera") -> np.ndarray:
     """The 4x4 float64 transform of a pose (or drone_state with key='T_world_drone')."""
     return np.asarray(message[key], dtype=np.float64).reshape(4, 4)
+
+
+def decode_map_corrected(
+    message: Mapping,
+) -> tuple[np.ndarray, dict[int, tuple[int, np.ndarray]]]:
+    """-> T_correction (4x4 float64) and, per keyframe id, (seq, T_world_keyframe 4x4)."""
+    keyframes = {
+        int(k["id"]): (int(k["seq"]), pose_matrix(k, "T_world_keyframe"))
+        for k in message["keyframes"]
+    }
+    return pose_matrix(message, "T_correction"), keyframes
 
 
 def decode_map_chunk(message: Mapping) -> tuple[np.ndarray, np.ndarray]:

@@ -109,6 +109,22 @@ def _check_map_chunk(msg: Mapping) -> None:
         raise ProtocolError("invalid_field", f"map_chunk points/colours lengths do not match {n}")
 
 
+def _check_map_corrected(msg: Mapping) -> None:
+    """Each keyframe: {id, seq (ints >= 0), T_world_keyframe (16 finite floats)}; the schema
+    says only that they are maps."""
+    for i, kf in enumerate(msg["keyframes"]):
+        where = f"map_corrected.keyframes[{i}]"
+        if set(kf) != {"id", "seq", "T_world_keyframe"}:
+            raise ProtocolError("invalid_field", f"{where} needs id, seq and T_world_keyframe")
+        for key in ("id", "seq"):
+            _check_value(kf[key], {"type": "int", "min": 0}, f"{where}.{key}")
+        _check_value(
+            kf["T_world_keyframe"],
+            {"type": "list", "length": 16, "items": {"type": "float"}},
+            f"{where}.T_world_keyframe",
+        )
+
+
 def _check_error(msg: Mapping) -> None:
     if ERROR_NAMES.get(msg["code"]) != msg["name"]:
         raise ProtocolError("invalid_field", f"error code {msg['code']} is not {msg['name']!r}")
@@ -118,6 +134,7 @@ _SEMANTIC_CHECKS = {
     "hello": _check_hello,
     "command": _check_command,
     "map_chunk": _check_map_chunk,
+    "map_corrected": _check_map_corrected,
     "error": _check_error,
 }
 

@@ -193,6 +193,35 @@ class Tracker:
         self.device_last = None
         self.alignment.reset()
 
+    def apply_correction(
+        self, keyframe_poses: dict[int, FloatArray], T_correction: FloatArray
+    ) -> None:
+        """Move the tracker into a corrected world (loop closure), between two frames.
+
+        ``keyframe_poses``: corrected T_world_keyframe (4x4, metres) per keyframe id, for the
+        keyframes the pose graph knows; every other keyframe held here (newer than the graph)
+        and the last pose move by ``T_correction`` (old world to new world, 4x4:
+        T_new = T_correction @ T_old). The velocity is a motion in the camera's own frame
+        (T_previous_last), the same in either world. The device prior's alignment to the map
+        is void and starts again; the corners followed stay as they are (they live in images).
+        """
+        T_correction = np.asarray(T_correction, dtype=np.float64)
+        seen: set[int] = set()
+        held = [self.keyframe, *self.recent, *self.map_keyframes]
+        for kf in held:
+            if kf is None or id(kf) in seen:
+                continue
+            seen.add(id(kf))
+            T = keyframe_poses.get(kf.id)
+            kf.T_world_keyframe = orthonormalize(
+                T_correction @ kf.T_world_keyframe if T is None else np.asarray(T, np.float64)
+            )
+        self.T_world_last = orthonormalize(T_correction @ self.T_world_last)
+        self.T_world_first = orthonormalize(T_correction @ self.T_world_first)
+        if self.pending is not None:  # a keyframe change found due and not yet made
+            self.pending.T_world_camera = orthonormalize(T_correction @ self.pending.T_world_camera)
+        self.alignment.reset()
+
     # ------------------------------------------------------------------ per frame
     def track(
         self,

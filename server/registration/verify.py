@@ -175,11 +175,15 @@ def find_place(
     solver: SolverConfig,
     depth_cfg: DepthConfig,
     allowed: set[int] | None = None,
+    tried: list[int] | None = None,
 ) -> PlaceMatch | None:
     """The best verified keyframe for ``query`` among the database's candidates (most inliers),
-    or None. ``allowed``: keyframe ids that may match (None: all)."""
+    or None. ``allowed``: keyframe ids that may match (None: all). ``tried``: when given, the
+    candidates' ids are appended to it (verified or not: a caller counts the refused)."""
     best: PlaceMatch | None = None
     for kf_id, votes in database.candidates(query, cfg, allowed):
+        if tried is not None:
+            tried.append(kf_id)
         found = verify_place(
             database.entry(kf_id).features, query, K, cfg, solver, depth_cfg, kf_id
         )

@@ -290,6 +290,19 @@ def load_room(folder: str | Path, cfg: RegistrationConfig | None = None) -> Room
     return room
 
 
+def read_keyframe_images(folder: Path, kf_id: int) -> tuple[GreyImage, Float32Array]:
+    """A keyframe's colour (H, W, 3) RGB uint8 and depth (H, W) float32 metres from its file in
+    the room ``folder`` (a map re-fused from the keyframes reads only these)."""
+    path = keyframe_path(folder, kf_id)
+    with np.load(path) as z:
+        colour_bgr = cv2.imdecode(z["colour_jpg"], cv2.IMREAD_COLOR)
+        mm = cv2.imdecode(z["depth_png"], cv2.IMREAD_UNCHANGED)
+    if colour_bgr is None or mm is None or mm.dtype != np.uint16:
+        raise RoomError(f"{path}: the keyframe's images do not decode")
+    colour = np.asarray(cv2.cvtColor(colour_bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+    return colour, mm.astype(np.float32) / 1000.0
+
+
 def _read_keyframe(
     folder: Path,
     kf_id: int,
@@ -298,15 +311,9 @@ def _read_keyframe(
     K: Intrinsics,
     cfg: RegistrationConfig,
 ) -> RoomKeyframe:
-    path = keyframe_path(folder, kf_id)
-    with np.load(path) as z:
-        colour_bgr = cv2.imdecode(z["colour_jpg"], cv2.IMREAD_COLOR)
-        mm = cv2.imdecode(z["depth_png"], cv2.IMREAD_UNCHANGED)
+    colour, depth = read_keyframe_images(folder, kf_id)
+    with np.load(keyframe_path(folder, kf_id)) as z:
         uv, descriptors, points = z["uv"], z["descriptors"], z["points"]
-    if colour_bgr is None or mm is None or mm.dtype != np.uint16:
-        raise RoomError(f"{path}: the keyframe's images do not decode")
-    colour = np.asarray(cv2.cvtColor(colour_bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
-    depth = mm.astype(np.float32) / 1000.0
     # The depth thumbnail is derived data: recomputed, as describe_place makes it.
     small, K_small = depth_thumbnail(clean_depth(depth, cfg.depth), K, cfg.place.depth_shrink)
     place = PlaceFeatures(

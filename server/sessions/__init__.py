@@ -11,6 +11,7 @@ from server.sessions.session import Session
 from server.sessions.updates import (
     FrameData,
     FrameRefused,
+    MapCorrected,
     MapUpdate,
     PoseUpdate,
     SessionFailed,
@@ -23,6 +24,7 @@ __all__ = [
     "FrameData",
     "FrameRefused",
     "LiveSession",
+    "MapCorrected",
     "MapUpdate",
     "PoseUpdate",
     "Session",

@@ -23,6 +23,7 @@ class Failures:
     snapshots_failed: int = 0  # snapshots the disk refused (periodic and final)
     sends_failed: int = 0  # connections ended because sending them an update failed
     room_keyframes_failed: int = 0  # keyframes that could not be kept for the session's room
+    loops_failed: int = 0  # keyframes the loop closer failed on, and map rebuilds that failed
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

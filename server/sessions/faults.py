@@ -18,10 +18,14 @@ class InjectedThreadDeath(BaseException):
 def inject(session, faults: Mapping[str, Collection[int]]) -> None:
     """Make stages of a configured ``session`` raise on the given calls (1-based). Stages:
     ``track`` (the tracker), ``fuse`` (the map), ``flight_step`` (one step of the drone's
-    thread), ``mapping_thread`` (ends the mapping thread at that fusion)."""
+    thread), ``mapping_thread`` (ends the mapping thread at that fusion), ``loop_keyframe``
+    (the loop closer, on a keyframe), ``rebuild`` (a step of the map's rebuild after a loop)."""
+    loops = session.loops
     stages = {
         "track": (session.tracker, "track", InjectedFault),
         "fuse": (session.mapper, "fuse", InjectedFault),
+        "loop_keyframe": (None if loops is None else loops.closer, "add_keyframe", InjectedFault),
+        "rebuild": (session.mapper, "rebuild_step", InjectedFault),
         "flight_step": (session.flight, "_tick", InjectedFault),
         "mapping_thread": (session.mapper, "fuse", InjectedThreadDeath),
     }

@@ -159,6 +159,11 @@ class Flight:
         self._pending_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pending_region: Region | None = None
         self._pending_frames: int | None = None
+        # A map rebuilt in a corrected world (loop closure) with the drone's move into it
+        # (T_delta in the flight frame); regions pending before it belonged to the old map.
+        self._pending_world: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None
+        self._pending_world = None
+        self.corrections = 0  # corrected worlds the drone moved into
         # Fused frames the flight map holds (the session's count; for clients that must know
         # whether the drone's map has caught up with map.frames_integrated).
         self.map_frames = 0
@@ -202,6 +207,31 @@ class Flight:
         with self._pending_lock:
             self._pending_map = (origin, occupied, observed)
             self._pending_region = None
+
+    def map_replaced(
+        self,
+        origin: np.ndarray,
+        occupied: np.ndarray,
+        observed: np.ndarray,
+        T_correction: np.ndarray,
+        frames: int | None = None,
+    ) -> None:
+        """The session's map was rebuilt in a corrected world (loop closure): the whole new grid
+        (flight frame, as ``map_changed``) and ``T_correction`` (4x4, world frame, metres: old
+        world to new). The flight thread replaces the flight map and moves the drone with the
+        world in one step (``DroneSimulator.move_with_world``), so it never flies a moved map
+        from an unmoved place; what was pending for the old map is dropped."""
+        T_delta = (
+            invert(self.T_world_flight) @ np.asarray(T_correction, float) @ self.T_world_flight
+        )
+        with self._pending_lock:
+            if self._pending_world is not None:  # two rebuilds before a step: moves compose
+                T_delta = T_delta @ self._pending_world[1]
+            self._pending_world = ((origin, occupied, observed), T_delta)
+            self._pending_map = None
+            self._pending_region = None
+            if frames is not None:
+                self._pending_frames = frames
 
     def map_region_changed(
         self,
@@ -494,15 +524,19 @@ class Flight:
             events = []
             with self._pending_lock:
                 grid, region = self._pending_map, self._pending_region
-                frames = self._pending_frames
+                frames, world = self._pending_frames, self._pending_world
                 self._pending_map = self._pending_region = self._pending_frames = None
+                self._pending_world = None
+            if world is not None:
+                self.sim.move_with_world(world[1], *world[0])
+                self.corrections += 1
             if grid is not None:
                 self.sim.update_map(*grid)
             if region is not None:
                 self.sim.update_map_region(region)
             if frames is not None:
                 self.map_frames = frames
-            if grid is not None or region is not None:
+            if grid is not None or region is not None or world is not None:
                 if not self.spawned and (camera := self._latest_camera()) is not None:
                     self._spawn(camera[1])
             course = []
@@ -582,7 +616,12 @@ class Flight:
     def summary(self) -> dict:
         """For the session's status endpoint: ``errors`` counts the flight steps that failed;
         ``fault`` (when the drone was stopped for good) says why, and ``mode`` is faulted."""
-        health = {"errors": self.errors, "fault": self.fault, "map_frames": self.map_frames}
+        health = {
+            "errors": self.errors,
+            "fault": self.fault,
+            "map_frames": self.map_frames,
+            "corrections": self.corrections,
+        }
         s = self.state() if self.spawned or self.fault is not None else None
         if s is None:
             return {"spawned": False, **health}

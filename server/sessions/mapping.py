@@ -15,6 +15,7 @@ import os
 import signal
 import tempfile
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from server.geometry import Intrinsics
 from server.mapping.config import MappingConfig
 from server.mapping.preview import MapPreview
 from server.mapping.tsdf import MapError, TSDFMap
+from server.rooms.room import read_keyframe_images
 from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
 
@@ -59,14 +61,52 @@ class Fused:
     stats: dict = field(default_factory=dict)  # the map's ``stats()`` after this frame
 
 
+@dataclass
+class Rebuilt:
+    """A map re-fused from keyframes at corrected poses, now the session's map: its whole
+    preview (world metres, RGB: the client's preview restarts from it), the drone's whole
+    occupancy grid when asked for (as ``Fused.occupancy``, flight frame) or None, and what the
+    rebuild cost (``keyframes`` re-read and fused, ``cpu_ms`` of the mapping process)."""
+
+    points: np.ndarray
+    colours: np.ndarray
+    total_points: int
+    occupancy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    occupancy_error: str | None
+    stats: dict
+    keyframes: int
+    cpu_ms: float
+
+
+@dataclass
+class _Rebuild:
+    """A rebuild in progress: the new map, its preview, and the keyframes still to fuse as
+    (id, T_world_keyframe at its corrected pose), read from ``folder``'s keyframe files."""
+
+    map: TSDFMap
+    preview: MapPreview
+    folder: Path
+    K: Intrinsics
+    todo: list[tuple[int, np.ndarray]]
+    points: list[np.ndarray] = field(default_factory=list)
+    colours: list[np.ndarray] = field(default_factory=list)
+    keyframes: int = 0
+    cpu_s: float = 0.0
+
+
 class Mapper:
     """The map of one session, used by one caller at a time (the session's mapping thread; the
-    status and downloads come from other threads, hence the lock)."""
+    status and downloads come from other threads, hence the lock).
+
+    After a loop closure the map is rebuilt from the keyframes at their corrected poses, in
+    steps the caller interleaves with fusion (``rebuild_start``, ``rebuild_step``,
+    ``rebuild_finish``): the old map serves until the new one replaces it at once."""
 
     def __init__(self, config: MappingConfig) -> None:
         self.map = TSDFMap(config.tsdf)
         self.preview = MapPreview()
         self.preview_points = config.preview_points
+        self._rebuild: _Rebuild | None = None
         self._lock = threading.Lock()
 
     def fuse(
@@ -76,11 +116,16 @@ class Mapper:
         K: Intrinsics,
         T_world_camera: np.ndarray,
         occupancy: tuple[float, np.ndarray] | None = None,
+        rebuild_pose: np.ndarray | None = None,
     ) -> Fused:
         """Integrate a frame (colour RGB uint8, depth metres at K's size, T_world_camera 4x4);
         ``occupancy``: (cell edge in metres, R_flight_world) to also return the drone's grid
-        for what changed, or None."""
+        for what changed, or None. ``rebuild_pose``: while a rebuild is in progress, also fuse
+        the frame into the new map at this pose (its T_world_camera in the corrected world)."""
         with self._lock:
+            rebuild = self._rebuild
+            if rebuild is not None and rebuild_pose is not None:
+                self._rebuild_fuse(rebuild, colour, depth, K, rebuild_pose)
             self.map.integrate(colour, depth, K, T_world_camera)
             points, colours = self.preview.new_points(
                 colour, depth, K, T_world_camera, self.preview_points
@@ -92,6 +137,89 @@ class Mapper:
                 except Exception as exc:  # the drone's map misses this one; the TSDF has it
                     error = f"{type(exc).__name__}: {exc}"
             return Fused(points, colours, self.preview.total, grid, error, self.map.stats())
+
+    # ---- a rebuild after a loop closure -------------------------------------------------------
+    def rebuild_start(
+        self, folder: str | Path, keyframes: list[tuple[int, np.ndarray]], K: Intrinsics
+    ) -> None:
+        """Start a new map from the keyframes (id, T_world_keyframe 4x4 metres, corrected) whose
+        files are in the room ``folder`` (read here, by path: the images never cross the pipe).
+        A rebuild still in progress is dropped for this one."""
+        with self._lock:
+            self._rebuild = _Rebuild(
+                TSDFMap(self.map.config),
+                MapPreview(),
+                Path(folder),
+                K,
+                [(int(i), np.asarray(T, np.float64)) for i, T in keyframes],
+            )
+
+    def rebuild_step(self, count: int = 1) -> int:
+        """Fuse up to ``count`` more keyframes into the new map (30-50 ms each); returns how many
+        are left (0: ready for ``rebuild_finish``). Raises MapError with no rebuild started."""
+        with self._lock:
+            rebuild = self._require_rebuild()
+            for _ in range(min(count, len(rebuild.todo))):
+                kf_id, T = rebuild.todo.pop(0)
+                colour, depth = read_keyframe_images(rebuild.folder, kf_id)
+                self._rebuild_fuse(rebuild, colour, depth, rebuild.K, T)
+                rebuild.keyframes += 1
+            return len(rebuild.todo)
+
+    def rebuild_finish(self, occupancy: tuple[float, np.ndarray] | None = None) -> Rebuilt:
+        """The new map replaces the old one (whatever keyframes are left are fused first); the
+        preview restarts from it. ``occupancy``: (cell edge, R_flight_world) for the drone's
+        whole grid of the new map."""
+        self.rebuild_step(1 << 30)
+        with self._lock:
+            rebuild = self._require_rebuild()
+            self._rebuild = None
+            self.map, self.preview = rebuild.map, rebuild.preview
+            grid, error = None, None
+            if occupancy is not None:
+                try:  # the new map's first update is its whole grid
+                    grid = self.map.occupancy_update(*occupancy)
+                except Exception as exc:  # the drone keeps its old map; the TSDF is replaced
+                    error = f"{type(exc).__name__}: {exc}"
+            points = np.concatenate([np.empty((0, 3), np.float32), *rebuild.points])
+            colours = np.concatenate([np.empty((0, 3), np.uint8), *rebuild.colours])
+            return Rebuilt(
+                points,
+                colours,
+                self.preview.total,
+                grid,
+                error,
+                self.map.stats(),
+                rebuild.keyframes,
+                rebuild.cpu_s * 1e3,
+            )
+
+    def rebuild_cancel(self) -> None:
+        """Drop a rebuild in progress (it failed); the map stays as it is."""
+        with self._lock:
+            self._rebuild = None
+
+    def _require_rebuild(self) -> _Rebuild:
+        if self._rebuild is None:
+            raise MapError("no map rebuild in progress")
+        return self._rebuild
+
+    def _rebuild_fuse(
+        self,
+        rebuild: _Rebuild,
+        colour: np.ndarray,
+        depth: np.ndarray,
+        K: Intrinsics,
+        T_world_camera: np.ndarray,
+    ) -> None:
+        cpu0 = time.thread_time()
+        rebuild.map.integrate(colour, depth, K, T_world_camera)
+        points, colours = rebuild.preview.new_points(
+            colour, depth, K, T_world_camera, self.preview_points
+        )
+        rebuild.points.append(points)
+        rebuild.colours.append(colours)
+        rebuild.cpu_s += time.thread_time() - cpu0
 
     def occupancy(
         self, voxel_m: float, R_flight_world: np.ndarray
@@ -209,8 +337,22 @@ class MapperClient:
             raise_remote(value)
         return value
 
-    def fuse(self, colour, depth, K, T_world_camera, occupancy=None) -> Fused:
-        return self._call("fuse", colour, depth, K, T_world_camera, occupancy)
+    def fuse(self, colour, depth, K, T_world_camera, occupancy=None, rebuild_pose=None) -> Fused:
+        return self._call("fuse", colour, depth, K, T_world_camera, occupancy, rebuild_pose)
+
+    def rebuild_start(
+        self, folder: str | Path, keyframes: list[tuple[int, np.ndarray]], K: Intrinsics
+    ) -> None:
+        self._call("rebuild_start", str(folder), keyframes, K)
+
+    def rebuild_step(self, count: int = 1) -> int:
+        return self._call("rebuild_step", count)
+
+    def rebuild_finish(self, occupancy: tuple[float, np.ndarray] | None = None) -> Rebuilt:
+        return self._call("rebuild_finish", occupancy)
+
+    def rebuild_cancel(self) -> None:
+        self._call("rebuild_cancel")
 
     def occupancy(
         self, voxel_m: float, R_flight_world: np.ndarray

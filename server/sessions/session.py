@@ -22,7 +22,7 @@ from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState, TrackResult
-from server.registration.preprocess import resample_depth
+from server.registration.preprocess import clean_depth, resample_depth
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import (
     MAP_FILE,
@@ -39,17 +39,20 @@ from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, Flight
 from server.sessions.flight_log import FlightLog
+from server.sessions.loop_closing import Correction, LoopClosing, LoopKeyframe
 from server.sessions.mapping import (
     MAPPING_NICE,
     Mapper,
     MapperClient,
     MapperLost,
+    Rebuilt,
     lower_this_threads_priority,
 )
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.updates import (
     FrameData,
     FrameRefused,
+    MapCorrected,
     MapUpdate,
     PoseUpdate,
     SessionFailed,
@@ -71,6 +74,7 @@ class _FuseJob:
     T_world_camera: np.ndarray
     keyframe: bool
     keyframe_id: int = -1  # the tracker's id of the keyframe, when ``keyframe``
+    world: int = 0  # the corrected world (loop closure) T_world_camera is in (0: none yet)
 
 
 class Session:
@@ -114,6 +118,8 @@ class Session:
         # room/ (mapping thread), as (id, frame seq, T_world_keyframe), after the room it
         # continues in, if any.
         self._room_keyframes: list[tuple[int, int, np.ndarray]] = []
+        # The corrected world (loop closure) each of those poses is in (guarded by _lock).
+        self._room_worlds: dict[int, int] = {}
         self._room_sessions: list[dict] = []
         self._room_base_ids: list[int] = []  # the keyframes of the room continued in
         self._placed = False  # a frame has been tracked (in a room: recognised in it)
@@ -150,6 +156,19 @@ class Session:
         self._dirty = False
         self._last_snapshot = time.monotonic()
         self.snapshot_error: str | None = None  # why the latest snapshot failed, if it did
+        # Online loop closure (server/sessions/loop_closing.py), from the first hello on when
+        # configured. Corrections wait for the tracking thread in _corrections (under _wake)
+        # and for the mapping thread in _rebuild_wanted (newest wins, under _lock).
+        self.loops: LoopClosing | None = None
+        self._world = 0  # the corrected world the tracker is in (tracking thread)
+        self._corrections: list[Correction] = []
+        self._rebuild_wanted: Correction | None = None
+        self._rebuilding: Correction | None = None  # mapping thread
+        self._rebuild_t0 = 0.0
+        self._map_world = 0  # the world the map and the drone's map are in (mapping thread)
+        self._rebuilds = 0
+        self._last_rebuild: dict[str, float] = {}
+        self._last_seq_processed = -1
         if room_dir is not None:
             self._inherit_course_best(room_dir)
 
@@ -169,6 +188,14 @@ class Session:
             )
         if self.tracker is None:
             self.tracker = self._make_tracker(intrinsics)
+            if self.loops_wanted:
+                self.loops = LoopClosing(
+                    intrinsics,
+                    self.config.registration,
+                    self._loop_corrected,
+                    self._loop_failed,
+                    name=f"loops-{self.id}",
+                )
         if self.flight is None and self.config.simulation is not None:
             self.flight = Flight(
                 self.config.simulation,
@@ -225,6 +252,15 @@ class Session:
             with self._lock:
                 self.failures.snapshots_failed += 1
 
+    @property
+    def loops_wanted(self) -> bool:
+        """Online loop closure runs here: configured (registration.loops.live), the room's
+        keyframes kept on disk (the rebuild reads them), and not continuing in a saved room
+        (its keyframes would have to stay fixed: server/sessions/loop_closing.py)."""
+        return (
+            self.config.registration.loops.live and self.config.save_room and self.room_dir is None
+        )
+
     def _course_best_path(self) -> Path | None:
         """Where the drone's course results are kept (None: an id the store cannot hold)."""
         try:
@@ -260,6 +296,8 @@ class Session:
             )
             self._worker.start()
             self._mapping_thread.start()
+            if self.loops is not None:
+                self.loops.start()
 
     def submit(self, frame: FrameData) -> None:
         """Queue a frame; a frame still waiting is dropped in its favour."""
@@ -305,11 +343,14 @@ class Session:
     def _run(self) -> None:
         while True:
             with self._wake:
-                while self._inbox is None and not self._stopping:
+                while self._inbox is None and not self._stopping and not self._corrections:
                     self._wake.wait()
                 frame, self._inbox = self._inbox, None
+                corrections, self._corrections = self._corrections, []
                 self._busy = frame is not None
                 stopping = self._stopping
+            if corrections:  # between two frames: track never sees a half-corrected world
+                self._apply_corrections(corrections)
             if frame is not None:
                 try:
                     self._process(frame)
@@ -320,6 +361,65 @@ class Session:
                     self._wake.notify_all()  # for drain()
             if stopping and frame is None:
                 return
+
+    # ------------------------------------------------------------------ loop closure
+    def _loop_corrected(self, correction: Correction) -> None:
+        """A verified loop corrected the world (loop thread): the tracker takes it between two
+        frames, the mapping thread rebuilds the map (the newest correction wins)."""
+        with self._lock:
+            self._rebuild_wanted = correction
+        with self._wake:
+            self._corrections.append(correction)
+            self._wake.notify()
+
+    def _loop_failed(self, exc: BaseException) -> None:
+        """The loop thread failed on a keyframe (logged from its except block): counted; the
+        keyframe is left out of the graph and the session goes on."""
+        self.log.error("loop closure failed on a keyframe", exc_info=exc)
+        with self._lock:
+            self.failures.loops_failed += 1
+
+    def _apply_corrections(self, corrections: list[Correction]) -> None:
+        """Move the tracker into each corrected world in turn (tracking thread, between two
+        frames) and tell the client (map_corrected): poses already sent stay as they were;
+        those of frames from ``from_seq`` on are in the corrected world."""
+        tracker = self.tracker
+        for c in corrections:
+            if isinstance(tracker, Tracker):  # loops never run in a room (RoomTracker)
+                try:
+                    tracker.apply_correction(c.keyframes, c.T_correction)
+                except Exception:
+                    self.log.exception("correcting the tracker failed")
+                    with self._lock:
+                        self.failures.loops_failed += 1
+                    continue
+            self._world = c.world
+            with self._lock:
+                from_seq = self._last_seq_processed + 1
+            keyframes = [(i, c.seqs[i], T) for i, T in sorted(c.keyframes.items())]
+            self._publish(MapCorrected(c.loops, from_seq, c.T_correction, keyframes, c.refused))
+
+    def loop_figures(self) -> dict:
+        """The status's ``loops``: the loop thread's counts and the map rebuilds."""
+        figures: dict[str, float | bool | None] = {
+            "enabled": self.loops is not None,
+            "keyframes": 0,
+            "queued": 0,
+            "found": 0,
+            "refused": 0,
+            "corrections": 0,
+            "last_optimise_ms": None,
+            "last_optimise_cpu_ms": None,
+            "lookup_cpu_ms": None,
+        }
+        if self.loops is not None:
+            figures.update(self.loops.figures())
+        with self._lock:
+            figures["rebuilds"] = self._rebuilds
+            figures["last_rebuild_ms"] = self._last_rebuild.get("ms")
+            figures["last_rebuild_cpu_ms"] = self._last_rebuild.get("cpu_ms")
+            figures["last_rebuild_keyframes"] = self._last_rebuild.get("keyframes")
+        return figures
 
     def frame_failed(self, seq: int | None, exc: Exception, stage: str = "") -> None:
         """The server failed on frame ``seq`` (a bug, raised as ``exc``): logged with its
@@ -370,6 +470,7 @@ class Session:
             self.flight.camera_moved(frame.seq, result.T_world_camera, depth)
         with self._lock:
             self._trajectory.append((frame.timestamp, result.T_world_camera))
+            self._last_seq_processed = frame.seq
             self.processed += 1
             self._states[result.state.value] += 1
             self._device_pose["frames"] += frame.T_device_camera is not None
@@ -409,6 +510,7 @@ class Session:
                     result.T_world_camera,
                     new_keyframe,
                     result.keyframe_id,
+                    self._world,
                 )
             )
 
@@ -452,37 +554,169 @@ class Session:
 
     def _fuse_until_stopped(self) -> None:
         while True:
+            self._start_rebuild_if_wanted()
             try:
-                job = self._fuse_jobs.get(timeout=1.0)
+                # A rebuild goes on in steps between fusions: no wait for a job then.
+                job = self._fuse_jobs.get(timeout=0.02 if self._rebuilding else 1.0)
             except queue.Empty:
+                if self._rebuilding is not None:
+                    self._rebuild_step()
+                    continue
                 self._snapshot_if_due()
                 self._catch_up_flight_map()
                 continue
             if job is None:  # stopping: stop() writes the final snapshot itself
+                self._finish_loops()
                 return
-            self._snapshot_if_due()
-            K, _ = self._configured()  # a job comes from a tracked frame: after the hello
-            occupancy = self._occupancy_request()
-            try:
-                fused = self.mapper.fuse(job.colour, job.depth, K, job.T_world_camera, occupancy)
-            except MapperLost:
-                raise
-            except Exception:
-                self.log.exception("fusing frame %d failed", job.seq)
-                with self._lock:
-                    self.failures.fusions_failed += 1
-                continue
-            self._fused += 1
-            if job.keyframe and self.config.save_room:
-                self._keep_room_keyframe(job, K)
+            self._fuse(job)
+            if self._rebuilding is not None:
+                self._rebuild_step()
+
+    def _fuse(self, job: _FuseJob) -> None:
+        """Fuse one job (and, during a rebuild, a keyframe into the new map too)."""
+        self._snapshot_if_due()
+        K, _ = self._configured()  # a job comes from a tracked frame: after the hello
+        occupancy = self._occupancy_request()
+        rebuilding = self._rebuilding
+        rebuild_pose = None
+        if rebuilding is not None and job.keyframe and self.loops is not None:
+            rebuild_pose = self.loops.worlds.carry(
+                job.keyframe_id, job.T_world_camera, job.world, rebuilding.world
+            )
+        try:
+            fused = self.mapper.fuse(
+                job.colour, job.depth, K, job.T_world_camera, occupancy, rebuild_pose
+            )
+        except MapperLost:
+            raise
+        except Exception:
+            self.log.exception("fusing frame %d failed", job.seq)
             with self._lock:
-                self._dirty = True
-            if fused.stats:
-                self._map_stats = fused.stats
-            if len(fused.points):
-                self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
-            if occupancy is not None:
-                self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
+                self.failures.fusions_failed += 1
+            return
+        self._fused += 1
+        if job.keyframe and self.config.save_room:
+            self._keep_room_keyframe(job, K)
+        with self._lock:
+            self._dirty = True
+        if fused.stats:
+            self._map_stats = fused.stats
+        if len(fused.points):
+            self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
+        if occupancy is not None:
+            self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
+
+    # ------------------------------------------------------------------ map rebuild
+    def _start_rebuild_if_wanted(self) -> None:
+        """Start rebuilding the map for the newest correction (mapping thread), from every
+        keyframe written so far at its pose in the corrected world; the room's keyframe poses
+        become these. A rebuild in progress finishes first (restarting it at every loop would
+        never finish while the camera keeps closing loops); corrections that came meanwhile
+        wait, and only the newest of them is rebuilt."""
+        if self._rebuilding is not None:
+            return
+        with self._lock:
+            wanted, self._rebuild_wanted = self._rebuild_wanted, None
+        if wanted is None or self.loops is None:
+            return
+        worlds = self.loops.worlds
+        with self._lock:
+            self._room_keyframes = [
+                (i, seq, worlds.carry(i, T, self._room_worlds.get(i, 0), wanted.world))
+                for i, seq, T in self._room_keyframes
+            ]
+            self._room_worlds = {i: wanted.world for i, _, _ in self._room_keyframes}
+            entries = [(i, T) for i, _, T in self._room_keyframes]
+        K, _ = self._configured()
+        try:
+            self.mapper.rebuild_start(self.store.folder(self.id) / ROOM_FOLDER, entries, K)
+        except MapperLost:
+            raise
+        except Exception:
+            self._rebuild_failed()
+            return
+        self._rebuilding = wanted
+        self._rebuild_t0 = time.perf_counter()
+
+    def _rebuild_step(self) -> None:
+        """A few more keyframes into the new map; when none are left, the swap."""
+        try:
+            left = self.mapper.rebuild_step(self.config.mapping.rebuild_keyframes_per_step)
+            if left == 0:
+                self._finish_rebuild(self.mapper.rebuild_finish(self._occupancy_request(True)))
+        except MapperLost:
+            raise
+        except Exception:
+            self._rebuild_failed()
+
+    def _finish_rebuild(self, rebuilt: Rebuilt) -> None:
+        """The rebuilt map replaced the old one (in the mapper, at once): the preview restarts
+        from it (a MapUpdate with reset), and the drone's map is its whole grid, the drone
+        moving with the world (``Flight.map_replaced``)."""
+        correction, self._rebuilding = self._rebuilding, None
+        assert correction is not None and self.loops is not None
+        ms = (time.perf_counter() - self._rebuild_t0) * 1e3
+        T_map = self.loops.worlds.delta(self._map_world, correction.world)
+        self._map_world = correction.world
+        with self._lock:
+            self._rebuilds += 1
+            self._last_rebuild = {
+                "ms": round(ms, 1),
+                "cpu_ms": round(rebuilt.cpu_ms, 1),
+                "keyframes": rebuilt.keyframes,
+            }
+            self._dirty = True
+            seq = self._last_seq_processed
+        if rebuilt.stats:
+            self._map_stats = rebuilt.stats
+        self.log.info(
+            "map rebuilt from %d keyframes in %.0f ms (world %d)",
+            rebuilt.keyframes,
+            ms,
+            correction.world,
+        )
+        self._publish(
+            MapUpdate(seq, rebuilt.points, rebuilt.colours, rebuilt.total_points, reset=True)
+        )
+        if self.flight is None:
+            return
+        error = rebuilt.occupancy_error
+        if error is None and rebuilt.occupancy is not None:
+            try:
+                self.flight.map_replaced(*rebuilt.occupancy, T_map, frames=self._fused)
+            except Exception as exc:
+                error = f"{type(exc).__name__}: {exc}"
+        if error is not None:
+            self.log.error("the drone's map missed the rebuilt map (%s)", error)
+            with self._lock:
+                self.failures.flight_map_failed += 1
+            return
+        self._flight_map_fused = self._fused
+
+    def _rebuild_failed(self) -> None:
+        """A rebuild failed (logged from the except block): counted; the map stays as it was
+        (in the old world) and the session goes on."""
+        self.log.exception("rebuilding the map after a loop closure failed")
+        with self._lock:
+            self.failures.loops_failed += 1
+        self._rebuilding = None
+        try:
+            self.mapper.rebuild_cancel()
+        except MapperLost:
+            raise
+        except Exception:
+            self.log.exception("cancelling the rebuild failed")
+
+    def _finish_loops(self) -> None:
+        """The session stops (mapping thread, after the last fusion): the loop thread takes the
+        keyframes still queued, and the map is rebuilt for the last correction, so that the
+        final snapshot and the room hold the corrected map and poses."""
+        if self.loops is None:
+            return
+        self.loops.stop()
+        self._start_rebuild_if_wanted()
+        while self._rebuilding is not None:
+            self._rebuild_step()
 
     def _keep_room_keyframe(self, job: _FuseJob, K: Intrinsics) -> None:
         """Write a keyframe into this session's room folder (mapping thread: its features and
@@ -506,6 +740,18 @@ class Session:
             return
         with self._lock:
             self._room_keyframes.append((kf.id, kf.frame_index, kf.T_world_keyframe))
+            self._room_worlds[kf.id] = job.world
+        if self.loops is not None:  # its features are computed already: the loop thread's
+            self.loops.submit(
+                LoopKeyframe(
+                    kf.id,
+                    kf.frame_index,
+                    kf.T_world_keyframe,
+                    job.world,
+                    kf.place,
+                    clean_depth(kf.depth, self.config.registration.depth),
+                )
+            )
 
     def save_room(self) -> bool:
         """Make this session's folder a room (``room/``: its keyframes, those of the room it
@@ -514,6 +760,10 @@ class Session:
         folder = self.store.folder(self.id)
         with self._lock:
             keyframes = list(self._room_keyframes)
+            worlds = dict(self._room_worlds)
+        if self.loops is not None:  # each at its pose in the latest corrected world
+            carry = self.loops.worlds.carry
+            keyframes = [(i, f, carry(i, T, worlds.get(i, 0))) for i, f, T in keyframes]
         if (
             not self.config.save_room
             or self.intrinsics is None
@@ -587,13 +837,14 @@ class Session:
         self.log.error("%s; the session ends and is saved", reason)
         self._publish(SessionFailed(reason, saved=True))
 
-    def _occupancy_request(self) -> tuple[float, np.ndarray] | None:
+    def _occupancy_request(self, now: bool = False) -> tuple[float, np.ndarray] | None:
         """Ask the mapper for the drone's occupancy at most every flight_map_interval_s: a fused
         frame's changes span most of the room (its carved free space reaches the far walls),
         so feeding every frame would cost more than this, measured in
-        benchmarks/flight_map_update.py."""
+        benchmarks/flight_map_update.py. ``now``: whatever the interval (a rebuilt map)."""
         if self.flight is None or (
-            time.monotonic() - self._flight_map_at < self.config.mapping.flight_map_interval_s
+            not now
+            and time.monotonic() - self._flight_map_at < self.config.mapping.flight_map_interval_s
         ):
             return None
         self._flight_map_at = time.monotonic()
@@ -634,6 +885,7 @@ class Session:
     def status(self) -> dict:
         map_stats = self._map_figures()
         failures = self.failure_counts()
+        loops = self.loop_figures()
         with self._lock:
             return {
                 "id": self.id,
@@ -655,6 +907,7 @@ class Session:
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
                 "drone": None if self.flight is None else self.flight.summary(),
                 "snapshot_error": self.snapshot_error,
+                "loops": loops,
             }
 
     def snapshot(self) -> None:
@@ -713,6 +966,8 @@ class Session:
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._end_mapping_thread()
+        if self.loops is not None:  # ended by the mapping thread, unless that one died
+            self.loops.stop(timeout_s=10.0)
         if self.flight_log is not None:  # the flight in progress ends with the session
             self.flight_log.close()
         self.closed = True

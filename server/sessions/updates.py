@@ -44,12 +44,29 @@ class PoseUpdate:
 
 @dataclass
 class MapUpdate:
-    """New map preview points, sent as they are fused (after the frame's pose)."""
+    """New map preview points, sent as they are fused (after the frame's pose). ``reset``: the
+    map was rebuilt (loop closure): the preview restarts with these points (a map_chunk with
+    reset true, even when there are none)."""
 
     seq: int
     points: np.ndarray  # (N, 3) float32 world metres
     colours: np.ndarray  # (N, 3) uint8 RGB
     total_points: int
+    reset: bool = False
+
+
+@dataclass
+class MapCorrected:
+    """A loop closure corrected the world (the protocol's map_corrected): poses of frames from
+    ``from_seq`` on are in the new world; ``T_correction`` (4x4, metres) maps the old world into
+    the new one for the current view; ``keyframes`` are (id, seq, T_world_keyframe 4x4) at
+    their corrected poses. The rebuilt map's preview follows as a MapUpdate with reset."""
+
+    loops: int
+    from_seq: int
+    T_correction: np.ndarray
+    keyframes: list[tuple[int, int, np.ndarray]]
+    refused: int
 
 
 @dataclass
@@ -77,4 +94,13 @@ class SessionFailed:
 
 # What a session hands its client, from its worker threads; a dict is a protocol message built
 # already (a course's, server/sessions/course.py), sent as it is.
-Update = PoseUpdate | MapUpdate | DroneUpdate | DroneNotice | FrameRefused | SessionFailed | dict
+Update = (
+    PoseUpdate
+    | MapUpdate
+    | MapCorrected
+    | DroneUpdate
+    | DroneNotice
+    | FrameRefused
+    | SessionFailed
+    | dict
+)

@@ -22,10 +22,10 @@ import numpy as np
 from server.sessions.errors import SessionError
 from server.sessions.flight import DroneNotice, DroneUpdate
 from server.sessions.store import hash_token
-from server.sessions.updates import MapUpdate, PoseUpdate
+from server.sessions.updates import MapCorrected, MapUpdate, PoseUpdate
 
 # What a viewer is shown; refused frames (the owner's errors) and failures are not for it.
-VIEWED = (PoseUpdate, MapUpdate, DroneUpdate, DroneNotice)
+VIEWED = (PoseUpdate, MapUpdate, MapCorrected, DroneUpdate, DroneNotice)
 MAX_MAP_POINTS = 500_000  # preview points kept for viewers joining later (15 B each: 7.5 MB)
 
 
@@ -132,7 +132,7 @@ class Viewers:
                 self._latest_pose = item
             elif isinstance(item, DroneUpdate):
                 self._latest_drone = item
-            elif item.event == "spawned":
+            elif isinstance(item, DroneNotice) and item.event == "spawned":
                 self._spawned = item
             sockets = list(self._sockets)
         for socket in sockets:
@@ -140,7 +140,11 @@ class Viewers:
 
     def _keep_map(self, update: MapUpdate) -> None:
         """The preview so far, at most max_map_points: beyond it the oldest points go (a
-        viewer joining then misses those; the owner's own map is whole)."""
+        viewer joining then misses those; the owner's own map is whole). A rebuilt map's
+        preview (``reset``) starts the backlog afresh: the old points are of the old world."""
+        if update.reset:
+            self._map.clear()
+            self._map_points = 0
         self._map.append(update)
         self._map_points += len(update.points)
         while self._map_points > self.max_map_points and len(self._map) > 1:

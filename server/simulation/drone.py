@@ -469,6 +469,85 @@ class DroneSimulator:
             else:
                 self._planned_at = self._time_s
 
+    def move_with_world(
+        self,
+        T_delta: FloatArray,
+        origin: FloatArray,
+        occupied: BoolArray,
+        observed: BoolArray,
+    ) -> Box | None:
+        """The map was rebuilt in a corrected world (a loop closure): ``T_delta`` (4x4, flight
+        frame, metres) maps the old world's points into the new one. The new grid replaces the
+        flight map, and the drone moves with its world so that it stays where it was relative to
+        the room: position, velocity, heading (the yaw part of ``T_delta``; the drone stays
+        level), the setpoint it holds and any goto target. A goto in flight is re-planned on the
+        new map from the moved drone to the moved target (``replanned``), or held where no route
+        is left (``blocked``); a route planned elsewhere (a course's autopilot, whose gates were
+        laid in the old world) is not followed on: the drone holds (``blocked``). Returns the
+        changed box as ``update_map`` does."""
+        T = np.asarray(T_delta, dtype=np.float64)
+        R, t = T[:3, :3], T[:3, 3]
+        with self._lock:
+            changed = self.flight_map.update(origin, occupied, observed)
+            if self._mode is None:
+                return changed
+            dyaw = math.atan2(R[1, 0], R[0, 0])
+            q = self._quad
+            px, py, pz = R @ q.position + t
+            vx, vy, vz = R @ q.velocity
+            # Heading turns by dyaw about flight z: the yaw quaternion times the attitude.
+            cw, sz = math.cos(0.5 * dyaw), math.sin(0.5 * dyaw)
+            qw, qx, qy, qz = q.qw, q.qx, q.qy, q.qz
+            state = list(q.state())
+            state[0:3] = (float(px), float(py), float(pz))
+            state[3:6] = (float(vx), float(vy), float(vz))
+            state[6:10] = (
+                cw * qw - sz * qz,
+                cw * qx - sz * qy,
+                cw * qy + sz * qx,
+                cw * qz + sz * qw,
+            )
+            q.set_state(tuple(state))
+            sp = self._sp
+            sp.x, sp.y, sp.z = (float(c) for c in R @ [sp.x, sp.y, sp.z] + t)
+            sp.vx, sp.vy, sp.vz = (float(c) for c in R @ [sp.vx, sp.vy, sp.vz])
+            sp.ax, sp.ay, sp.az = (float(c) for c in R @ [sp.ax, sp.ay, sp.az])
+            sp.yaw += dyaw
+            self._last_collision = (self._last_collision[0], R @ self._last_collision[1] + t)
+            if self._mode == DroneMode.GOTO:
+                _, goal = self._route()
+                goal = R @ goal + t
+                if self._replan is not None:
+                    self._hold(q.position)
+                    self._emit(
+                        DroneEventKind.BLOCKED,
+                        "the map was corrected (loop closure): the course's route is left; holding",
+                    )
+                else:
+                    try:
+                        route = self._plan(goal, self._speed)
+                    except PlanningError as exc:
+                        self._hold(q.position)
+                        why = exc.reason.value.replace("_", " ")
+                        self._emit(
+                            DroneEventKind.BLOCKED,
+                            f"the map was corrected (loop closure) and no route is left to "
+                            f"{{point}} ({why}); holding",
+                            point=goal,
+                        )
+                    else:
+                        self._goal = goal
+                        self._start_route(route)
+                        self._emit(
+                            DroneEventKind.REPLANNED,
+                            f"the map was corrected (loop closure): new route "
+                            f"{route.length_m:.2f} m to {{point}}",
+                            point=goal,
+                        )
+            if self._mode != DroneMode.LANDED:
+                self._leave_obstacle()
+            return changed
+
     # Simulation
 
     def advance(self, dt_s: float) -> list[DroneEvent]:

@@ -134,6 +134,48 @@ class DroneSummary(_Body):
         description="why the drone was stopped for good after failing steps (mode faulted); "
         "null while it flies",
     )
+    corrections: int = Field(
+        0,
+        description="rebuilt maps (loop closures) whose full occupancy replaced the flight map, "
+        "the drone moving with the corrected world",
+    )
+
+
+class LoopClosure(_Body):
+    """Online loop closure in a live session (PROTOCOL.md, "Loop closure")."""
+
+    enabled: bool = Field(
+        description="loop closure runs in this session (registration.loops.live, with rooms "
+        "kept and not continuing in a saved room)"
+    )
+    keyframes: int = Field(description="keyframes looked up in the place database so far")
+    queued: int = Field(
+        0, description="keyframes waiting for the loop thread (it runs below the map's priority)"
+    )
+    found: int = Field(description="verified loops (edges added to the pose graph)")
+    refused: int = Field(description="keyframes whose loop candidates verification refused")
+    corrections: int = Field(description="pose-graph optimisations that corrected the world")
+    last_optimise_ms: float | None = Field(
+        None, description="wall time of the latest pose-graph optimisation, ms"
+    )
+    last_optimise_cpu_ms: float | None = Field(
+        None, description="the loop thread's CPU time for the latest optimisation, ms"
+    )
+    lookup_cpu_ms: float | None = Field(
+        None,
+        description="CPU time per keyframe, on average: its cloud, odometry edge, place lookup "
+        "and verification, ms",
+    )
+    rebuilds: int = Field(description="maps rebuilt from the corrected keyframes and swapped in")
+    last_rebuild_ms: float | None = Field(
+        None, description="wall time of the latest rebuild, from its start to the swap, ms"
+    )
+    last_rebuild_cpu_ms: float | None = Field(
+        None, description="the mapping process's CPU time for the latest rebuild's keyframes, ms"
+    )
+    last_rebuild_keyframes: int | None = Field(
+        None, description="keyframes re-read and fused by the latest rebuild"
+    )
 
 
 class CourseResult(_Body):
@@ -174,6 +216,11 @@ class Failures(_Body):
     sends_failed: int = Field(description="connections ended with send_failed (close 4011)")
     room_keyframes_failed: int = Field(
         0, description="keyframes that could not be written to the session's room"
+    )
+    loops_failed: int = Field(
+        0,
+        description="keyframes the loop closer failed on, and map rebuilds that failed (the "
+        "session goes on with the map it had)",
     )
 
 
@@ -258,6 +305,11 @@ class SessionStatus(_Body):
         None,
         description="the session's failure counts so far, as pose.failures (absent in the "
         "snapshots of sessions saved before the counts existed)",
+    )
+    loops: LoopClosure | None = Field(
+        None,
+        description="online loop closure (absent in the snapshots of sessions saved before it "
+        "existed)",
     )
     failure: str | None = Field(
         None,

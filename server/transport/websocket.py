@@ -22,6 +22,7 @@ from server.sessions import (
     DroneUpdate,
     FrameRefused,
     LiveSession,
+    MapCorrected,
     MapUpdate,
     PoseUpdate,
     SessionError,
@@ -235,24 +236,33 @@ def _closed(ws: WebSocket) -> bool:
 
 
 def update_messages(
-    item: dict | MapUpdate | DroneUpdate | DroneNotice | PoseUpdate, chunk_points: int, chunk: int
+    item: dict | MapUpdate | MapCorrected | DroneUpdate | DroneNotice | PoseUpdate,
+    chunk_points: int,
+    chunk: int,
 ) -> tuple[list[dict], int]:
     """The messages one of a session's updates goes out as, to its owner or a viewer: a map
-    update as chunks of at most ``chunk_points`` points numbered from ``chunk`` on; and the
-    next chunk number."""
+    update as chunks of at most ``chunk_points`` points numbered from ``chunk`` on (a rebuilt
+    map's first with reset, even when it has no points); and the next chunk number."""
     if isinstance(item, dict):
         return [item], chunk
     if isinstance(item, MapUpdate):
+        starts = range(0, max(len(item.points), 1 if item.reset else 0), chunk_points)
         chunks = [
             proto.make_map_chunk(
                 item.points[i : i + chunk_points],
                 item.colours[i : i + chunk_points],
                 chunk + k,
                 total_points=item.total_points,
+                reset=True if item.reset and k == 0 else None,
             )
-            for k, i in enumerate(range(0, len(item.points), chunk_points))
+            for k, i in enumerate(starts)
         ]
         return chunks, chunk + len(chunks)
+    if isinstance(item, MapCorrected):
+        corrected = proto.make_map_corrected(
+            item.loops, item.from_seq, item.T_correction, item.keyframes, item.refused
+        )
+        return [corrected], chunk
     if isinstance(item, DroneUpdate):
         return [_drone_state(item)], chunk
     if isinstance(item, DroneNotice):

@@ -3,7 +3,7 @@ what a live session's loop thread spends per keyframe (its cloud, odometry edge,
 and verification), per pose-graph optimisation (over the real keyframes, and over a few hundred),
 and what its mapper spends re-fusing N keyframes from their files after a loop.
 
-A sequence is played forward then back (tests/test_loops.py's ForwardBack), tracked offline as
+A sequence is played forward then back (server/datasets/there_and_back.py), tracked offline as
 a live session tracks it, its keyframes written as a session's room writes them; then the loop
 closer takes them in order, as the loop thread does. For the large graph the keyframe list is
 gone round again and again (ids going on), so that every round closes loops with the earlier
@@ -39,6 +39,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from server.datasets import open_dataset  # noqa: E402
+from server.datasets.there_and_back import ThereAndBack  # noqa: E402
 from server.mapping.config import MappingConfig  # noqa: E402
 from server.registration import Tracker  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
@@ -46,7 +47,6 @@ from server.registration.loops import LoopCloser  # noqa: E402
 from server.registration.preprocess import clean_depth  # noqa: E402
 from server.rooms.room import room_keyframe, write_keyframe  # noqa: E402
 from server.sessions.mapping import Mapper  # noqa: E402
-from tests.test_loops import ForwardBack  # noqa: E402
 
 
 def main() -> None:
@@ -61,7 +61,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     o3d.utility.set_max_threads(1)
 
-    ds = ForwardBack(open_dataset(Path(args.sequence)), args.frames)
+    ds = ThereAndBack(open_dataset(Path(args.sequence)), args.frames)
     cfg = RegistrationConfig().with_overrides(loops={"min_separation": args.min_separation})
     K = ds.intrinsics
     tracker = Tracker(K, cfg)

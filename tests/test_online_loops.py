@@ -17,12 +17,12 @@ import numpy as np
 from server import protocol as P
 from server.client.connection import Connection
 from server.datasets import open_dataset
+from server.datasets.there_and_back import ThereAndBack
 from server.evaluation.metrics import ate
 from server.evaluation.trajectory import Trajectory
 from server.mapping.config import MappingConfig
 from server.registration.config import RegistrationConfig
 from tests.conftest import auth
-from tests.test_loops import ForwardBack
 
 FRAMES = 100  # forward, then back: 199 frames, 16 keyframes, a loop back to the first ones
 LOOPS = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 8})
@@ -82,7 +82,7 @@ def _keyframe_ate(gt: Trajectory, poses: dict[int, np.ndarray]) -> float:
 
 
 def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_data, tmp_path):
-    ds = ForwardBack(open_dataset(shared_data / "synthetic_room0"), FRAMES)
+    ds = ThereAndBack(open_dataset(shared_data / "synthetic_room0"), FRAMES)
     server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
     sid, token = server.create_session()
     messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, _corrected_then_reset))

@@ -93,6 +93,25 @@ def test_a_gate_is_passed_through_its_ring_in_its_direction():
     assert run.update(4.0, [0.0, 0.0, 1.0]) == []  # finished: nothing counts any more
 
 
+def test_a_corrected_world_moves_the_gates_and_the_drone_jump_is_not_a_pass():
+    """Loop closure moves the drone with its world; the gates move with it, and the jump is not
+    judged: the drone just before the ring, carried 0.3 m along +x past its old place, is still
+    before the moved ring (and passes it when it flies through)."""
+    run = CourseRun(one_gate_course(GATE_X), 0.0, [0.9, 0.1, 1.0])
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # a quarter turn about z
+    T[:3, 3] = [0.3, 0.0, 0.0]
+    run.move_with_world(T)
+    gate = run.course.gates[0]
+    np.testing.assert_allclose(gate.centre, [0.3, 1.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(gate.normal, [0.0, 1.0, 0.0], atol=1e-12)
+    assert gate.radius_m == GATE_X.radius_m and GATE_X.centre[0] == 1.0  # a new gate
+    moved = T[:3, :3] @ np.array([0.9, 0.1, 1.0]) + T[:3, 3]  # the drone, carried
+    assert run.update(1.0, moved) == []
+    events = run.update(2.0, moved + [0.0, 0.2, 0.0])  # on through the moved ring
+    assert [e.kind for e in events] == ["gate_passed", "course_finished"]
+
+
 def test_outside_the_ring_or_the_wrong_way_is_no_pass():
     run = CourseRun(one_gate_course(GATE_X), 0.0, [0.5, 0.35, 1.0])
     assert run.update(1.0, [1.5, 0.35, 1.0]) == []  # through the plane 0.35 m off: outside

@@ -138,9 +138,14 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
 
 
 def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_data, tmp_path):
+    """Also: a session asks for loop closure when it is off on the server (the default)."""
     ds = open_dataset(shared_data / "synthetic_room0")
-    server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
-    sid, token = server.create_session()
+    server = live_server(tmp_path / "data", mapping=MAPPING)
+    url = f"{server.url}/api/sessions"
+    assert httpx.post(url).json()["loop_closure"] is False  # the server's default: off
+    created = httpx.post(url, json={"loop_closure": True}).json()
+    assert created["loop_closure"] is True
+    sid, token = created["id"], created["token"]
 
     def looked_up(_messages) -> bool:  # the loop thread (below the map's priority) caught up
         loops = _status(server, sid, token)["loops"]

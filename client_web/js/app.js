@@ -89,9 +89,12 @@ class App {
   /**
    * Start streaming from a capture mode into a session.
    * @param {{mode?: "demo"|"demo-small"|"demo-loop"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
-   *   room?: boolean, files?: FileList, recording?: File}} options
+   *   room?: boolean, loops?: boolean, files?: FileList, recording?: File}} options
+   *   loops: a new session closes loops (the server's setting otherwise); the demo there and
+   *   back always starts a new session that does, as showing it is what it is for.
    */
-  async start({ mode = "demo", fps = 15, fresh = false, room = false, files = null, recording = null } = {}) {
+  async start({ mode = "demo", fps = 15, fresh = false, room = false, loops = false, files = null, recording = null } = {}) {
+    if (mode === "demo-loop") [fresh, loops] = [true, true];
     this.stopStreaming();
     this.source?.stop?.();
     const button = $("#btn-stream");
@@ -116,7 +119,7 @@ class App {
       this.source = source;
       const info = source.info;
       const hello = this.protocol.hello(info);
-      const { id, resumed } = await this.client.open(hello, { fresh, room });
+      const { id, resumed } = await this.client.open(hello, { fresh, room, loopClosure: loops || null });
       if (!resumed) this.#resetViews();
       this.hud.toast(resumed ? `continuing session ${id}` : `new session ${id}`, "ok");
       this.hello = hello;
@@ -423,7 +426,7 @@ class App {
     const form = $("#setup-form");
     const data = new FormData(form);
     return { mode: data.get("mode"), fps: Number(data.get("fps")), fresh: data.get("session") === "new",
-      room: data.get("session") === "room",
+      room: data.get("session") === "room", loops: data.get("loops") === "on",
       files: $("#folder-input").files, recording: $("#recording-input").files?.[0] ?? null };
   }
 

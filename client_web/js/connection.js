@@ -114,10 +114,11 @@ export class SessionClient extends EventTarget {
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
    * With `room`, a new session in the room the saved (closed) session left: it relocalises in
-   * that room's map and tracks in its frame (README, "Rooms").
+   * that room's map and tracks in its frame (README, "Rooms"). `loopClosure` true or false
+   * asks a new session to close loops or not (null: the server's setting).
    * @returns {Promise<{id: string, token: string, resumed: boolean}>}
    */
-  async open(hello, { fresh = false, room = false } = {}) {
+  async open(hello, { fresh = false, room = false, loopClosure = null } = {}) {
     this.close();
     let resumed = false;
     const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
@@ -125,7 +126,7 @@ export class SessionClient extends EventTarget {
       // The room of the last session ended here, else of the session still remembered.
       const last = JSON.parse(this.roomStorage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
       if (!last) throw new Error("no earlier session on this device to continue the room of");
-      const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id });
+      const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id, loop_closure: loopClosure });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     } else if (!fresh && same) {
       try {
@@ -136,7 +137,7 @@ export class SessionClient extends EventTarget {
       }
     }
     if (!resumed && !room) {
-      const created = await this.#request("POST", "/api/sessions");
+      const created = await this.#request("POST", "/api/sessions", null, { loop_closure: loopClosure });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     }
     this.saved.hello = hello;

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from server.config import Config
 from server.mapping.config import MappingConfig
@@ -24,6 +24,19 @@ class SessionConfig:
     flight_max_s: float = 600.0  # the longest stretch of one flight recorded, s
     flights_kept: int = 20  # the newest flight recordings a session keeps on disk
     save_room: bool = True  # keep keyframes and leave a room when closed (server.save_rooms)
+
+    def closes_loops(self, in_room: bool) -> bool:
+        """Online loop closure runs in a session of this configuration: configured
+        (registration.loops.live), the room's keyframes kept on disk (the rebuild reads them),
+        and not continuing in a saved room (its keyframes would have to stay fixed:
+        server/sessions/loop_closing.py)."""
+        return self.registration.loops.live and self.save_room and not in_room
+
+    def with_loop_closure(self, live: bool | None) -> SessionConfig:
+        """This configuration with online loop closure on or off (None: as it is)."""
+        if live is None or live == self.registration.loops.live:
+            return self
+        return replace(self, registration=self.registration.with_overrides(loops={"live": live}))
 
     @classmethod
     def from_config(cls, config: Config | None = None) -> SessionConfig:

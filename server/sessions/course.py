@@ -218,6 +218,15 @@ class CourseControl:
         self._publish_state(self.flight.sim.time_s)
 
     # ------------------------------------------------------------------ the flight thread
+    def move_with_world(self, T_flight_delta: np.ndarray) -> None:
+        """A corrected world (loop closure) moved the drone by ``T_flight_delta`` (4x4, flight
+        frame, metres; Flight's lock held): the running course moves with it, and the next
+        tick sends its course message with the moved gates. An autopilot's route was dropped by
+        the move (a ``blocked`` event): the tick plans it again through the moved gates."""
+        if self.run is not None and self.state == "running":
+            self.run.move_with_world(T_flight_delta)
+            self._sent_at = -np.inf
+
     def tick(self, events: list[DroneEvent]) -> list:
         """After a physics advance (``events`` are its drone events; Flight's lock held): judge
         the way since the last tick; returns DroneNotices and course messages to publish."""

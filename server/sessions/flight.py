@@ -529,6 +529,7 @@ class Flight:
                 self._pending_world = None
             if world is not None:
                 self.sim.move_with_world(world[1], *world[0])
+                self.course.move_with_world(world[1])
                 self.corrections += 1
             if grid is not None:
                 self.sim.update_map(*grid)

@@ -142,9 +142,13 @@ class SessionManager:
             )
         return folder
 
-    def create(self, room: Path | None = None) -> tuple[LiveSession, str]:
+    def create(
+        self, room: Path | None = None, loop_closure: bool | None = None
+    ) -> tuple[LiveSession, str]:
         """A new live session, its worker started, and its secret token (shown once; only its
-        hash is kept). room: a room folder (``room_of``) for the session to continue in."""
+        hash is kept). room: a room folder (``room_of``) for the session to continue in.
+        loop_closure: online loop closure on or off in this session (None: the server's
+        ``registration.loops.live``); ``closes_loops`` says whether it runs."""
         with self._lock:
             if len(self._live) + len(self._closing) >= self.max_sessions:
                 raise SessionError(
@@ -162,7 +166,7 @@ class SessionManager:
             sid,
             hash_token(token),
             str(Path(self.store.root).parent),
-            self.config,
+            self.config.with_loop_closure(loop_closure),
             time.time(),
             threads,
             self.faults,
@@ -187,6 +191,10 @@ class SessionManager:
             self._live[sid] = session
         self._rebalance()
         return session, token
+
+    def closes_loops(self, room: Path | None = None, loop_closure: bool | None = None) -> bool:
+        """Whether a session created with these arguments runs online loop closure."""
+        return self.config.with_loop_closure(loop_closure).closes_loops(in_room=room is not None)
 
     def _rebalance(self) -> None:
         """Share the cores among the live sessions' thread pools (when ``threads`` is auto)."""

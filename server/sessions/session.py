@@ -254,12 +254,8 @@ class Session:
 
     @property
     def loops_wanted(self) -> bool:
-        """Online loop closure runs here: configured (registration.loops.live), the room's
-        keyframes kept on disk (the rebuild reads them), and not continuing in a saved room
-        (its keyframes would have to stay fixed: server/sessions/loop_closing.py)."""
-        return (
-            self.config.registration.loops.live and self.config.save_room and self.room_dir is None
-        )
+        """Online loop closure runs here (``SessionConfig.closes_loops``)."""
+        return self.config.closes_loops(in_room=self.room_dir is not None)
 
     def _course_best_path(self) -> Path | None:
         """Where the drone's course results are kept (None: an id the store cannot hold)."""

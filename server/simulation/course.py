@@ -164,6 +164,14 @@ class Course:
     def length_m(self) -> float:
         return float(self.route.length_m)
 
+    def moved(self, T: FloatArray) -> Course:
+        """This course carried by ``T`` (4x4, flight frame, metres): its gates and start where
+        a corrected world (loop closure) puts the places they were laid at. The autopilot's
+        route is not carried: it is planned again through the moved gates on the new map."""
+        R, t = np.asarray(T, dtype=float)[:3, :3], np.asarray(T, dtype=float)[:3, 3]
+        gates = tuple(Gate(R @ g.centre + t, R @ g.normal, g.radius_m) for g in self.gates)
+        return replace(self, gates=gates, start=R @ self.start + t)
+
     def rows(self) -> FloatArray:
         """(N, 7): centre, normal, radius per gate."""
         return np.array([g.as_row() for g in self.gates], dtype=float).reshape(-1, 7)
@@ -297,6 +305,14 @@ class CourseRun:
     @property
     def finished(self) -> bool:
         return self.finished_at_s is not None
+
+    def move_with_world(self, T: FloatArray) -> None:
+        """The world moved under the run (loop closure; ``T`` 4x4, flight frame, metres, as the
+        drone was moved): the gates and the last judged position move with it, so that the
+        drone's jump is not judged as a flight through a ring."""
+        self.course = self.course.moved(T)
+        T = np.asarray(T, dtype=float)
+        self._last = T[:3, :3] @ self._last + T[:3, 3]
 
     @property
     def passed(self) -> int:

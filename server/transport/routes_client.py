@@ -19,6 +19,7 @@ installed wheel, which carries only the module files the page imports (pyproject
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import threading
 from importlib.resources import files
@@ -70,12 +71,14 @@ NO_CACHE = {"Cache-Control": "no-cache"}
 
 # The demo sequences the page can replay: the bundled default (640x480, 150 frames), a small
 # one (320x240, 90 frames: a quarter of the bytes, for slow links and quick tests), and the
-# default played forward then back ("loop", 299 frames: it returns to where it started, so
-# the server's loop closure has a loop to find and the page shows the map corrected).
+# whole walk at the small size played forward then back ("loop", 299 frames: it returns to
+# where it started, so loop closure has a loop to find and the page shows the map corrected;
+# the small one's 90 frames are too short: the tracker's recent keyframes still reach back).
+_SMALL = DemoSpec(frames=90, width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5)
 DEMO_PRESETS = {
     "default": DemoSpec(),
-    "small": DemoSpec(frames=90, width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5),
-    "loop": DemoSpec(),
+    "small": _SMALL,
+    "loop": dataclasses.replace(_SMALL, frames=150),
 }
 THERE_AND_BACK = {"loop"}  # presets whose frames play forward, then backward to the first
 
@@ -195,7 +198,8 @@ async def demo_index(preset: str = "default") -> dict:
     """A bundled demo sequence (generated on first use, then cached): intrinsics, image sizes,
     depth scale, gravity in the first camera frame, and per frame the URLs of its colour JPEG
     and 16-bit depth PNG, for the page's replay mode. ``preset``: default (640x480, 150
-    frames), small (320x240, 90 frames) or loop (the default forward then back, 299 frames)."""
+    frames), small (320x240, 90 frames) or loop (150 frames at 320x240 forward then back, 299
+    frames)."""
     _, index = await asyncio.to_thread(_demo, preset)
     return index
 

@@ -90,15 +90,21 @@ def create_session(
     session continues in the room it saved (README, "Rooms"): its first frames are relocalised
     in the room (answered `lost` at the identity until one is recognised), then tracked in the
     room's world frame; the map and the drone's map start as the room's. The new session gets a
-    token of its own."""
+    token of its own.
+
+    `{"loop_closure": true}` (or false) asks for online loop closure in this session whatever
+    the server's `registration.loops.live`; the answer's `loop_closure` says whether it runs
+    (never in a room's session, nor when the server keeps no rooms)."""
     room = None if body is None or body.room is None else manager.room_of(body.room, token)
-    session, new_token = manager.create(room)
+    loops = None if body is None else body.loop_closure
+    session, new_token = manager.create(room, loop_closure=loops)
     scheme = "wss" if request.url.scheme == "https" else "ws"
     answer = {
         "id": session.id,
         "token": new_token,
         "websocket": f"{scheme}://{request.url.netloc}/ws/sessions/{session.id}",
         "room": None if body is None else body.room,
+        "loop_closure": manager.closes_loops(room, loops),
     }
     return JSONResponse(answer, status_code=status.HTTP_201_CREATED)
 

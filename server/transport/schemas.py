@@ -27,6 +27,14 @@ class SessionCreate(_Body):
         "map and the drone's map start as the room's",
         pattern="^[0-9a-f]{16}$",
     )
+    loop_closure: bool | None = Field(
+        None,
+        description="close loops in this session: when the camera comes back to a place it "
+        "saw, the keyframes are corrected, the map re-fused and `map_corrected` sent (PROTOCOL.md, "
+        '"Loop closure"; costs the server ~0.1 s of CPU per keyframe and a re-fuse per loop). '
+        "null: the server's setting (`registration.loops.live`). Not in a session continuing "
+        "in a room",
+    )
 
 
 class SessionCreated(_Body):
@@ -47,6 +55,9 @@ class SessionCreated(_Body):
     )
     room: str | None = Field(
         None, description="the room this session continues in (a session id), or null"
+    )
+    loop_closure: bool = Field(
+        False, description="loop closure runs in this session (asked for, or the server's setting)"
     )
 
 

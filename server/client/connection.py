@@ -318,8 +318,13 @@ class Connection(Socket):
     async def bye(self, reason: str | None = None, timeout: float = 10.0) -> int | None:
         """Say bye (while the connection is up) and wait for the server's close; -> its close
         code (1000 after a bye). Raises TimeoutError when the server does not close."""
-        if self.receiving:
-            await self.send(proto.make_bye(reason))
+        # Without a receiver task (a caller reading replies itself) the bye still goes out:
+        # else the server would close only at its idle timeout (30 s).
+        if self.receiving or self._receiver is None:
+            try:
+                await self.send(proto.make_bye(reason))
+            except websockets.ConnectionClosed:
+                pass
         if self._receiver is not None:
             await asyncio.wait_for(asyncio.shield(self._receiver), timeout)
         else:

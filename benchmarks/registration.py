@@ -81,6 +81,7 @@ from server.evaluation.trajectory import (  # noqa: E402
 )
 from server.geometry import Intrinsics, invert, rotation_angle_deg  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
+from server.registration.calibration import ColourToDepth  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.tracker import Tracker, TrackingState  # noqa: E402
 
@@ -159,15 +160,17 @@ def run_ours(
     (N, 4, 4): the device's own T_device_camera per frame, given to the tracker as its prior."""
     config = BASE_CONFIG.with_overrides(solver={"dense": dense})
     tracker = Tracker(K, config, T_world_first=T0)
+    to_depth = ColourToDepth(K, config.depth)  # where frames come in, as track and the server
     run = MethodRun(poses=np.empty((len(frames), 4, 4)), weak=0)
     stages: dict[str, list[float]] = {}
     for i, frame in enumerate(frames):
         prior = None if priors is None else priors[i]
-        if i == 0:
-            result = tracker.track(frame.colour, frame.depth, prior)  # starts the first keyframe
+        if i == 0:  # starts the first keyframe (and estimates the colour's registration)
+            result = tracker.track(to_depth(frame.colour, frame.depth), frame.depth, prior)
         else:
             with Clock(run):  # the pose, then the keyframe work the server does after sending it
-                result = tracker.track(frame.colour, frame.depth, prior)
+                colour = to_depth(frame.colour, frame.depth)
+                result = tracker.track(colour, frame.depth, prior)
                 tracker.update_keyframe()
             run.lost += result.state is TrackingState.LOST
             run.weak += result.state is TrackingState.WEAK

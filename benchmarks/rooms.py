@@ -46,6 +46,7 @@ from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
 from server.pipeline import run_odometry  # noqa: E402
+from server.registration.calibration import ColourToDepth  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.place import describe_place  # noqa: E402
 from server.registration.preprocess import clean_depth, to_grey  # noqa: E402
@@ -78,10 +79,13 @@ def lookup_study(room, ds, frames: range, cfg: RegistrationConfig) -> dict:
     every keyframe (the best by inliers): ms per query and how often both find a place."""
     db = room.database()
     vote_ms, all_ms, found_vote, found_all, same = [], [], 0, 0, 0
+    # Colour registered to depth as track does where frames come in (estimated once).
+    to_depth = ColourToDepth(ds.intrinsics, cfg.depth, not ds.depth_registered)
     for i in frames:
         f = ds[i]
+        colour = to_depth(f.colour, f.depth)
         q = describe_place(
-            to_grey(f.colour), clean_depth(f.depth, cfg.depth), ds.intrinsics, cfg.place, cfg.depth
+            to_grey(colour), clean_depth(f.depth, cfg.depth), ds.intrinsics, cfg.place, cfg.depth
         )
         t = time.perf_counter()
         a = find_place(db, q, ds.intrinsics, cfg.place, cfg.solver, cfg.depth)

@@ -23,6 +23,7 @@ from server.geometry import invert
 from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
 from server.registration import Tracker, TrackResult
+from server.registration.calibration import ColourToDepth
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
@@ -99,6 +100,8 @@ def run_odometry(
         tracker = RoomTracker(room, dataset.intrinsics, cfg)
         room.map = None
     world_map = PointCloudMap(voxel_m=voxel_m)
+    # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
+    to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
     results, stamps = [], []
     fused: list[tuple[int, int]] = []  # (frame index, result index) of each frame in the map
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
@@ -109,14 +112,15 @@ def run_odometry(
     )
     for i in bar:
         frame = first if i == start else dataset[i]
+        colour = to_depth(frame.colour, frame.depth)
         T_device_camera = dataset.device_pose(i) if use_device else None
         with_device_pose += T_device_camera is not None
-        result = tracker.track(frame.colour, frame.depth, T_device_camera=T_device_camera)
+        result = tracker.track(colour, frame.depth, T_device_camera=T_device_camera)
         if result is None:  # not yet found in the room
             continue
         tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
         keep = keep_room or closer is not None
-        if keep and room.add_tracked(result, frame.colour, frame.depth, i, cfg):
+        if keep and room.add_tracked(result, colour, frame.depth, i, cfg):
             if closer is not None:
                 kf = room.keyframes[-1]
                 depth = clean_depth(frame.depth, cfg.depth)
@@ -124,7 +128,7 @@ def run_odometry(
         results.append(result)
         stamps.append(frame.timestamp)
         if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
-            world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, result.T_world_camera)
+            world_map.fuse(colour, frame.depth, dataset.intrinsics, result.T_world_camera)
             fused.append((i, len(results) - 1))
         bar.set_postfix(
             state=result.state.value,
@@ -144,7 +148,8 @@ def run_odometry(
             world_map = PointCloudMap(voxel_m=voxel_m)
             for i, k in fused:
                 frame = dataset[i]
-                world_map.fuse(frame.colour, frame.depth, dataset.intrinsics, trajectory.poses[k])
+                colour = to_depth(frame.colour, frame.depth)
+                world_map.fuse(colour, frame.depth, dataset.intrinsics, trajectory.poses[k])
         loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
         if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
             loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)

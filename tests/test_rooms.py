@@ -12,6 +12,7 @@ from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.geometry import invert, rotation_angle_deg
 from server.pipeline import ground_truth_pose_at, run_odometry
+from server.registration.calibration import ColourToDepth
 from server.registration.config import RegistrationConfig
 from server.registration.place import describe_place
 from server.registration.preprocess import clean_depth, to_grey
@@ -37,9 +38,12 @@ def room_run(scenes):
 
 
 def _query(ds, i):
+    """Frame i's place features, its colour registered to depth as track does (estimated on
+    this frame: a new run starts its own estimate)."""
     f = ds[i]
+    colour = ColourToDepth(ds.intrinsics, CFG.depth, not ds.depth_registered)(f.colour, f.depth)
     return describe_place(
-        to_grey(f.colour), clean_depth(f.depth, CFG.depth), ds.intrinsics, CFG.place, CFG.depth
+        to_grey(colour), clean_depth(f.depth, CFG.depth), ds.intrinsics, CFG.place, CFG.depth
     )
 
 

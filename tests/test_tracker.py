@@ -145,18 +145,23 @@ def unregistered_colour(colour: np.ndarray, K, scale: float) -> np.ndarray:
 
 def test_colour_focal_scale_undoes_unregistered_colour(demo_clean):
     """A colour camera with a wider view than the depth camera (raw Kinect: 525 against 585 px)
-    makes the tracker under-estimate rotation; mapping colour pixels into the depth image with the
-    right focal scale recovers it."""
+    makes the tracker under-estimate rotation; resampling colour onto the depth image with the
+    right focal scale (ColourToDepth, where frames come in) recovers it."""
+    from server.registration.calibration import ColourToDepth
+
     ds = open_dataset(demo_clean)
     errors = {}
     for scale in (1.0, 0.9):
         config = RegistrationConfig().with_overrides(
-            solver={"dense": False}, depth={"colour_focal_scale": scale}
+            solver={"dense": False},
+            depth={"colour_focal_scale": scale, "estimate_colour_registration": False},
         )
+        to_depth = ColourToDepth(ds.intrinsics, config.depth)
         tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
         for i in (0, 4):
             f = ds[i]
-            result = tracker.track(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
+            colour = to_depth(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
+            result = tracker.track(colour, f.depth)
         assert result.state is not TrackingState.LOST
         errors[scale] = relative_error(result.T_world_camera, gt_at(ds, 4))
     true_rotation = rotation_angle_deg(invert(gt_at(ds, 0)) @ gt_at(ds, 4))
@@ -242,7 +247,7 @@ def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean
     length is found as such; registered images keep the identity."""
     import time
 
-    from server.registration.calibration import estimate_colour_registration
+    from server.registration.calibration import ColourToDepth, estimate_colour_registration
     from server.registration.preprocess import to_grey
 
     ds = open_dataset(demo_clean)
@@ -255,8 +260,19 @@ def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean
     assert found is not None
     assert abs(found.scale - 0.9) <= 0.015
     assert abs(found.offset_u_px) <= 2 and abs(found.offset_v_px) <= 2
-    # The tracker picks it up from its first frame.
+    # Where frames come in, the first frame's estimate resamples colour onto depth: the result
+    # is (inside the borders, up to interpolation) the registered image.
     config = RegistrationConfig().with_overrides(depth={"estimate_colour_registration": True})
-    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
-    tracker.track(unregistered_colour(f.colour, ds.intrinsics, 0.9), f.depth)
-    assert tracker.cfg.depth.colour_focal_scale == found.scale
+    to_depth = ColourToDepth(ds.intrinsics, config.depth)
+    unregistered = unregistered_colour(f.colour, ds.intrinsics, 0.9)
+    registered = to_depth(unregistered, f.depth)
+    assert to_depth.mapping is not None and to_depth.mapping.scale == found.scale
+    inner = (slice(60, -60), slice(80, -80))
+
+    def off(img) -> float:
+        return float(np.abs(img[inner].astype(float) - f.colour[inner].astype(float)).mean())
+
+    assert off(registered) < 0.25 * off(unregistered), (off(registered), off(unregistered))
+    # Registered streams pass through untouched.
+    plain = ColourToDepth(ds.intrinsics, config.depth)
+    assert plain(f.colour, f.depth) is f.colour and plain.mapping is None

@@ -41,6 +41,9 @@ class RGBDDataset:
     depth_scale: float
     ground_truth: Trajectory | None = None
     device_poses: Trajectory | None = None
+    # Depth registered to colour by the recording device itself (a phone's ARKit/ARCore depth);
+    # False: it may not be (a raw RGB-D sensor), and colour is checked for it (ColourToDepth).
+    depth_registered: bool = False
 
     def __len__(self) -> int:
         raise NotImplementedError

@@ -60,6 +60,8 @@ class Record3DDataset(RGBDDataset):
     T_world_camera in this project's camera axes and ARKit's world frame, one per frame.
     """
 
+    depth_registered = True  # the phone registers its depth to its camera
+
     depth_scale = 1.0  # depth is stored as float metres
 
     def __init__(

@@ -197,6 +197,8 @@ class StrayDataset(RGBDDataset):
     ARKit's world frame, one per frame.
     """
 
+    depth_registered = True  # the phone registers its depth to its camera
+
     def __init__(
         self,
         path: str | Path,

@@ -22,6 +22,7 @@ class ThereAndBack(RGBDDataset):
         self.ds = ds
         self.name, self.path = f"{ds.name}_there_and_back_{n}", ds.path
         self.intrinsics, self.depth_scale = ds.intrinsics, ds.depth_scale
+        self.depth_registered = ds.depth_registered
         t = np.asarray(ds.timestamps[:n], dtype=np.float64)
         self.order = list(range(n)) + list(range(n - 2, -1, -1))
         self._t = t[0] + float(np.median(np.diff(t))) * np.arange(len(self.order))

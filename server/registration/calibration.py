@@ -8,10 +8,16 @@ by 13 %, benchmarks/README.md, "Drift"). Depth discontinuities are also edges in
 image; the mapping colour pixel -> depth pixel that lays the colour edges on the depth edges
 gives ``DepthConfig.colour_focal_scale`` and ``colour_offset_*_px``. On registered images the
 identity is best and nothing changes.
+
+``ColourToDepth`` applies the mapping where frames come in (``track``, a live session): each
+colour image is resampled onto the depth image's pixels, so that everything after it (corners
+and their depth, place features, the map's colours) sees registered images with the depth
+camera's intrinsics.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -19,6 +25,10 @@ import numpy as np
 
 from server.geometry import Intrinsics
 from server.geometry.arrays import Float32Array, GreyImage
+from server.registration.config import DepthConfig
+from server.registration.preprocess import depth_to_colour_pixels, to_grey
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -86,3 +96,56 @@ def estimate_colour_registration(
     if identity <= 0 or top < min_gain * identity:
         return None
     return ColourRegistration(round(scale, 3), offset_u, offset_v, top / identity)
+
+
+class ColourToDepth:
+    """One stream's colour images registered to its depth images (the depth camera's pixels and
+    intrinsics ``K``): by the mapping ``cfg`` gives (``colour_focal_scale``,
+    ``colour_offset_*_px``), or, with ``cfg.estimate_colour_registration``, the one the first
+    frame shows (``estimate_colour_registration``; kept only when clearly better than the
+    identity). Registered streams pass through untouched, at no cost. ``estimate`` False: the
+    stream's depth is known to be registered (a phone's, or depth much smaller than colour,
+    whose upsampled blocks would only blur the edges the estimate needs): none is tried."""
+
+    def __init__(self, K: Intrinsics, cfg: DepthConfig, estimate: bool = True) -> None:
+        self.K = K
+        given = (cfg.colour_focal_scale, cfg.colour_offset_u_px, cfg.colour_offset_v_px)
+        self.mapping: ColourRegistration | None = (
+            None if given == (1.0, 0.0, 0.0) else ColourRegistration(*given, gain=1.0)
+        )
+        self._estimate = estimate and cfg.estimate_colour_registration and self.mapping is None
+        self._maps: tuple[tuple[int, int], np.ndarray, np.ndarray] | None = None
+
+    def __call__(self, colour: np.ndarray, depth: Float32Array) -> np.ndarray:
+        """``colour`` (H, W, 3) resampled onto the pixels of ``depth`` (H, W, metres, the same
+        size), or ``colour`` itself when the stream is registered."""
+        if self._estimate:
+            self._estimate = False
+            self.mapping = estimate_colour_registration(to_grey(colour), depth, self.K)
+            if self.mapping is not None:
+                log.info(
+                    "colour not registered to depth: focal scale %.3f, offset (%.0f, %.0f) px "
+                    "(edge score %.2fx the identity's); colour is resampled onto depth",
+                    self.mapping.scale,
+                    self.mapping.offset_u_px,
+                    self.mapping.offset_v_px,
+                    self.mapping.gain,
+                )
+        if self.mapping is None:
+            return colour
+        h, w = colour.shape[:2]
+        if self._maps is None or self._maps[0] != (h, w):
+            # Each depth pixel takes the colour pixel that sees it (preprocess's mapping).
+            m = self.mapping
+            cfg = DepthConfig(
+                colour_focal_scale=m.scale,
+                colour_offset_u_px=m.offset_u_px,
+                colour_offset_v_px=m.offset_v_px,
+            )
+            v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+            uv = depth_to_colour_pixels(np.stack([u.ravel(), v.ravel()], 1), self.K, cfg)
+            map_u = uv[:, 0].reshape(h, w).astype(np.float32)
+            map_v = uv[:, 1].reshape(h, w).astype(np.float32)
+            self._maps = ((h, w), map_u, map_v)
+        _, map_u, map_v = self._maps
+        return cv2.remap(colour, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

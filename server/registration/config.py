@@ -59,13 +59,16 @@ class DepthConfig:
     axial_noise_b_per_m: float = 0.0019
     lateral_noise_px: float = 0.8  # pixel error of a tracked corner
     # Colour focal length over depth focal length, for colour images not registered to depth
-    # (raw Kinect): a colour pixel maps to depth pixel c + scale * (uv - c). 1 = registered.
+    # (raw Kinect): depth pixel c + (uv - c) / scale + offset shows what colour pixel uv does.
+    # 1 = registered. Applied where frames come in (calibration.ColourToDepth: colour is
+    # resampled onto the depth image), not inside the tracker.
     colour_focal_scale: float = 1.0
     colour_offset_u_px: float = 0.0  # ... plus this offset (depth pixels)
     colour_offset_v_px: float = 0.0
     # Estimate the three above from the first frame (colour edges laid on depth edges,
-    # server/registration/calibration.py); kept only when clearly better than the identity.
-    estimate_colour_registration: bool = False
+    # server/registration/calibration.py); kept only when clearly better than the identity, and
+    # tried only on full-size depth not registered by the device (not a phone's).
+    estimate_colour_registration: bool = True
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from server.geometry.arrays import Float32Array, FloatArray, GreyImage
 from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, build_dense_model
 from server.registration.features import detect_features
-from server.registration.preprocess import colour_to_depth_pixels, sample_stable_depth
+from server.registration.preprocess import sample_stable_depth
 from server.registration.sparse import point_information
 
 
@@ -44,10 +44,9 @@ def make_keyframe(
 ) -> Keyframe:
     """Detect corners with trusted depth in a frame and make it a keyframe."""
     uv = detect_features(grey, cfg.features, mask=depth > 0)
-    uv_d = colour_to_depth_pixels(uv, K, cfg.depth)
-    z = sample_stable_depth(depth, uv_d, cfg.depth)
+    z = sample_stable_depth(depth, uv, cfg.depth)
     uv = uv[z > 0]
-    points = backproject_pixels(uv_d[z > 0].astype(np.float64), z[z > 0], K)
+    points = backproject_pixels(uv.astype(np.float64), z[z > 0], K)
     dense = build_dense_model(depth, K, grey) if cfg.solver.dense else None
     return Keyframe(
         id=kf_id,

@@ -29,15 +29,12 @@ from server.geometry import (
     rotation_angle_deg,
 )
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, GreyImage, IndexArray
-from server.registration.calibration import estimate_colour_registration
 from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
 from server.registration.preprocess import (
     clean_depth,
-    colour_to_depth_pixels,
-    depth_to_colour_pixels,
     sample_stable_depth,
     to_grey,
 )
@@ -391,8 +388,6 @@ class Tracker:
         prior: FloatArray | None,
     ) -> TrackResult:
         t = time.perf_counter()
-        if self.cfg.depth.estimate_colour_registration:
-            self._register_colour(grey, depth)
         kf = self._new_keyframe(index, grey, depth, self.T_world_first)
         timings["keyframe"] = _ms(t)
         # A first frame without texture or depth cannot anchor tracking.
@@ -418,29 +413,6 @@ class Tracker:
             timings,
         )
 
-    def _register_colour(self, grey: GreyImage, depth: Float32Array) -> None:
-        """Estimate how colour pixels map to depth pixels from this frame (unregistered
-        sensors) and use it from now on; the configuration is left as it is when the images
-        look registered."""
-        found = estimate_colour_registration(grey, depth, self.K)
-        if found is None:
-            return
-        log.info(
-            "colour not registered to depth: focal scale %.3f, offset (%.0f, %.0f) px "
-            "(edge score %.2fx the identity's)",
-            found.scale,
-            found.offset_u_px,
-            found.offset_v_px,
-            found.gain,
-        )
-        self.cfg = self.cfg.with_overrides(
-            depth={
-                "colour_focal_scale": found.scale,
-                "colour_offset_u_px": found.offset_u_px,
-                "colour_offset_v_px": found.offset_v_px,
-            }
-        )
-
     def _track_keyframe(
         self,
         kf: Keyframe,
@@ -463,19 +435,17 @@ class Tracker:
         # Where the prediction puts the corners in this frame: the start of the LK search.
         T_cur_kf = invert(T_kf_pred)
         guess, z = project(kf.points[ids] @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3], self.K)
-        guess = depth_to_colour_pixels(guess, self.K, self.cfg.depth)
         guess = np.where(np.isfinite(guess) & (z[:, None] > 0), guess, uv_from)
         uv, ok = track_points(grey_from, grey, uv_from, self.cfg.flow, guess)
         ids, uv = ids[ok], uv[ok]
         if grey_from is not kf.grey and self.cfg.flow.keyframe_refine_levels >= 0 and len(ids):
             ids, uv = self._refine_from_keyframe(kf, grey, ids, uv)
-        uv_d = colour_to_depth_pixels(uv, self.K, self.cfg.depth)
-        zc = sample_stable_depth(depth, uv_d, self.cfg.depth)
+        zc = sample_stable_depth(depth, uv, self.cfg.depth)
         with_depth = zc > 0
         if with_depth.sum() < self.cfg.state.lost_inliers:
             return None
         d_ids = ids[with_depth]
-        Q = backproject_pixels(uv_d[with_depth].astype(np.float64), zc[with_depth], self.K)
+        Q = backproject_pixels(uv[with_depth].astype(np.float64), zc[with_depth], self.K)
         solution = solve_sparse(
             kf.points[d_ids],
             Q,

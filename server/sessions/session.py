@@ -22,6 +22,7 @@ from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import Intrinsics
 from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState, TrackResult
+from server.registration.calibration import ColourToDepth
 from server.registration.preprocess import clean_depth, resample_depth
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import (
@@ -113,6 +114,7 @@ class Session:
         self.client_name = ""
         self.intrinsics: Intrinsics | None = None
         self.tracker: Tracker | RoomTracker | None = None
+        self._colour_to_depth: ColourToDepth | None = None  # from the first frame on
         self.room_dir = room_dir
         # This session's room (server/rooms/): the keyframes written so far into its folder's
         # room/ (mapping thread), as (id, frame seq, T_world_keyframe), after the room it
@@ -449,7 +451,13 @@ class Session:
         K, tracker = self._configured()
         t0, cpu0 = time.perf_counter(), time.thread_time()
         depth = resample_depth(frame.depth, K.width, K.height)
-        result = tracker.track(frame.colour, depth, T_device_camera=frame.T_device_camera)
+        # Unregistered colour (a raw Kinect-like sensor) resampled onto depth; as it is else.
+        colour = (
+            frame.colour
+            if self._colour_to_depth is None
+            else self._colour_to_depth(frame.colour, depth)
+        )
+        result = tracker.track(colour, depth, T_device_camera=frame.T_device_camera)
         if result is None:  # in a room, before a frame is recognised in it: no pose yet
             result = _not_placed(frame.seq)
         timings = {
@@ -501,7 +509,7 @@ class Session:
             self._queue_fusion(
                 _FuseJob(
                     frame.seq,
-                    frame.colour,
+                    colour,
                     depth,
                     result.T_world_camera,
                     new_keyframe,

@@ -36,7 +36,6 @@ from pathlib import Path  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
@@ -45,7 +44,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
 
-from registration import git_commit  # noqa: E402
+from registration import git_commit, plot_topview  # noqa: E402
 
 import server.pipeline  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
@@ -117,26 +116,15 @@ def run_case(sequence: str, n: int, cfg: RegistrationConfig, out: Path) -> dict:
 
 
 def plot_case(path: Path, title: str, ds, odometry, closed) -> None:
-    """Top view (the two axes the ground truth spans most) of truth, odometry and corrected."""
-    gt = ds.ground_truth.poses[:, :3, 3]
-    a, b = sorted(np.argsort(np.ptp(gt, axis=0))[-2:])
-    fig, ax = plt.subplots(figsize=(7, 6))
-    ax.plot(gt[:, a], gt[:, b], "k-", lw=2.5, label="ground truth")
-    for name, run in (("odometry", odometry), ("loops closed", closed)):
-        p = run.trajectory.poses[:, :3, 3]
-        ax.plot(
-            p[:, a], p[:, b], lw=1.2, label=f"{name} ({100 * run.metrics['ate_rmse_m']:.2f} cm)"
-        )
-    ax.plot(gt[0, a], gt[0, b], "ko", ms=6)
-    ax.set_xlabel(f"{'xyz'[a]} [m]")
-    ax.set_ylabel(f"{'xyz'[b]} [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(f"{title}: top view, unaligned", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    """Top view of truth, odometry and the corrected trajectory (registration.plot_topview)."""
+    runs = {"odometry": odometry, "loops closed": closed}
+    plot_topview(
+        path,
+        title,
+        ds.ground_truth.poses,
+        {name: run.trajectory.poses for name, run in runs.items()},
+        {name: f"{name} ({100 * run.metrics['ate_rmse_m']:.2f} cm)" for name, run in runs.items()},
+    )
 
 
 def mark(ok: bool) -> str:

@@ -395,14 +395,22 @@ def markdown_table(rows) -> str:
     return "\n".join(lines)
 
 
-def plot_topview(path: Path, title: str, gt: np.ndarray, estimates: dict[str, np.ndarray]) -> None:
-    """GT and estimated camera positions on the two axes along which GT extends most."""
+def plot_topview(
+    path: Path,
+    title: str,
+    gt: np.ndarray,
+    estimates: dict[str, np.ndarray],
+    labels: dict[str, str] | None = None,
+) -> None:
+    """GT and estimated camera positions (poses (N, 4, 4)) on the two axes along which GT
+    extends most; ``labels`` name the estimates (default: the methods' names)."""
     extent = np.ptp(gt[:, :3, 3], axis=0)
     a, b = sorted(np.argsort(extent)[-2:])
     fig, ax = plt.subplots(figsize=(7, 6))
     ax.plot(gt[:, a, 3], gt[:, b, 3], "k-", lw=2.5, label="ground truth")
     for name, poses in estimates.items():
-        ax.plot(poses[:, a, 3], poses[:, b, 3], lw=1.2, label=METHODS[name][0])
+        label = labels[name] if labels is not None else METHODS[name][0]
+        ax.plot(poses[:, a, 3], poses[:, b, 3], lw=1.2, label=label)
     ax.plot(gt[0, a, 3], gt[0, b, 3], "ko", ms=6)
     ax.set_xlabel(f"{'xyz'[a]} [m]")
     ax.set_ylabel(f"{'xyz'[b]} [m]")

@@ -16,7 +16,8 @@ def test_the_page_redraws_its_map_when_the_server_closes_a_loop(live_server, ope
     server = live_server(tmp_path / "data")
     page = open_page(server, "/?autostart=demo-loop&fps=30&view=map", **DESKTOP)
     page.wait("window.dronesim.seen.corrections.length >= 1", 240, "a map_corrected message")
-    assert page.page.locator(".toast", has_text="loop closed").count() == 1  # shown for 5 s
+    # Said on the page (shown for 5 s; a second loop closed at once shows a second one).
+    assert page.page.locator(".toast", has_text="loop closed").count() >= 1
     page.wait("window.dronesim.seen.mapResets >= 1", 60, "the re-fused map (a reset chunk)")
     snap = page.snapshot()
     correction = snap["corrections"][0]

@@ -128,6 +128,14 @@ def track(
             "re-fused from them: seconds more per run)",
         ),
     ] = True,
+    overlap: Annotated[
+        bool,
+        typer.Option(
+            "--overlap/--no-overlap",
+            help="read frames ahead of the tracker and map behind it on threads of their own "
+            "(same results; --no-overlap runs the stages in turn)",
+        ),
+    ] = True,
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
@@ -167,6 +175,7 @@ def track(
         room=saved_room,
         start=start,
         keep_room=save_room,
+        overlap=overlap,
     )
     if saved_room is not None and not run.summary["relocalisation"]["relocalised"]:
         raise DroneSimError(

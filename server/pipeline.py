@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from server.datasets import RGBDDataset
+from server.datasets import RGBDDataset, RGBDFrame
 from server.errors import DatasetError
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
@@ -22,13 +22,15 @@ from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import invert
 from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
+from server.mapping.tsdf import TSDFMap
+from server.overlap import Behind, read_ahead
 from server.registration import Tracker, TrackResult
 from server.registration.calibration import ColourToDepth
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
 from server.rooms.continuation import RoomTracker
-from server.rooms.room import Room, save_room
+from server.rooms.room import Room, RoomKeyframe, save_room
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +65,7 @@ def run_odometry(
     room: Room | None = None,
     start: int = 0,
     keep_room: bool = True,
+    overlap: bool = True,
 ) -> OdometryRun:
     """Register ``max_frames`` frames of ``dataset`` from frame ``start`` on and fuse every
     ``mapping.fuse_every``-th tracked frame (and every keyframe) into a point cloud map with
@@ -83,6 +86,10 @@ def run_odometry(
     frame moves with its keyframe's correction and the map is fused again from the same frames
     at the corrected poses. ``keep_room=False`` keeps no keyframes (no place
     features computed; ``run.room`` stays as it was), unless loop closure needs them.
+
+    Frames are read ahead of the tracker, and fused, described and added to the room behind it,
+    each on a thread of its own (server/overlap.py); ``overlap=False`` does it all in turn in the
+    caller. Either way the results are the same.
     """
     mapping = mapping or MappingConfig()
     fuse_every, voxel_m = mapping.fuse_every, mapping.tsdf.voxel_m
@@ -98,44 +105,58 @@ def run_odometry(
         room = Room(dataset.intrinsics)
     else:
         tracker = RoomTracker(room, dataset.intrinsics, cfg)
-        room.map = None
     world_map = PointCloudMap(voxel_m=voxel_m)
     # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
     to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
     results, stamps = [], []
     fused: list[tuple[int, int]] = []  # (frame index, result index) of each frame in the map
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
+    keep = keep_room or closer is not None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
     with_device_pose = 0  # frames that had a device pose to give
-    bar = tqdm(
-        range(start, start + n), desc=f"track {dataset.name}", unit="frame", disable=not progress
-    )
-    for i in bar:
+    # The room's map grows with its keyframes behind tracking (the map a saved room holds);
+    # a room continued here starts from its own keyframes again, as save_room would re-fuse it.
+    room_map = TSDFMap() if keep else None
+    behind = Behind(threaded=overlap, name="map")
+    if room_map is not None:
+        behind.submit(_fuse_keyframes, room_map, room, list(room.keyframes))
+
+    def read(i: int) -> tuple[int, RGBDFrame, np.ndarray]:
         frame = first if i == start else dataset[i]
-        colour = to_depth(frame.colour, frame.depth)
-        T_device_camera = dataset.device_pose(i) if use_device else None
-        with_device_pose += T_device_camera is not None
-        result = tracker.track(colour, frame.depth, T_device_camera=T_device_camera)
-        if result is None:  # not yet found in the room
-            continue
-        tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
-        keep = keep_room or closer is not None
-        if keep and room.add_tracked(result, colour, frame.depth, i, cfg):
-            if closer is not None:
-                kf = room.keyframes[-1]
-                depth = clean_depth(frame.depth, cfg.depth)
-                closer.add_keyframe(kf.id, kf.T_world_keyframe, kf.place, depth)
-        results.append(result)
-        stamps.append(frame.timestamp)
-        if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
-            world_map.fuse(colour, frame.depth, dataset.intrinsics, result.T_world_camera)
-            fused.append((i, len(results) - 1))
-        bar.set_postfix(
-            state=result.state.value,
-            inliers=result.inliers,
-            kf=len(room.keyframes),
-            refresh=False,
-        )
+        return i, frame, to_depth(frame.colour, frame.depth)
+
+    frames = read_ahead(map(read, range(start, start + n)), threaded=overlap)  # a generator
+    bar = tqdm(frames, total=n, desc=f"track {dataset.name}", unit="frame", disable=not progress)
+    try:
+        for i, frame, colour in bar:
+            T_device_camera = dataset.device_pose(i) if use_device else None
+            with_device_pose += T_device_camera is not None
+            result = tracker.track(colour, frame.depth, T_device_camera=T_device_camera)
+            if result is None:  # not yet found in the room
+                continue
+            tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
+            if keep and result.new_keyframe:
+                behind.submit(_add_keyframe, room, room_map, closer, result, colour, frame, i, cfg)
+            results.append(result)
+            stamps.append(frame.timestamp)
+            if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
+                behind.submit(
+                    world_map.fuse, colour, frame.depth, dataset.intrinsics, result.T_world_camera
+                )
+                fused.append((i, len(results) - 1))
+            bar.set_postfix(
+                state=result.state.value,
+                inliers=result.inliers,
+                kf=len(room.keyframes),
+                refresh=False,
+            )
+        behind.join()
+    except BaseException:
+        behind.cancel()
+        raise
+    finally:
+        frames.close()
+    room.map = room_map
     trajectory = Trajectory(
         np.array(stamps).reshape(-1),
         np.array([r.T_world_camera for r in results]).reshape(-1, 4, 4),
@@ -189,6 +210,33 @@ def run_odometry(
         }
     )
     return run
+
+
+def _fuse_keyframes(tsdf: TSDFMap, room: Room, keyframes: list[RoomKeyframe]) -> None:
+    for kf in keyframes:
+        tsdf.integrate(kf.colour, kf.depth, room.intrinsics, kf.T_world_keyframe)
+
+
+def _add_keyframe(
+    room: Room,
+    room_map: TSDFMap | None,
+    closer: LoopCloser | None,
+    result: TrackResult,
+    colour: np.ndarray,
+    frame: RGBDFrame,
+    index: int,
+    cfg: RegistrationConfig,
+) -> None:
+    """A new keyframe into the room (its place features computed), its map, and the loop
+    closer; runs behind tracking."""
+    room.add_tracked(result, colour, frame.depth, index, cfg)
+    kf = room.keyframes[-1]
+    kf.encoded()  # the images as the room's file holds them, ready for save_room
+    if room_map is not None:
+        _fuse_keyframes(room_map, room, [kf])
+    if closer is not None:
+        depth = clean_depth(frame.depth, cfg.depth)
+        closer.add_keyframe(kf.id, kf.T_world_keyframe, kf.place, depth)
 
 
 def _close_loops(

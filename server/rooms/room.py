@@ -72,6 +72,23 @@ class RoomKeyframe:
     colour: GreyImage
     depth: Float32Array
     place: PlaceFeatures
+    # The images as the keyframe's file holds them (JPEG, 16-bit PNG): encoded once, by
+    # ``encoded`` (offline ``track`` does it behind tracking, before the room is saved).
+    _encoded: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    def encoded(self) -> tuple[np.ndarray, np.ndarray]:
+        """(colour JPEG bytes, depth 16-bit PNG bytes in millimetres), as uint8 arrays."""
+        if self._encoded is None:
+            ok_c, colour = cv2.imencode(".jpg", cv2.cvtColor(self.colour, cv2.COLOR_RGB2BGR))
+            mm = np.clip(np.nan_to_num(self.depth) * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
+            ok_d, depth = cv2.imencode(".png", mm)
+            if not (ok_c and ok_d):
+                raise RoomError(f"cannot encode the images of keyframe {self.id}")
+            self._encoded = (
+                np.asarray(colour, np.uint8).ravel(),
+                np.asarray(depth, np.uint8).ravel(),
+            )
+        return self._encoded
 
 
 @dataclass
@@ -242,14 +259,10 @@ def link_keyframes(source: Path, folder: Path, ids: list[int]) -> None:
 
 
 def _write_keyframe(path: Path, kf: RoomKeyframe) -> None:
-    ok_c, colour = cv2.imencode(".jpg", cv2.cvtColor(kf.colour, cv2.COLOR_RGB2BGR))
-    mm = np.clip(np.nan_to_num(kf.depth) * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
-    ok_d, depth = cv2.imencode(".png", mm)
-    if not (ok_c and ok_d):
-        raise RoomError(f"cannot encode the images of keyframe {kf.id}")
+    colour, depth = kf.encoded()
     arrays: dict[str, Any] = {
-        "colour_jpg": np.asarray(colour, np.uint8).ravel(),
-        "depth_png": np.asarray(depth, np.uint8).ravel(),
+        "colour_jpg": colour,
+        "depth_png": depth,
         "uv": kf.place.uv,
         "descriptors": kf.place.descriptors,
         "points": kf.place.points,

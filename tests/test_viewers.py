@@ -196,7 +196,7 @@ def test_a_slow_viewers_queue_keeps_the_newest_state_and_drops_its_oldest_update
     """What a viewer that stopped reading holds: at most OUTBOX items, the newest pose and
     drone state in place of older ones, the oldest events and chunks dropped (counted)."""
     from server.sessions import DroneNotice, DroneUpdate, PoseUpdate
-    from server.transport.viewer_socket import OUTBOX, ViewerOutbox
+    from server.transport.viewer_socket import OUTBOX, viewer_outbox
 
     def state(t: float) -> DroneUpdate:
         return DroneUpdate(t, np.eye(4), None, None, np.zeros(3), "hover", 1.0, None, None, None)
@@ -205,7 +205,7 @@ def test_a_slow_viewers_queue_keeps_the_newest_state_and_drops_its_oldest_update
         return PoseUpdate(seq, seq / 15, np.eye(4), "ok", 100, False, {}, 0, seq)
 
     async def run() -> list:
-        outbox = ViewerOutbox()
+        outbox = viewer_outbox()
         for k in range(1000):  # 50 s of a session: states at 20 Hz, poses, two events a second
             outbox.put(state(k * 0.05))
             if k % 2 == 0:

@@ -6,15 +6,15 @@ the session's ``pose``, ``map_chunk``, ``drone_state`` and ``drone_event`` messa
 owner's socket does. It never takes the session over (its sockets are apart from the owner's,
 ``app.state.connections``) and may send nothing: every message it sends is answered with the
 non-fatal error ``read_only`` and changes nothing. Its updates wait in a bounded queue of its
-own (``ViewerOutbox``), so a slow viewer loses its oldest updates and never slows the owner or
-another viewer. A revoked link, or the session's end, closes it (``unauthorized``, 4003).
+own (``viewer_outbox``), so a slow viewer loses its oldest updates (never a world's correction
+or the map's restart) and never slows the owner or another viewer. A revoked link, or the
+session's end, closes it (``unauthorized``, 4003).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from collections import deque
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -23,6 +23,7 @@ from server.sessions import DroneUpdate, LiveSession, MapUpdate, PoseUpdate
 from server.sessions.failures import SessionLog
 from server.sessions.store import SESSION_ID
 from server.sessions.viewers import ViewerSocket, merged_map
+from server.transport.outbox import Outbox
 from server.transport.websocket import _refuse, _send, update_messages
 
 log = logging.getLogger(__name__)
@@ -36,50 +37,9 @@ _REFUSED = (
 )
 
 
-class ViewerOutbox:
-    """Updates waiting for one viewer, in order, at most ``size``: the newest pose and the
-    newest drone state replace those still waiting (a viewer needs only the latest), and beyond
-    ``size`` the oldest waiting item is dropped (``dropped`` counts them). Event loop only."""
-
-    _POSE, _DRONE = object(), object()  # queued in place of the newest pose / drone state
-
-    def __init__(self, size: int = OUTBOX) -> None:
-        self.size = size
-        self.items: deque = deque()
-        self.latest: dict[object, object] = {}
-        self.dropped = 0
-        self._ready = asyncio.Event()
-
-    def put(self, item) -> None:
-        slot = (
-            self._POSE
-            if isinstance(item, PoseUpdate)
-            else self._DRONE
-            if isinstance(item, DroneUpdate)
-            else None
-        )
-        if slot is not None:
-            waiting = slot in self.latest
-            self.latest[slot] = item
-            if waiting:
-                return
-            item = slot
-        if len(self.items) >= self.size:
-            oldest = self.items.popleft()
-            if oldest is self._POSE or oldest is self._DRONE:
-                del self.latest[oldest]
-            self.dropped += 1
-        self.items.append(item)
-        self._ready.set()
-
-    async def get(self):
-        while not self.items:
-            self._ready.clear()
-            await self._ready.wait()
-        item = self.items.popleft()
-        if item is self._POSE or item is self._DRONE:
-            item = self.latest.pop(item)
-        return item
+def viewer_outbox(size: int = OUTBOX) -> Outbox:
+    """A viewer's queue: it needs only the newest pose and drone state of those waiting."""
+    return Outbox(size, latest_only=(PoseUpdate, DroneUpdate))
 
 
 class _Ending:
@@ -122,7 +82,7 @@ async def viewer_socket(ws: WebSocket, session_id: str, token: str | None = None
         )
     session, viewer_id = found
     loop = asyncio.get_running_loop()
-    outbox, ending = ViewerOutbox(), _Ending()
+    outbox, ending = viewer_outbox(), _Ending()
 
     def deliver(item: object) -> None:  # any thread: only queues
         loop.call_soon_threadsafe(outbox.put, item)
@@ -200,7 +160,7 @@ def _refusal(data: bytes | None) -> dict:
 
 
 async def _send_updates(
-    ws: WebSocket, outbox: ViewerOutbox, chunk_points: int, session: LiveSession, ending: _Ending
+    ws: WebSocket, outbox: Outbox, chunk_points: int, session: LiveSession, ending: _Ending
 ) -> None:
     chunk = 0  # this socket's own chunk numbers: its backlog started them afresh
     try:

@@ -30,6 +30,7 @@ from server.sessions import (
     SessionTakenOver,
 )
 from server.sessions.failures import SessionLog
+from server.transport.outbox import Outbox
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -44,7 +45,9 @@ _SESSION_CODES = {
     # A session in a room refuses a camera other than the room's (or a room it cannot read).
     "room_unusable": "bad_intrinsics",
 }
-_OUTBOX = 256  # updates waiting for a slow client; beyond this the oldest are skipped
+# Updates waiting for a slow client; beyond this the oldest that may be lost are dropped
+# (server/transport/outbox.py); drone states are coalesced, only the newest waits.
+_OUTBOX = 256
 
 
 async def _send(ws: WebSocket, message: dict) -> None:
@@ -113,7 +116,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
             return
     connection = connections[session_id] = _Connection()
     loop = asyncio.get_running_loop()
-    outbox = _Outbox()
+    outbox = Outbox(_OUTBOX, latest_only=(DroneUpdate,))
 
     def deliver(item) -> None:  # any thread
         loop.call_soon_threadsafe(outbox.put, item)
@@ -161,37 +164,6 @@ async def end_all_connections(app) -> None:
         for future in stuck:
             future.cancel()
         await asyncio.sleep(0.1)  # let the handlers send their error and close frames
-
-
-class _Outbox:
-    """Updates waiting for the client, in order. Drone states are coalesced (only the newest
-    waits), so 20 Hz of them never crowd out poses; beyond _OUTBOX waiting items (a client that
-    stopped reading) the oldest are skipped. Event-loop thread only."""
-
-    _DRONE = object()  # queued in place of the newest drone state
-
-    def __init__(self) -> None:
-        self.queue: asyncio.Queue = asyncio.Queue()
-        self.drone: DroneUpdate | None = None
-
-    def put(self, item) -> None:
-        if isinstance(item, DroneUpdate):
-            queued, self.drone = self.drone is not None, item
-            if queued:
-                return
-            item = self._DRONE
-        if self.queue.qsize() >= _OUTBOX and self.queue.get_nowait() is self._DRONE:
-            self.drone = None
-        self.queue.put_nowait(item)
-
-    async def get(self):
-        item = await self.queue.get()
-        if item is self._DRONE:
-            item, self.drone = self.drone, None
-        return item
-
-    def empty(self) -> bool:
-        return self.queue.empty()
 
 
 class _ErrorRun:
@@ -275,7 +247,7 @@ def update_messages(
 
 async def _send_updates(
     ws: WebSocket,
-    outbox: _Outbox,
+    outbox: Outbox,
     chunk_points: int,
     session: LiveSession,
     connection: _Connection,
@@ -334,7 +306,7 @@ def _pose(p: PoseUpdate) -> dict:
     )
 
 
-async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: _Outbox) -> None:
+async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: Outbox) -> None:
     """After a bye: answer the frames in flight (bounded), then close normally."""
     await asyncio.to_thread(session.drain, 5.0)
     deadline = time.monotonic() + 2.0
@@ -371,7 +343,7 @@ async def _receive(
     session: LiveSession,
     deliver,
     max_bytes: int,
-    outbox: _Outbox,
+    outbox: Outbox,
     connection: _Connection,
     errors: _ErrorRun,
 ) -> None:

@@ -1,0 +1,142 @@
+"""Our tracker (sparse + dense, the shipped defaults) over one sequence with several
+configuration changes, the sequence loaded once: a quick search for what lowers the drift,
+before a change is measured in full by ``benchmarks/registration.py``.
+
+Each run starts from the ground-truth first pose and tracks every frame as ``track`` does
+(colour resampled onto depth where frames come in, keyframes updated after each pose); the
+first row is always the defaults, the baseline of the same sitting.
+
+    python benchmarks/registration_sweep.py ../shared/data/7scenes_a \\
+        --set solver.dense_weight=0.5 --set solver.photometric_weight=0.1 \\
+        --set "depth.colour_focal_scale=0.9 depth.colour_offset_u_px=8"
+
+Each ``--set`` is one run (several changes in one run: space-separated, quoted). Prints ATE
+RMSE, RPE per second, keyframes and the median ms per frame (one thread), appends the table to
+<out>/registration_sweep.md.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import platform  # noqa: E402
+import shlex  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+from benchmarks.registration import parse_overrides  # noqa: E402
+from server.datasets import open_dataset  # noqa: E402
+from server.evaluation.metrics import evaluate  # noqa: E402
+from server.evaluation.trajectory import Trajectory  # noqa: E402
+from server.pipeline import ground_truth_pose_at  # noqa: E402
+from server.registration import Tracker  # noqa: E402
+from server.registration.calibration import ColourToDepth  # noqa: E402
+from server.registration.config import RegistrationConfig  # noqa: E402
+
+cv2.setNumThreads(1)
+console = Console()
+
+
+def _commit() -> str:
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+        return head + ("+uncommitted" if dirty else "")
+    except OSError:
+        return "unknown"
+
+
+def track_all(ds, frames, cfg: RegistrationConfig) -> dict:
+    """ATE and RPE (metres, degrees), keyframes and per-frame times of one run."""
+    T0 = ground_truth_pose_at(ds, frames[0].timestamp)
+    tracker = Tracker(ds.intrinsics, cfg, T0)
+    to_depth = ColourToDepth(ds.intrinsics, cfg.depth, not ds.depth_registered)
+    poses, ms = [], []
+    for frame in frames:
+        t0 = time.perf_counter()
+        result = tracker.track(to_depth(frame.colour, frame.depth), frame.depth)
+        tracker.update_keyframe()
+        ms.append((time.perf_counter() - t0) * 1e3)
+        poses.append(result.T_world_camera)
+    stamps = np.array([f.timestamp for f in frames])
+    metrics = evaluate(ds.ground_truth, Trajectory(stamps, np.array(poses)))
+    return {
+        **metrics,
+        "keyframes": tracker.keyframe_count,
+        "median_ms": float(np.median(ms[1:])),
+        "colour_registration": to_depth.mapping,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequence", type=Path)
+    parser.add_argument("--frames", type=int, help="only the first N frames")
+    parser.add_argument("--set", action="append", default=[], help="one run's changes")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
+    args = parser.parse_args()
+    ds = open_dataset(args.sequence)
+    if ds.ground_truth is None:
+        raise SystemExit(f"{args.sequence} has no ground truth")
+    n = len(ds) if args.frames is None else min(args.frames, len(ds))
+    frames = [ds[i] for i in range(n)]
+    runs = [("defaults", RegistrationConfig())]
+    for change in args.set:
+        overrides = parse_overrides(change.split())
+        runs.append((change, RegistrationConfig().with_overrides(**overrides)))
+    table = Table(title=f"{ds.name}, {n} frames, sparse + dense")
+    for col in ("run", "ATE cm", "RPE/s cm", "RPE/s deg", "keyframes", "median ms"):
+        table.add_column(col, justify="right")
+    rows = []
+    for name, cfg in runs:
+        m = track_all(ds, frames, cfg)
+        row = (
+            name,
+            f"{100 * m['ate_rmse_m']:.2f}",
+            f"{100 * m['rpe_trans_per_second_m']:.2f}",
+            f"{m['rpe_rot_per_second_deg']:.2f}",
+            str(m["keyframes"]),
+            f"{m['median_ms']:.1f}",
+        )
+        rows.append(row)
+        table.add_row(*row)
+        console.print(f"{name}: ATE {row[1]} cm (colour registration {m['colour_registration']})")
+    console.print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        f"\n## {stamp}, commit {_commit()}",
+        f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs, "
+        "one thread\n",
+        "| run | ATE cm | RPE/s cm | RPE/s deg | keyframes | median ms |",
+        "|---|---:|---:|---:|---:|---:|",
+        *(f"| {' | '.join(r)} |" for r in rows),
+    ]
+    with open(args.out / "registration_sweep.md", "a") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -175,6 +175,19 @@ class LoopCloser:
             n.estimate = np.asarray(graph.nodes[i].pose, dtype=np.float64).copy()
         return {n.kf_id: n.estimate.copy() for n in self.nodes}
 
+    def edges(self) -> list[tuple[int, int, FloatArray, bool]]:
+        """The graph's edges as (older keyframe id, newer keyframe id, T_older_newer 4x4
+        metres, whether it is a loop): odometry between consecutive keyframes, and loops."""
+        return [
+            (
+                self.nodes[e.target].kf_id,
+                self.nodes[e.source].kf_id,
+                e.T_target_source.copy(),
+                e.uncertain,
+            )
+            for e in self._edges
+        ]
+
     # ---- helpers ---------------------------------------------------------------------------
     def _cloud(self, depth: Float32Array) -> o3d.geometry.PointCloud:
         points, _ = backproject(depth, self.K, stride=self.cfg.loops.cloud_stride)

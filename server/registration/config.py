@@ -219,6 +219,13 @@ class LoopConfig:
     min_icp_fitness: float = 0.5  # share of the new keyframe's depth that must fit the old one
     cloud_stride: int = 4  # every n-th depth pixel in the keyframes' clouds
     preference: float = 1.0  # Open3D's preference_loop_closure (0.1 odometry-heavy, 2 loops)
+    # A loop edge's information matrix (Open3D's, from the two keyframes' depth) times this.
+    # Loops join keyframes seen from other places and are less accurate than their point count
+    # says (7scenes_a played once: 2.46 cm median against 0.71 cm for odometry edges). At 1.0
+    # the correction made 7scenes_a worse (2.83 -> 3.49 cm); at 0.01 it makes every case better:
+    # 7scenes_a 2.83 -> 2.63, there and back 200 / 300 1.87 -> 1.86 / 2.19 -> 2.02 cm,
+    # synthetic_room0 0.188 -> 0.153 / 0.231 -> 0.181 cm (benchmarks/README.md, "Loop closure").
+    loop_information_scale: float = 0.01
 
 
 @dataclass(frozen=True)

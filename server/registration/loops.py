@@ -131,7 +131,7 @@ class LoopCloser:
                 found = LoopEdge(match.keyframe_id, kf_id, T, match.inliers)
                 self.loops.append(found)
                 old = self.nodes[self._index[match.keyframe_id]]
-                info = _reg.get_information_matrix_from_point_clouds(
+                info = c.loop_information_scale * _reg.get_information_matrix_from_point_clouds(
                     node.cloud, old.cloud, c.icp_distance_m, T
                 )
                 self._edges.append(

@@ -26,7 +26,6 @@ import argparse  # noqa: E402
 import datetime  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -39,7 +38,7 @@ from rich.table import Table  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.registration import parse_overrides  # noqa: E402
+from benchmarks.registration import git_commit, parse_overrides  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
@@ -50,22 +49,6 @@ from server.registration.config import RegistrationConfig  # noqa: E402
 
 cv2.setNumThreads(1)
 console = Console()
-
-
-def _commit() -> str:
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-        ).stdout.strip()
-        return head + ("+uncommitted" if dirty else "")
-    except OSError:
-        return "unknown"
 
 
 def track_all(ds, frames, cfg: RegistrationConfig) -> dict:
@@ -127,7 +110,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        f"\n## {stamp}, commit {_commit()}",
+        f"\n## {stamp}, commit {git_commit()}",
         f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs, "
         "one thread\n",
         "| run | ATE cm | RPE/s cm | RPE/s deg | keyframes | median ms |",

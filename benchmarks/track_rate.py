@@ -33,24 +33,15 @@ from rich.console import Console
 from rich.table import Table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+# ``track`` runs as a user starts it: with this environment, not the one-thread settings the
+# registration benchmark's module sets when it is imported (for its commit helper).
+TRACK_ENV = dict(os.environ)
+
+from benchmarks.registration import git_commit  # noqa: E402
+
 TARGET_FPS = 20.0
 console = Console()
-
-
-def _commit() -> str:
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-        ).stdout.strip()
-        return head + ("+uncommitted" if dirty else "")
-    except OSError:
-        return "unknown"
 
 
 def run_track(sequence: Path, out: Path, overlap: bool) -> dict:
@@ -59,7 +50,7 @@ def run_track(sequence: Path, out: Path, overlap: bool) -> dict:
     cmd.append("--overlap" if overlap else "--no-overlap")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True)
+    done = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=TRACK_ENV)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
@@ -139,7 +130,7 @@ def main() -> None:
         )
     args.out.mkdir(parents=True, exist_ok=True)
     lines = [
-        f"\n## {stamp}, commit {_commit()}",
+        f"\n## {stamp}, commit {git_commit()}",
         f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs\n",
         "| sequence | mode | frames | median wall s (runs) | frames/s | target |",
         "|---|---|---:|---|---:|---|",
@@ -163,7 +154,7 @@ def main() -> None:
     with open(args.out / "track_rate.md", "a") as f:
         f.write("\n".join(lines) + "\n")
     (args.out / "track_rate.json").write_text(
-        json.dumps({"commit": _commit(), "date": stamp, "results": results}, indent=1)
+        json.dumps({"commit": git_commit(), "date": stamp, "results": results}, indent=1)
     )
 
 

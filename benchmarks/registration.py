@@ -44,7 +44,6 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
@@ -66,6 +65,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.provenance import git_commit  # noqa: E402
 from server.datasets import RGBDFrame, open_dataset  # noqa: E402
 from server.errors import DroneSimError  # noqa: E402
 from server.evaluation.device_poses import (  # noqa: E402
@@ -541,15 +541,6 @@ def prior_rows(results: dict[str, dict]) -> list[list[str]]:
             cells.append(text if target is None else f"{text} {'✓' if target else '✗'}")
         rows.append(cells)
     return rows
-
-
-def git_commit() -> str:
-    def git(*a: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", *a], cwd=REPO_ROOT, capture_output=True, text=True)
-
-    head = git("rev-parse", "--short", "HEAD").stdout.strip() or "unknown"
-    dirty = git("diff", "--quiet", "HEAD", "--", "server", "benchmarks").returncode != 0
-    return head + (" + uncommitted changes" if dirty else "")
 
 
 def benchmark_prior(name: str, path: Path, args, header: dict) -> dict:

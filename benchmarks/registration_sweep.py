@@ -38,7 +38,8 @@ from rich.table import Table  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.registration import git_commit, parse_overrides  # noqa: E402
+from benchmarks.provenance import git_commit  # noqa: E402
+from benchmarks.registration import parse_overrides  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402

@@ -27,7 +27,6 @@ import datetime  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -42,6 +41,7 @@ from rich.table import Table  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.provenance import git_commit  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
@@ -56,22 +56,6 @@ from server.rooms import load_room, save_room  # noqa: E402
 console = Console()
 ATE_FACTOR = 1.3  # target: both parts within this factor of the one-go ATE
 RELOCALISE_WITHIN = 15  # frames
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-        )
-        return out.stdout.strip() + ("+uncommitted" if dirty.stdout.strip() else "")
-    except OSError:
-        return "unknown"
 
 
 def lookup_study(room, ds, frames: range, cfg: RegistrationConfig) -> dict:
@@ -201,7 +185,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        f"\n## {stamp}, commit {_commit()}",
+        f"\n## {stamp}, commit {git_commit()}",
         f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs, "
         "one thread (the machine may have been shared)\n",
         "| figure | measured | target | |",
@@ -225,7 +209,7 @@ def main() -> None:
         "save_s": save_s,
         "load_s": load_s,
         "lookup": lookup,
-        "commit": _commit(),
+        "commit": git_commit(),
         "date": stamp,
     }
     (args.out / "rooms.json").write_text(json.dumps(result, indent=1))

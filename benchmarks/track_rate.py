@@ -34,11 +34,8 @@ from rich.table import Table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
-# ``track`` runs as a user starts it: with this environment, not the one-thread settings the
-# registration benchmark's module sets when it is imported (for its commit helper).
-TRACK_ENV = dict(os.environ)
 
-from benchmarks.registration import git_commit  # noqa: E402
+from benchmarks.provenance import git_commit  # noqa: E402
 
 TARGET_FPS = 20.0
 console = Console()
@@ -50,7 +47,7 @@ def run_track(sequence: Path, out: Path, overlap: bool) -> dict:
     cmd.append("--overlap" if overlap else "--no-overlap")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=TRACK_ENV)
+    done = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:

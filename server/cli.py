@@ -125,7 +125,7 @@ def track(
         typer.Option(
             "--save-room/--no-save-room",
             help="keep the keyframes and save OUT/room (ORB features per keyframe, a TSDF "
-            "re-fused from them: seconds more per run)",
+            "fused from them behind tracking)",
         ),
     ] = True,
     overlap: Annotated[

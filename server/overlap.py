@@ -3,10 +3,13 @@ behind it, each on its own thread.
 
 ``track`` is one tracker on one core; reading a frame (PNG and JPEG decoding, the colour's
 resampling onto depth) and the map (point cloud fusion, a room keyframe's place features, its
-TSDF) cost about as much again. OpenCV, numpy and Open3D release the GIL in that work, so on a
-second core it runs beside tracking instead of after it. Both stages keep the order of the
-frames, so a run's results do not depend on whether they overlap (``threaded=False`` runs
-everything in the caller, in the same order: the reference the tests compare against).
+TSDF) cost about as much again. OpenCV and numpy release the GIL in most of that work, so on a
+second core it runs beside tracking instead of after it; Open3D's TSDF integration and voxel
+downsampling do not (about 4 s of 7scenes_a's map thread holds it), which is why the whole
+command gains about 1.2x rather than 2x (benchmarks/track_rate.py). Both stages keep the
+order of the frames, so a run's results do not depend on whether they overlap
+(``threaded=False`` runs everything in the caller, in the same order: the reference the tests
+compare against).
 """
 
 from __future__ import annotations
@@ -74,7 +77,6 @@ class Behind:
     job inside ``submit``."""
 
     def __init__(self, limit: int = 8, threaded: bool = True, name: str = "behind") -> None:
-        self._threaded = threaded
         self._error: BaseException | None = None
         self._jobs: queue.Queue[Any] = queue.Queue(maxsize=limit)
         self._thread: threading.Thread | None = None

@@ -30,7 +30,7 @@ from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
 from server.rooms.continuation import RoomTracker
-from server.rooms.room import Room, RoomKeyframe, save_room
+from server.rooms.room import Room, save_room
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def run_odometry(
     room_map = TSDFMap() if keep else None
     behind = Behind(threaded=overlap, name="map")
     if room_map is not None:
-        behind.submit(_fuse_keyframes, room_map, room, list(room.keyframes))
+        behind.submit(room.fuse_into, room_map, list(room.keyframes))
 
     def read(i: int) -> tuple[int, RGBDFrame, np.ndarray]:
         frame = first if i == start else dataset[i]
@@ -212,11 +212,6 @@ def run_odometry(
     return run
 
 
-def _fuse_keyframes(tsdf: TSDFMap, room: Room, keyframes: list[RoomKeyframe]) -> None:
-    for kf in keyframes:
-        tsdf.integrate(kf.colour, kf.depth, room.intrinsics, kf.T_world_keyframe)
-
-
 def _add_keyframe(
     room: Room,
     room_map: TSDFMap | None,
@@ -233,7 +228,7 @@ def _add_keyframe(
     kf = room.keyframes[-1]
     kf.encoded()  # the images as the room's file holds them, ready for save_room
     if room_map is not None:
-        _fuse_keyframes(room_map, room, [kf])
+        room.fuse_into(room_map, [kf])
     if closer is not None:
         depth = clean_depth(frame.depth, cfg.depth)
         closer.add_keyframe(kf.id, kf.T_world_keyframe, kf.place, depth)

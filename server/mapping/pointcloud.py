@@ -38,7 +38,7 @@ class PointCloudMap:
         self.cloud.colors.extend(o3d.utility.Vector3dVector(rgb))
         self._pending += len(world)
         # Downsample in batches: once per frame would redo the whole map every frame (a million
-        # points rather than 200 000: 7scenes_a's map is redone 5 times instead of 24).
+        # points rather than 200 000: 7scenes_a's map is redone 4 times instead of 20).
         if self._pending > 1_000_000:
             self._downsample()
 

@@ -156,10 +156,14 @@ class Room:
     def fuse_map(self, config: TSDFConfig | None = None) -> TSDFMap:
         """A TSDF fused from every keyframe at its pose (replaces ``map``)."""
         tsdf = TSDFMap(config)
-        for kf in self.keyframes:
-            tsdf.integrate(kf.colour, kf.depth, self.intrinsics, kf.T_world_keyframe)
+        self.fuse_into(tsdf, self.keyframes)
         self.map = tsdf
         return tsdf
+
+    def fuse_into(self, tsdf: TSDFMap, keyframes: list[RoomKeyframe]) -> None:
+        """Integrate ``keyframes`` (this room's) into ``tsdf`` at their poses, in order."""
+        for kf in keyframes:
+            tsdf.integrate(kf.colour, kf.depth, self.intrinsics, kf.T_world_keyframe)
 
 
 def room_keyframe(

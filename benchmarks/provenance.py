@@ -3,7 +3,12 @@ a benchmark that only times other processes needs none of the heavy imports)."""
 
 from __future__ import annotations
 
+import datetime
+import os
+import platform
+import shlex
 import subprocess
+import sys
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -22,3 +27,18 @@ def git_commit() -> str:
     except OSError:
         return "unknown"
     return head + (" + uncommitted changes" if dirty else "")
+
+
+def utc_stamp() -> str:
+    """Now, as the results files date their runs."""
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def run_heading(stamp: str, note: str = "") -> list[str]:
+    """A results file's heading for this run: date and commit, the command line, the machine
+    (``note`` after it, e.g. ", one thread"), and a blank line before the table."""
+    command = shlex.join(["python", *sys.argv])
+    return [
+        f"\n## {stamp}, commit {git_commit()}",
+        f"`{command}`; {platform.platform()}, {os.cpu_count()} CPUs{note}\n",
+    ]

@@ -23,9 +23,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
-import platform  # noqa: E402
-import shlex  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -38,7 +35,7 @@ from rich.table import Table  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.provenance import git_commit  # noqa: E402
+from benchmarks.provenance import run_heading, utc_stamp  # noqa: E402
 from benchmarks.registration import parse_overrides  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
@@ -109,11 +106,9 @@ def main() -> None:
         console.print(f"{name}: ATE {row[1]} cm (colour registration {m['colour_registration']})")
     console.print(table)
     args.out.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    stamp = utc_stamp()
     lines = [
-        f"\n## {stamp}, commit {git_commit()}",
-        f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs, "
-        "one thread\n",
+        *run_heading(stamp, ", one thread"),
         "| run | ATE cm | RPE/s cm | RPE/s deg | keyframes | median ms |",
         "|---|---:|---:|---:|---:|---:|",
         *(f"| {' | '.join(r)} |" for r in rows),

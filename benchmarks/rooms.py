@@ -23,10 +23,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
-import shlex  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -41,7 +38,7 @@ from rich.table import Table  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.provenance import git_commit  # noqa: E402
+from benchmarks.provenance import git_commit, run_heading, utc_stamp  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
@@ -183,11 +180,9 @@ def main() -> None:
     console.print(table)
 
     args.out.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    stamp = utc_stamp()
     lines = [
-        f"\n## {stamp}, commit {git_commit()}",
-        f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs, "
-        "one thread (the machine may have been shared)\n",
+        *run_heading(stamp, ", one thread (the machine may have been shared)"),
         "| figure | measured | target | |",
         "|---|---|---|---|",
         *(

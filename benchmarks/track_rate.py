@@ -16,10 +16,7 @@ Prints the figures against the target, appends them to <out>/track_rate.md and w
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import resource
 import shlex
 import subprocess
@@ -35,7 +32,7 @@ from rich.table import Table
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.provenance import git_commit  # noqa: E402
+from benchmarks.provenance import git_commit, run_heading, utc_stamp  # noqa: E402
 
 TARGET_FPS = 20.0
 console = Console()
@@ -70,7 +67,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
     args = parser.parse_args()
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    stamp = utc_stamp()
     results: dict[str, dict] = {}
     table = Table(title=f"track end to end ({args.repeats} repeats, median)")
     for col in ("sequence", "mode", "frames", "wall s", "CPU s", "frames/s", "target", ""):
@@ -127,8 +124,7 @@ def main() -> None:
         )
     args.out.mkdir(parents=True, exist_ok=True)
     lines = [
-        f"\n## {stamp}, commit {git_commit()}",
-        f"`{shlex.join(['python', *sys.argv])}`; {platform.platform()}, {os.cpu_count()} CPUs\n",
+        *run_heading(stamp),
         "| sequence | mode | frames | median wall s (runs) | frames/s | target |",
         "|---|---|---:|---|---:|---|",
     ]

@@ -163,3 +163,69 @@ def test_sub_boxes_fed_between_ticks_merge_and_spawn_the_drone():
     np.testing.assert_allclose(flight.flight_map.origin, fm.origin, atol=1e-12)
     assert flight.spawned
     assert not flight.feed_from_map(object())  # a failure is logged, never raised
+
+
+def _rotation_about_y(deg: float, t) -> np.ndarray:
+    a = np.radians(deg)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = t
+    return T
+
+
+def test_a_loop_correction_shows_the_drone_in_the_corrected_world_before_its_map_follows():
+    """map_corrected goes out at once and poses come in the corrected world, while the drone's
+    map is rebuilt seconds later: meanwhile the drone is reported (and targets are read) in the
+    corrected world, so it stays where it was relative to the camera; when the rebuilt map
+    arrives the drone moves into it and nothing the client sees jumps."""
+    flight = make_flight()
+    R = flight.R_flight_world
+    scene = scenes.room_with_door()
+    fm = scene.flight_map
+    observed = np.ones(fm.shape, dtype=bool)
+    flight.map_changed(fm.origin, fm.blocked & observed, observed)
+    T = np.eye(4)
+    T[:3, :3] = R.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    T[:3, 3] = R.T @ (scene.start - [0.8, 0.0, 0.0])
+    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
+    for _ in range(50):
+        flight._tick(0.02)
+    before = flight.state()
+    assert before is not None and before.mode == "hover"
+
+    # A correction of 3 deg about the world's up (gravity is +y here) and 8 cm.
+    C = _rotation_about_y(3.0, [0.05, 0.0, 0.08])
+    flight.world_corrected(C)
+    flight.camera_moved(1, C @ T, np.full((480, 640), 3.0, np.float32))  # tracked in it
+    shown = flight.state()
+    np.testing.assert_allclose(shown.T_world_drone, C @ before.T_world_drone, atol=1e-9)
+    np.testing.assert_allclose(shown.T_camera_drone, before.T_camera_drone, atol=1e-9)
+    np.testing.assert_allclose(shown.velocity, C[:3, :3] @ before.velocity, atol=1e-9)
+    # The simulation itself has not moved: it still flies the old map.
+    np.testing.assert_allclose(
+        flight.sim.status().T_flight_drone,
+        np.linalg.inv(flight.T_world_flight) @ before.T_world_drone,
+        atol=1e-9,
+    )
+    # A target named in the corrected world is the same place of the old map to the planner.
+    goal_world = R.T @ scene.goal
+    flight.command("goto", 5, target=C[:3, :3] @ goal_world + C[:3, 3])
+    np.testing.assert_allclose(flight.sim.status().target, scene.goal, atol=1e-9)
+    np.testing.assert_allclose(flight.state().target, C[:3, :3] @ goal_world + C[:3, 3], atol=1e-9)
+    flight.command("hold", 6)
+    flight._tick(0.02)
+    held = flight.state()
+
+    # The rebuilt map (its content is not what is checked here) and the move into it.
+    flight.map_replaced(fm.origin, fm.blocked & observed, observed, C, frames=1)
+    flight._tick(0.0)
+    after = flight.state()
+    assert flight.corrections == 1
+    np.testing.assert_allclose(flight._T_view_sim, np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(after.T_world_drone[:3, 3], held.T_world_drone[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(after.T_world_drone[:3, :3], held.T_world_drone[:3, :3], atol=1e-3)
+    np.testing.assert_allclose(
+        flight.sim.status().T_flight_drone[:3, 3],
+        (np.linalg.inv(flight.T_world_flight) @ held.T_world_drone)[:3, 3],
+        atol=1e-6,
+    )

@@ -291,7 +291,7 @@ class CourseControl:
         course: Course = run.course
         rows = course.rows()
         rows[:, 0:3] = self.flight._to_world(rows[:, 0:3])
-        rows[:, 3:6] = self.flight._to_world(rows[:, 3:6])  # a rotation: normals stay unit
+        rows[:, 3:6] = self.flight._direction_to_world(rows[:, 3:6])  # normals stay unit
         self._sent_at = now_s
         return proto.make_course(
             self.course_id,

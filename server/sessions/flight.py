@@ -160,10 +160,17 @@ class Flight:
         self._pending_region: Region | None = None
         self._pending_frames: int | None = None
         # A map rebuilt in a corrected world (loop closure) with the drone's move into it
-        # (T_delta in the flight frame); regions pending before it belonged to the old map.
+        # (old world to new, world frame); regions pending before it belonged to the old map.
         self._pending_world: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None
         self._pending_world = None
         self.corrections = 0  # corrected worlds the drone moved into
+        # The client's world from the simulation's (4x4, metres): the loop corrections the
+        # tracker has taken (map_corrected went out, poses come in the corrected world) that the
+        # drone and its map have not yet (the map is rebuilt in the background, seconds later).
+        # Everything the drone reports goes out through it and every target comes in through
+        # it, so the drone stays where it was relative to the camera meanwhile.
+        self._T_view_sim = np.eye(4)
+        self._view_lock = threading.Lock()  # taken after _lock where both are held
         # Fused frames the flight map holds (the session's count; for clients that must know
         # whether the drone's map has caught up with map.frames_integrated).
         self.map_frames = 0
@@ -185,11 +192,33 @@ class Flight:
         return self.sim.spawned
 
     # ------------------------------------------------------------------ frames
+    def _T_world_flight_shown(self) -> np.ndarray:
+        """T_world_flight (4x4, metres) into the client's world: the tracker's, which may be
+        ahead of the simulation's by loop corrections not yet rebuilt into the map."""
+        with self._view_lock:
+            return self._T_view_sim @ self.T_world_flight
+
     def _to_flight(self, p_world: np.ndarray) -> np.ndarray:
-        return self.R_flight_world @ np.asarray(p_world, dtype=np.float64)
+        """A point (3,) of the client's world in the flight frame."""
+        T = invert(self._T_world_flight_shown())
+        return T[:3, :3] @ np.asarray(p_world, dtype=np.float64) + T[:3, 3]
 
     def _to_world(self, p_flight: np.ndarray) -> np.ndarray:
-        return np.asarray(p_flight, dtype=np.float64) @ self.R_flight_world
+        """Flight-frame points ((3,) or (N, 3)) in the client's world."""
+        T = self._T_world_flight_shown()
+        return np.asarray(p_flight, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+
+    def _direction_to_world(self, v_flight: np.ndarray) -> np.ndarray:
+        """Flight-frame directions or velocities ((3,) or (N, 3)) in the client's world."""
+        return np.asarray(v_flight, dtype=np.float64) @ self._T_world_flight_shown()[:3, :3].T
+
+    def world_corrected(self, T_correction: np.ndarray) -> None:
+        """The tracker moved into a corrected world (loop closure; the client was sent
+        map_corrected): T_correction (4x4, metres) maps the old world into the new one. The drone
+        is reported in the new world from now on, while it still flies the old map until
+        ``map_replaced`` brings the rebuilt one. Tracking-thread side."""
+        with self._view_lock:
+            self._T_view_sim = np.asarray(T_correction, dtype=np.float64) @ self._T_view_sim
 
     # ------------------------------------------------------------------ inputs
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
@@ -221,13 +250,11 @@ class Flight:
         world to new). The flight thread replaces the flight map and moves the drone with the
         world in one step (``DroneSimulator.move_with_world``), so it never flies a moved map
         from an unmoved place; what was pending for the old map is dropped."""
-        T_delta = (
-            invert(self.T_world_flight) @ np.asarray(T_correction, float) @ self.T_world_flight
-        )
+        T_move = np.asarray(T_correction, dtype=np.float64)
         with self._pending_lock:
             if self._pending_world is not None:  # two rebuilds before a step: moves compose
-                T_delta = T_delta @ self._pending_world[1]
-            self._pending_world = ((origin, occupied, observed), T_delta)
+                T_move = T_move @ self._pending_world[1]
+            self._pending_world = ((origin, occupied, observed), T_move)
             self._pending_map = None
             self._pending_region = None
             if frames is not None:
@@ -528,8 +555,12 @@ class Flight:
                 self._pending_map = self._pending_region = self._pending_frames = None
                 self._pending_world = None
             if world is not None:
-                self.sim.move_with_world(world[1], *world[0])
-                self.course.move_with_world(world[1])
+                T_move = world[1]
+                T_delta = invert(self.T_world_flight) @ T_move @ self.T_world_flight
+                self.sim.move_with_world(T_delta, *world[0])
+                self.course.move_with_world(T_delta)
+                with self._view_lock:  # what the client saw moved into the simulation itself
+                    self._T_view_sim = self._T_view_sim @ invert(T_move)
                 self.corrections += 1
             if grid is not None:
                 self.sim.update_map(*grid)
@@ -561,7 +592,7 @@ class Flight:
     def _spawn(self, T: np.ndarray) -> None:
         """Hover spawn_ahead_m in front of the camera, facing away from it, in observed free
         space; next to the camera when the space ahead is not known yet."""
-        forward = self.R_flight_world @ T[:3, 2]
+        forward = invert(self._T_world_flight_shown())[:3, :3] @ T[:3, 2]
         yaw = float(np.arctan2(forward[1], forward[0]))
         for near in (T[:3, 3] + self.spawn_ahead_m * T[:3, 2], T[:3, 3]):
             try:
@@ -592,10 +623,11 @@ class Flight:
                 target=None,
                 route=None,
             )
-        with self._lock:
+        with self._lock:  # the simulation and the view it is shown in, from one step
             s = self.sim.status()
+            T_world_flight = self._T_world_flight_shown()
         camera = self._latest_camera()
-        T_world_drone = self.T_world_flight @ s.T_flight_drone
+        T_world_drone = T_world_flight @ s.T_flight_drone
         T_camera_drone = None if camera is None else invert(camera[1]) @ T_world_drone
         route = None if s.route is None or len(s.route) == 0 else self._to_world(s.route)
         return DroneUpdate(
@@ -603,7 +635,7 @@ class Flight:
             T_world_drone=T_world_drone,
             T_camera_drone=T_camera_drone,
             camera_seq=None if camera is None else camera[0],
-            velocity=self._to_world(s.velocity),
+            velocity=self._direction_to_world(s.velocity),
             mode=s.mode.value,
             clearance=float(s.clearance),
             target=None if s.target is None else self._to_world(s.target),

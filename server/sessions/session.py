@@ -392,6 +392,8 @@ class Session:
                         self.failures.loops_failed += 1
                     continue
             self._world = c.world
+            if self.flight is not None:  # the drone is shown in the corrected world at once
+                self.flight.world_corrected(c.T_correction)
             with self._lock:
                 from_seq = self._last_seq_processed + 1
             keyframes = [(i, c.seqs[i], T) for i, T in sorted(c.keyframes.items())]

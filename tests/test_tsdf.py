@@ -95,6 +95,41 @@ def test_save_and_load_restore_the_same_surface(fused, tmp_path):
     stats = restored.stats()
     assert stats["frames_integrated"] == len(FUSED)
     assert stats["active_blocks"] == fused.stats()["active_blocks"]
+    # Colours and the drone's occupancy come back too.
+    colours_before, colours_after = fused.point_cloud()[1], restored.point_cloud()[1]
+    assert abs(colours_after.mean() - colours_before.mean()) < 2 / 255
+    for a, b in zip(fused.occupancy(0.05), restored.occupancy(0.05), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # Compact: TSDF as float16 and colour as uint8, deflated - well under a third of the
+    # float32 grid's 20 bytes per voxel.
+    grid_bytes = stats["active_blocks"] * small_config().block_resolution ** 3 * 20
+    assert (tmp_path / "map.npz").stat().st_size < grid_bytes / 3
+
+
+def test_a_map_saved_in_open3ds_own_layout_still_loads(fused, tmp_path):
+    """Rooms saved before the compact format (Open3D's VoxelBlockGrid layout) keep opening."""
+    fused._grid.save(str(tmp_path / "old.npz"))
+    restored = TSDFMap.load(tmp_path / "old.npz")
+    before, after = fused.point_cloud()[0], restored.point_cloud()[0]
+    assert abs(len(after) - len(before)) <= 0.01 * len(before)
+    assert np.median(cKDTree(before).query(after)[0]) < 1e-4
+
+
+def test_a_damaged_or_foreign_map_file_is_refused_clearly(fused, tmp_path):
+    from server.mapping.tsdf import MapError
+
+    fused.save(tmp_path / "map.npz")
+    with np.load(tmp_path / "map.npz") as stored:
+        arrays = dict(stored)
+    np.savez(tmp_path / "future.npz", **{**arrays, "format": np.array("dronesim-tsdf-9")})
+    with pytest.raises(MapError, match="unknown map format"):
+        TSDFMap.load(tmp_path / "future.npz")
+    np.savez(tmp_path / "cut.npz", **{**arrays, "tsdf": arrays["tsdf"][:-1]})
+    with pytest.raises(MapError, match="shape"):
+        TSDFMap.load(tmp_path / "cut.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file")
+    with pytest.raises(MapError, match="cannot load"):
+        TSDFMap.load(tmp_path / "junk.npz")
 
 
 def test_invalid_depth_is_ignored(room):

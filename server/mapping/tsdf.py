@@ -15,6 +15,7 @@ import logging
 import threading
 import zipfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import cast
 
@@ -89,6 +90,44 @@ def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: objec
 
 
 _ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB 0..1
+# What TSDFMap.save writes (a zip of .npy arrays; see save), named inside the file.
+FILE_FORMAT = "dronesim-tsdf-2"
+
+
+def _new_grid(config: TSDFConfig, block_count: int) -> o3d.t.geometry.VoxelBlockGrid:
+    f32 = o3c.float32
+    return o3d.t.geometry.VoxelBlockGrid(
+        list(_ATTRIBUTES),
+        [f32, f32, f32],
+        [o3c.SizeVector([1]), o3c.SizeVector([1]), o3c.SizeVector([3])],
+        config.voxel_m,
+        config.block_resolution,
+        block_count,
+        o3c.Device(config.device),
+    )
+
+
+def _grid_from_blocks(
+    config: TSDFConfig, keys: NDArray[np.int32], values: dict[str, Float32Array]
+) -> o3d.t.geometry.VoxelBlockGrid:
+    """A grid holding the given blocks: keys (N, 3) block coordinates, values per attribute
+    (N, R, R, R, channels), on the CPU (``load`` moves it to the configured device)."""
+    n = len(keys)
+    r = config.block_resolution
+    for name, channels in zip(_ATTRIBUTES, (1, 1, 3), strict=True):
+        if values[name].shape != (n, r, r, r, channels):
+            raise ValueError(
+                f"map {name} has shape {values[name].shape}, not {(n, r, r, r, channels)}"
+            )
+    grid = _new_grid(replace(config, device="CPU:0"), max(config.block_count, n))
+    if n == 0:
+        return grid
+    coords = o3c.Tensor(np.ascontiguousarray(keys, np.int32), o3c.int32, _HOST)
+    buf, _ = grid.hashmap().activate(coords)
+    index = buf.to(o3c.int64).numpy()
+    for name in _ATTRIBUTES:
+        grid.attribute(name).numpy()[index] = values[name]  # a view of the grid's own buffer
+    return grid
 
 
 class TSDFMap:
@@ -105,16 +144,7 @@ class TSDFMap:
         self.config = config = config or TSDFConfig()
         self._device = o3c.Device(config.device)
         if grid is None:
-            f32 = o3c.float32
-            grid = o3d.t.geometry.VoxelBlockGrid(
-                list(_ATTRIBUTES),
-                [f32, f32, f32],
-                [o3c.SizeVector([1]), o3c.SizeVector([1]), o3c.SizeVector([3])],
-                config.voxel_m,
-                config.block_resolution,
-                config.block_count,
-                self._device,
-            )
+            grid = _new_grid(config, config.block_count)
         self._grid = grid
         self._lock = threading.Lock()
         # Where each fused frame's camera was: known free space, even just behind the camera.
@@ -469,52 +499,80 @@ class TSDFMap:
         _open3d_write(path, o3d.io.write_triangle_mesh, mesh)
 
     def save(self, path: str | Path) -> None:
-        """Persist the whole grid and the camera positions, written atomically, in the layout of
-        Open3D's ``VoxelBlockGrid.save`` (``load`` reads it with Open3D's own reader). Written
-        here rather than by Open3D: its save gathers the active blocks ~20x slower than numpy
-        does (1.1 s against 0.06 s for a room), under the lock that fusion waits for."""
+        """Persist the whole grid and the camera positions, written atomically: a zip of numpy
+        arrays (``FILE_FORMAT``), deflated, TSDF values as float16 (-1..1: steps of at most
+        1/2048 of the truncation) and colours as uint8, about a tenth of the float32 grid (a
+        600-frame room: 64 MB -> 6 MB). Gathered with numpy rather than Open3D's own save, which
+        is ~20x slower at it, under the lock that fusion waits for."""
         with self._lock:
             hashmap = self._grid.hashmap()
             active = hashmap.active_buf_indices().to(o3c.int64).numpy()
-            arrays = {"key": hashmap.key_tensor().numpy()[active]}
-            for i, name in enumerate(_ATTRIBUTES):
-                arrays[f"value_{i:03d}"] = self._grid.attribute(name).numpy()[active]
-                arrays[f"attr_name_{name}"] = np.array([i], np.int32)
+            keys = hashmap.key_tensor().numpy()[active]
+            values = {name: self._grid.attribute(name).numpy()[active] for name in _ATTRIBUTES}
             cameras = np.array(self._cameras).reshape(-1, 3)
-        arrays[self.config.device] = np.array(0, np.uint8)  # Open3D's reader wants the device
-        arrays["block_resolution"] = np.array([self.config.block_resolution], np.int64)
-        arrays["voxel_size"] = np.array([self.config.voxel_m], np.float32)
-        arrays["camera_positions"] = cameras
+        colour = values["color"]
+        # Open3D keeps the averaged colour on the scale it was given (0..255 here); a grid on
+        # 0..1 is stored scaled up, so that uint8 steps stay fine either way.
+        colour_scale = 1.0 if colour.size == 0 or float(colour.max()) > 1.0 + 1e-6 else 1.0 / 255
+        arrays = {
+            "format": np.array(FILE_FORMAT),
+            "key": keys,
+            "tsdf": values["tsdf"].astype(np.float16),
+            "weight": values["weight"],
+            "color": np.clip(np.rint(colour / colour_scale), 0, 255).astype(np.uint8),
+            "color_scale": np.array(colour_scale, np.float64),
+            "block_resolution": np.array(self.config.block_resolution, np.int64),
+            "voxel_size": np.array(self.config.voxel_m, np.float64),
+            "camera_positions": cameras,
+        }
 
         def write(tmp: str) -> None:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
+            # Level 1: most of level 6's size (6.4 against 5.8 MB) in half the time (0.5 s).
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+                for name, array in arrays.items():
+                    with z.open(f"{name}.npy", "w", force_zip64=True) as f:
+                        np.lib.format.write_array(f, array, allow_pickle=False)
 
         atomic_write(path, write, suffix=".npz", mode=0o644)
         log.info("saved TSDF map (%d blocks) to %s", len(active), path)
 
     @classmethod
     def load(cls, path: str | Path, config: TSDFConfig | None = None) -> TSDFMap:
-        """Restore a map written by ``save``. ``config`` must match the file's voxel size and block
+        """Restore a map written by ``save`` (or by an earlier version's, in the layout of
+        Open3D's ``VoxelBlockGrid.save``). ``config`` must match the file's voxel size and block
         resolution; None takes them from the file (other settings at their defaults)."""
         path = Path(path)
         if not path.is_file():
             raise MapError(f"no TSDF map file at {path}")
         try:
-            grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
-            with np.load(path) as stored:
+            with np.load(path, allow_pickle=False) as stored:
                 voxel_m = float(np.ravel(stored["voxel_size"])[0])
                 resolution = int(np.ravel(stored["block_resolution"])[0])
                 cameras = stored["camera_positions"] if "camera_positions" in stored else None
+                compact = "format" in stored
+                if compact:
+                    if str(stored["format"]) != FILE_FORMAT:
+                        raise ValueError(f"unknown map format {stored['format']}")
+                    keys = stored["key"]
+                    values = {
+                        "tsdf": stored["tsdf"].astype(np.float32),
+                        "weight": stored["weight"].astype(np.float32),
+                        "color": stored["color"].astype(np.float32)
+                        * np.float32(stored["color_scale"]),
+                    }
+            if config is None:
+                config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
+            elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
+                raise ConfigError(
+                    f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
+                    f"asks for {config.voxel_m} m in {config.block_resolution}^3"
+                )
+            if compact:
+                grid = _grid_from_blocks(config, keys, values)
+            else:
+                grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
         except (OSError, RuntimeError, KeyError, ValueError, zipfile.BadZipFile) as exc:
             raise MapError(f"cannot load a TSDF map from {path}: {exc}") from exc
-        if config is None:
-            config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
-        elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
-            raise ConfigError(
-                f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
-                f"asks for {config.voxel_m} m in {config.block_resolution}^3"
-            )
         return cls(config, grid=grid.to(o3c.Device(config.device)), camera_positions=cameras)
 
     def stats(self) -> dict[str, int | float]:

@@ -11,8 +11,10 @@ first row is always the defaults, the baseline of the same sitting.
         --set "depth.colour_focal_scale=0.9 depth.colour_offset_u_px=8"
 
 Each ``--set`` is one run (several changes in one run: space-separated, quoted). Prints ATE
-RMSE, RPE per second, keyframes and the median ms per frame (one thread), appends the table to
-<out>/registration_sweep.md.
+RMSE, RPE per second, the rotation gain over 5 frames (``metrics.rotation_gain``: the estimate's
+slope on the ground truth / the ground truth's on the estimate; both 1 when it turns as much,
+x < 1 < y when it turns less), keyframes and the median ms per frame (one thread), appends the
+table to <out>/registration_sweep.md.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ sys.path.insert(0, str(REPO_ROOT))
 from benchmarks.provenance import run_heading, utc_stamp  # noqa: E402
 from benchmarks.registration import parse_overrides  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
-from server.evaluation.metrics import evaluate  # noqa: E402
+from server.evaluation.metrics import associate_trajectories, evaluate, rotation_gain  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.registration import Tracker  # noqa: E402
@@ -62,9 +64,12 @@ def track_all(ds, frames, cfg: RegistrationConfig) -> dict:
         ms.append((time.perf_counter() - t0) * 1e3)
         poses.append(result.T_world_camera)
     stamps = np.array([f.timestamp for f in frames])
-    metrics = evaluate(ds.ground_truth, Trajectory(stamps, np.array(poses)))
+    est = Trajectory(stamps, np.array(poses))
+    metrics = evaluate(ds.ground_truth, est)
+    gain = rotation_gain(*associate_trajectories(ds.ground_truth, est))
     return {
         **metrics,
+        "rotation_gain": (gain["est_on_gt"], gain["gt_on_est"]),
         "keyframes": tracker.keyframe_count,
         "median_ms": float(np.median(ms[1:])),
         "colour_registration": to_depth.mapping,
@@ -88,7 +93,8 @@ def main() -> None:
         overrides = parse_overrides(change.split())
         runs.append((change, RegistrationConfig().with_overrides(**overrides)))
     table = Table(title=f"{ds.name}, {n} frames, sparse + dense")
-    for col in ("run", "ATE cm", "RPE/s cm", "RPE/s deg", "keyframes", "median ms"):
+    columns = ("run", "ATE cm", "RPE/s cm", "RPE/s deg", "rotation gain", "keyframes", "median ms")
+    for col in columns:
         table.add_column(col, justify="right")
     rows = []
     for name, cfg in runs:
@@ -98,6 +104,7 @@ def main() -> None:
             f"{100 * m['ate_rmse_m']:.2f}",
             f"{100 * m['rpe_trans_per_second_m']:.2f}",
             f"{m['rpe_rot_per_second_deg']:.2f}",
+            "{:.3f} / {:.3f}".format(*m["rotation_gain"]),
             str(m["keyframes"]),
             f"{m['median_ms']:.1f}",
         )
@@ -109,8 +116,8 @@ def main() -> None:
     stamp = utc_stamp()
     lines = [
         *run_heading(stamp, ", one thread"),
-        "| run | ATE cm | RPE/s cm | RPE/s deg | keyframes | median ms |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| run | ATE cm | RPE/s cm | RPE/s deg | rotation gain | keyframes | median ms |",
+        "|---|---:|---:|---:|---:|---:|---:|",
         *(f"| {' | '.join(r)} |" for r in rows),
     ]
     with open(args.out / "registration_sweep.md", "a") as f:

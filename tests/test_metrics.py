@@ -182,3 +182,31 @@ def test_missing_or_empty_tum_file_raises(tmp_path):
     (tmp_path / "empty.txt").write_text("# nothing\n")
     with pytest.raises(TrajectoryError, match="no poses"):
         read_tum(tmp_path / "empty.txt")
+
+
+def test_rotation_gain_tells_a_tracker_that_turns_too_little_from_noise():
+    from server.evaluation.metrics import rotation_gain
+
+    rng = np.random.default_rng(4)
+    n = 200
+    xi = np.zeros((n, 6))
+    xi[:, :3] = rng.normal(0, 0.02, (n, 3))  # omega, rad per frame
+    xi[:, 3:] = rng.normal(0, 0.01, (n, 3))  # m per frame
+    gt_poses, slow_poses, noisy_poses = [np.eye(4)], [np.eye(4)], [np.eye(4)]
+    for k in range(1, n):
+        gt_poses.append(gt_poses[-1] @ exp_se3(xi[k]))
+        slow = xi[k].copy()
+        slow[:3] *= 0.9  # sees 90 % of each rotation
+        slow_poses.append(slow_poses[-1] @ exp_se3(slow))
+        noisy = xi[k].copy()
+        noisy[:3] += rng.normal(0, 0.004, 3)
+        noisy_poses.append(noisy_poses[-1] @ exp_se3(noisy))
+    t = np.arange(n) / 30.0
+    gt = Trajectory(t, np.array(gt_poses))
+    same = rotation_gain(gt, gt)
+    assert same["est_on_gt"] == pytest.approx(1.0) and same["gt_on_est"] == pytest.approx(1.0)
+    slow = rotation_gain(gt, Trajectory(t, np.array(slow_poses)))
+    assert slow["est_on_gt"] == pytest.approx(0.9, abs=0.01)
+    assert slow["gt_on_est"] == pytest.approx(1 / 0.9, abs=0.015)
+    noisy = rotation_gain(gt, Trajectory(t, np.array(noisy_poses)))
+    assert noisy["est_on_gt"] == pytest.approx(1.0, abs=0.03) and noisy["gt_on_est"] < 1.0

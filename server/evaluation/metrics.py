@@ -164,6 +164,37 @@ def rpe(
     }
 
 
+def _rotation_vectors(R: np.ndarray) -> np.ndarray:
+    """Axis times angle (radians) of (N, 3, 3) rotations, for angles below pi."""
+    angles = np.radians(_rotation_angles_deg(R))
+    axis = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    norm = np.linalg.norm(axis, axis=1)
+    scale = np.divide(angles, norm, out=np.zeros_like(angles), where=norm > 1e-12)
+    return axis * scale[:, None]
+
+
+def rotation_gain(gt: Trajectory, est: Trajectory, delta: int = 5) -> dict[str, float]:
+    """How much of the ground truth's rotation the estimate sees, over ``delta`` frames.
+
+    Each pair (i, i + delta) gives the relative rotation vectors of both (each in its own camera
+    frame i: no alignment needed). Returns the least-squares slopes of the estimate on the
+    ground truth (``est_on_gt``) and of the ground truth on the estimate (``gt_on_est``). Noise
+    in either pulls both slopes below 1; a true gain g gives est_on_gt <= g <= 1 / gt_on_est,
+    so est_on_gt < 1 < gt_on_est means the estimate turns less than the ground truth."""
+    _check_paired(gt, est)
+    i, j = _pairs(gt, delta, DeltaUnit.frames)
+    if len(i) == 0:
+        raise TrajectoryError(f"no pose pairs {delta} frames apart in {len(gt)} poses")
+    a = _rotation_vectors((np.linalg.inv(gt.poses[i]) @ gt.poses[j])[:, :3, :3])
+    b = _rotation_vectors((np.linalg.inv(est.poses[i]) @ est.poses[j])[:, :3, :3])
+    ab = float(np.sum(a * b))
+    return {
+        "est_on_gt": ab / float(np.sum(a * a)),
+        "gt_on_est": ab / float(np.sum(b * b)),
+        "pairs": int(len(i)),
+    }
+
+
 def evaluate(gt: Trajectory, est: Trajectory, max_diff: float = 0.02) -> dict[str, float]:
     """Associate ``est`` with ``gt`` and compute the headline metrics (metres, degrees).
 

@@ -212,6 +212,10 @@ def test_a_loop_correction_shows_the_drone_in_the_corrected_world_before_its_map
     flight.command("goto", 5, target=C[:3, :3] @ goal_world + C[:3, 3])
     np.testing.assert_allclose(flight.sim.status().target, scene.goal, atol=1e-9)
     np.testing.assert_allclose(flight.state().target, C[:3, :3] @ goal_world + C[:3, 3], atol=1e-9)
+    # A tap on the frame from before the correction is read in its corrected pose.
+    np.testing.assert_allclose(
+        flight._pixel_target((320.0, 240.0), 0), flight._pixel_target((320.0, 240.0), 1)
+    )
     flight.command("hold", 6)
     flight._tick(0.02)
     held = flight.state()

@@ -216,9 +216,15 @@ class Flight:
         """The tracker moved into a corrected world (loop closure; the client was sent
         map_corrected): T_correction (4x4, metres) maps the old world into the new one. The drone
         is reported in the new world from now on, while it still flies the old map until
-        ``map_replaced`` brings the rebuilt one. Tracking-thread side."""
+        ``map_replaced`` brings the rebuilt one. The recent camera frames move with the
+        world too (a tap on a frame from before the correction still lands where it showed).
+        Tracking-thread side."""
+        T = np.asarray(T_correction, dtype=np.float64)
+        with self._frames_lock:
+            for frame in self._frames.values():
+                frame.T_world_camera = T @ frame.T_world_camera
         with self._view_lock:
-            self._T_view_sim = np.asarray(T_correction, dtype=np.float64) @ self._T_view_sim
+            self._T_view_sim = T @ self._T_view_sim
 
     # ------------------------------------------------------------------ inputs
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:

@@ -3,7 +3,7 @@
 "World" is the frame of the poses given to ``integrate`` (``T_world_camera``, 4x4, metres; camera
 x right, y down, z forward); everything returned is in the world frame, in metres. Per voxel the
 grid holds a TSDF value (signed distance / truncation, -1..1), a weight (observations) and an RGB
-colour (0..1), all float32. Open3D allocates blocks only near surfaces; ``carve_free_space`` also
+colour (0..255 in the grid, 0..1 where returned), all float32 (saved smaller: ``save``). Open3D allocates blocks only near surfaces; ``carve_free_space`` also
 allocates the blocks sparse camera rays cross, so the space seen empty (TSDF +1) is recorded too,
 which ``occupancy`` needs to tell free space from unknown space. ``occupancy_update`` returns only
 the part of that grid the frames fused since its last call can have changed.
@@ -89,7 +89,7 @@ def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: objec
     atomic_write(path, write, suffix=".ply", mode=0o644)
 
 
-_ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB 0..1
+_ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB
 # What TSDFMap.save writes (a zip of .npy arrays; see save), named inside the file.
 FILE_FORMAT = "dronesim-tsdf-2"
 
@@ -511,8 +511,8 @@ class TSDFMap:
             values = {name: self._grid.attribute(name).numpy()[active] for name in _ATTRIBUTES}
             cameras = np.array(self._cameras).reshape(-1, 3)
         colour = values["color"]
-        # Open3D keeps the averaged colour on the scale it was given (0..255 here); a grid on
-        # 0..1 is stored scaled up, so that uint8 steps stay fine either way.
+        # Open3D's grid holds colour on 0..255 (given the 0..1 images integrate makes); should
+        # a grid hold 0..1, it is stored scaled up, so that uint8 steps stay fine either way.
         colour_scale = 1.0 if colour.size == 0 or float(colour.max()) > 1.0 + 1e-6 else 1.0 / 255
         arrays = {
             "format": np.array(FILE_FORMAT),

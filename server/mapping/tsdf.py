@@ -3,9 +3,10 @@
 "World" is the frame of the poses given to ``integrate`` (``T_world_camera``, 4x4, metres; camera
 x right, y down, z forward); everything returned is in the world frame, in metres. Per voxel the
 grid holds a TSDF value (signed distance / truncation, -1..1), a weight (observations) and an RGB
-colour (0..255 in the grid, 0..1 where returned), all float32 (saved smaller: ``save``). Open3D allocates blocks only near surfaces; ``carve_free_space`` also
-allocates the blocks sparse camera rays cross, so the space seen empty (TSDF +1) is recorded too,
-which ``occupancy`` needs to tell free space from unknown space. ``occupancy_update`` returns only
+colour (0..255 in the grid, 0..1 where returned), all float32 (saved smaller: ``save``). Open3D
+allocates blocks only near surfaces; ``carve_free_space`` also allocates the blocks sparse camera
+rays cross, so the space seen empty (TSDF +1) is recorded too, which ``occupancy`` needs to tell
+free space from unknown space. ``occupancy_update`` returns only
 the part of that grid the frames fused since its last call can have changed.
 """
 

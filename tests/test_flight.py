@@ -33,6 +33,22 @@ def make_flight(gravity=None, published=None) -> Flight:
     return Flight(SimulationConfig(), K, gravity, out.append, state_hz=50.0)
 
 
+def _in_the_door_room(flight: Flight):
+    """Hand the flight the door scene's grid as the session would (an occupancy grid in the
+    flight frame) and a camera frame 0.8 m behind the scene's start, looking along flight +x.
+    -> (scene, T_world_camera)."""
+    R = flight.R_flight_world
+    scene = scenes.room_with_door()
+    fm = scene.flight_map
+    observed = np.ones(fm.shape, dtype=bool)
+    flight.map_changed(fm.origin, fm.blocked & observed, observed)
+    T = np.eye(4)
+    T[:3, :3] = R.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera axes in flight
+    T[:3, 3] = R.T @ (scene.start - [0.8, 0.0, 0.0])
+    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
+    return scene, T
+
+
 def test_a_tapped_pixel_is_the_surface_point_it_shows_standoff_back():
     flight = make_flight()
     T = exp_se3(np.array([0.1, -0.2, 0.05, 0.3, -0.1, 0.5]))
@@ -70,16 +86,8 @@ def test_with_a_tilted_phone_the_drone_flies_level_and_reports_in_the_world_fram
     published = []
     flight = make_flight(gravity, published)
     R = flight.R_flight_world
-    scene = scenes.room_with_door()
+    scene, T = _in_the_door_room(flight)
     fm = scene.flight_map
-    # Hand over the scene's grid as the session would: an occupancy grid in the flight frame.
-    observed = np.ones(fm.shape, dtype=bool)
-    flight.map_changed(fm.origin, fm.blocked & observed, observed)
-    # A camera standing where the scene's start is, looking along flight +x.
-    T = np.eye(4)
-    T[:3, :3] = R.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera axes in flight
-    T[:3, 3] = R.T @ (scene.start - [0.8, 0.0, 0.0])
-    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
     for _ in range(3):
         flight._tick(0.02)
     assert flight.spawned
@@ -180,14 +188,9 @@ def test_a_loop_correction_shows_the_drone_in_the_corrected_world_before_its_map
     arrives the drone moves into it and nothing the client sees jumps."""
     flight = make_flight()
     R = flight.R_flight_world
-    scene = scenes.room_with_door()
+    scene, T = _in_the_door_room(flight)
     fm = scene.flight_map
     observed = np.ones(fm.shape, dtype=bool)
-    flight.map_changed(fm.origin, fm.blocked & observed, observed)
-    T = np.eye(4)
-    T[:3, :3] = R.T @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])
-    T[:3, 3] = R.T @ (scene.start - [0.8, 0.0, 0.0])
-    flight.camera_moved(0, T, np.full((480, 640), 3.0, np.float32))
     for _ in range(50):
         flight._tick(0.02)
     before = flight.state()

@@ -139,7 +139,12 @@ def run_odometry(
                 behind.submit(_add_keyframe, room, room_map, closer, result, colour, frame, i, cfg)
             results.append(result)
             stamps.append(frame.timestamp)
-            if result.state.value != "lost" and (result.new_keyframe or i % fuse_every == 0):
+            # A held repeat (TrackResult.repeated) pairs images of two moments: not fused.
+            if (
+                result.state.value != "lost"
+                and result.repeated is None
+                and (result.new_keyframe or i % fuse_every == 0)
+            ):
                 behind.submit(
                     world_map.fuse, colour, frame.depth, dataset.intrinsics, result.T_world_camera
                 )
@@ -188,6 +193,8 @@ def run_odometry(
         ),
         "room_keyframes": len(room.keyframes),
         "states": dict(Counter(r.state.value for r in results)),
+        # frames that repeated the one before's colour or depth, held at its pose
+        "repeated": dict(Counter(r.repeated for r in results if r.repeated is not None)),
         "median_ms": float(np.median(times)),
         "p90_ms": float(np.percentile(times, 90)),
         # The phone's odometry as the prior: frames that carried it, and frames whose initial

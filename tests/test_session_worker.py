@@ -138,3 +138,24 @@ def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
         assert session.status()["frames_failed"] == 1
     finally:
         session.stop(save=False)
+
+
+def test_a_repeated_frame_is_held_at_the_last_pose_and_counted(manager, room):
+    """A frame with the same images as the one before (a phone that sends its last depth again)
+    keeps the previous pose, is not fused, and the status counts it."""
+    session, _ = manager.create()
+    updates = Updates()
+    session.start(updates)
+    session.configure(hello(room))
+    for seq in range(2):
+        session.submit(seq, frame_bytes(room, seq))
+        assert session.drain(30)
+    f = room[1]
+    session.submit(2, P.encode(P.make_frame(2, f.timestamp + 1 / 30, f.colour, f.depth)))
+    assert session.drain(30)
+    poses = updates.wait_for(PoseUpdate, 3)
+    assert [p.seq for p in poses] == [0, 1, 2]
+    np.testing.assert_array_equal(poses[2].T_world_camera, poses[1].T_world_camera)
+    assert poses[2].state == poses[1].state == "ok"
+    status = session.status()
+    assert status["frames_repeated"] == 1 and status["frames_processed"] == 3

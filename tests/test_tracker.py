@@ -9,7 +9,7 @@ from server.datasets import open_dataset
 from server.evaluation.metrics import evaluate
 from server.evaluation.trajectory import Trajectory
 from server.geometry import invert, rotation_angle_deg
-from server.pipeline import ground_truth_pose_at
+from server.pipeline import ground_truth_pose_at, run_odometry
 from server.registration import Tracker, TrackingState
 from server.registration.config import RegistrationConfig
 
@@ -276,3 +276,54 @@ def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean
     # Registered streams pass through untouched.
     plain = ColourToDepth(ds.intrinsics, config.depth)
     assert plain(f.colour, f.depth) is f.colour and plain.mapping is None
+
+
+def test_a_frame_that_repeats_its_colour_or_depth_is_held_at_the_last_pose(demo_clean):
+    """Colour of one moment with depth of another (a depth sensor slower than the camera, a
+    dropped frame filled with a repeat) is not tracked: the frame keeps the previous pose and
+    state, and the next frame is tracked over the gap as usual."""
+    ds = open_dataset(demo_clean)
+    tracker = Tracker(ds.intrinsics, T_world_first=gt_at(ds, 0))
+    for i in range(4):
+        last = tracker.track(ds[i].colour, ds[i].depth)
+        tracker.update_keyframe()
+    keyframes = tracker.keyframe_count
+    held = [
+        tracker.track(ds[4].colour, ds[3].depth),  # new colour, the same depth
+        tracker.track(ds[4].colour, ds[5].depth),  # the same colour, new depth
+        tracker.track(ds[4].colour, ds[5].depth),  # both the same
+    ]
+    assert [r.repeated for r in held] == ["depth", "colour", "both"]
+    for r in held:
+        np.testing.assert_array_equal(r.T_world_camera, last.T_world_camera)
+        assert r.state is last.state and not r.new_keyframe and not r.keyframe_due
+        tracker.update_keyframe()
+    assert tracker.keyframe_count == keyframes
+    # Three frames later the camera has moved on: tracked from the prediction over the gap.
+    after = tracker.track(ds[7].colour, ds[7].depth)
+    assert after.repeated is None and after.state is TrackingState.OK
+    dt, dr = relative_error(after.T_world_camera, gt_at(ds, 7))
+    assert dt < 0.002 and dr < 0.1
+
+
+def test_holding_repeated_frames_can_be_turned_off(demo_clean):
+    ds = open_dataset(demo_clean)
+    config = RegistrationConfig().with_overrides(state={"hold_repeated_frames": False})
+    tracker = Tracker(ds.intrinsics, config, T_world_first=gt_at(ds, 0))
+    first = tracker.track(ds[0].colour, ds[0].depth)
+    tracker.update_keyframe()
+    tracked = tracker.track(ds[2].colour, ds[0].depth)  # new colour, the first frame's depth
+    assert tracked.repeated is None
+    assert not np.array_equal(tracked.T_world_camera, first.T_world_camera)
+
+
+def test_out_of_step_frames_of_7scenes_are_held_and_not_fused(shared_data):
+    """7scenes_a frames 215-235: frame 222 repeats its depth (colour new), 228 and 234 repeat
+    both images. ``track`` holds them and leaves them out of the map."""
+    ds = open_dataset(shared_data / "7scenes_a")
+    run = run_odometry(ds, max_frames=21, start=215, progress=False, keep_room=False)
+    assert run.summary["repeated"] == {"depth": 1, "both": 2}
+    poses = run.trajectory.poses
+    for k in (222 - 215, 228 - 215, 234 - 215):
+        np.testing.assert_array_equal(poses[k], poses[k - 1])
+    assert all(r.state is not TrackingState.LOST for r in run.results)

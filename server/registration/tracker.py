@@ -77,6 +77,9 @@ class TrackResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     keyframe_due: bool = False  # track() left a keyframe switch or a new keyframe pending
     prior_used: bool = False  # the initial guess came from the device's own pose
+    # "colour", "depth" or "both": this frame repeats the previous frame's image(s) and was held
+    # at that frame's pose, not tracked (state.hold_repeated_frames); None for a tracked frame.
+    repeated: str | None = None
 
 
 @dataclass
@@ -160,6 +163,11 @@ class Tracker:
         # Keyframes of a saved map (a room) this session continues in: candidates for a keyframe
         # switch beside the recent ones, so that tracking goes back to the map where it can.
         self.map_keyframes: list[Keyframe] = []
+        # The previous frame's images as given (to tell a repeated one), the last result, and
+        # how many frames have been held since the last tracked one.
+        self._previous: tuple[GreyImage, Float32Array] | None = None
+        self._last_result: TrackResult | None = None
+        self.held = 0
 
     @property
     def T_world_device(self) -> FloatArray | None:
@@ -186,6 +194,7 @@ class Tracker:
         self.pending = None
         self.T_world_last = orthonormalize(np.asarray(T_world_camera, dtype=np.float64))
         self.velocity = np.eye(4)
+        self.held = 0
         self.lost = False
         self.device_last = None
         self.alignment.reset()
@@ -244,16 +253,25 @@ class Tracker:
         self.frame_count += 1
         t0 = time.perf_counter()
         grey = to_grey(colour)
+        repeated = self._repeated(grey, depth)
+        if repeated is not None and self._last_result is not None and not self.lost:
+            return self._hold(index, repeated, {"preprocess": _ms(t0)})
         depth = clean_depth(depth, self.cfg.depth)
         timings = {"preprocess": _ms(t0)}
         prior = self._check_prior(T_device_camera)
 
         if self.keyframe is None:
-            return self._start(index, grey, depth, timings, prior)
+            return self._remember(self._start(index, grey, depth, timings, prior))
 
         # 1. Predict the pose: by the device's own motion when it sends one, else with a
-        # constant-velocity model (also the fallback when the prior's guess fails).
-        T_world_pred = orthonormalize(self.T_world_last @ self.velocity)
+        # constant-velocity model (also the fallback when the prior's guess fails), over the
+        # frames held since the last tracked one too.
+        T_world_pred = self.T_world_last
+        for _ in range(1 + self.held):
+            T_world_pred = T_world_pred @ self.velocity
+        T_world_pred = orthonormalize(T_world_pred)
+        gap = 1 + self.held
+        self.held = 0
         T_world_prior = self._prior_guess(prior)
 
         # 2-3. Track corners (from the previous frame, or from keyframes after a loss), solve.
@@ -275,13 +293,16 @@ class Tracker:
         if state in (None, TrackingState.LOST) and prior is not None and T_world_prior is not None:
             resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
             if resumed is not None:
-                return resumed
+                return self._remember(resumed)
         if found is None:
-            return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
+            return self._remember(
+                self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
+            )
         kf, solution = found.kf, found.solution
         if state is None or state is TrackingState.LOST:
-            return self._lose(
-                index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition
+            n_inliers = int(solution.inliers.sum())
+            return self._remember(
+                self._lose(index, grey, timings, n_inliers, solution.rmse, solution.condition)
             )
 
         # 4. Dense refinement from the sparse estimate.
@@ -293,7 +314,10 @@ class Tracker:
 
         # 5. Accept the pose, keep the surviving tracks, and note whether a keyframe change is due.
         T_world_cur = orthonormalize(kf.T_world_keyframe @ T_kf_cur)
-        self.velocity = invert(self.T_world_last) @ T_world_cur if not self.lost else np.eye(4)
+        if self.lost:
+            self.velocity = np.eye(4)
+        elif gap == 1:  # after held frames the motion spans several frames: keep the old one
+            self.velocity = invert(self.T_world_last) @ T_world_cur
         self.T_world_last = T_world_cur
         self.lost = False
         self.keyframe = kf
@@ -319,7 +343,7 @@ class Tracker:
         )
         if due:
             self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result, found)
-        return result
+        return self._remember(result)
 
     def update_keyframe(self) -> bool:
         """Carry out the keyframe change the last :meth:`track` found due: go back to an earlier
@@ -350,6 +374,43 @@ class Tracker:
         return new_kf
 
     # ------------------------------------------------------------------ stages
+    def _repeated(self, grey: GreyImage, depth: Float32Array) -> str | None:
+        """Which of this frame's images are the very same as the previous frame's: "colour",
+        "depth", "both" or None (state.hold_repeated_frames; None when that is off)."""
+        previous = self._previous
+        self._previous = (grey, np.array(depth, copy=True))
+        if previous is None or not self.cfg.state.hold_repeated_frames:
+            return None
+        same_colour = previous[0].shape == grey.shape and np.array_equal(previous[0], grey)
+        same_depth = previous[1].shape == depth.shape and np.array_equal(previous[1], depth)
+        if same_colour and same_depth:
+            return "both"
+        return "colour" if same_colour else "depth" if same_depth else None
+
+    def _hold(self, index: int, repeated: str, timings: dict[str, float]) -> TrackResult:
+        """A repeated frame: the previous frame's pose and state, nothing tracked or changed."""
+        last = self._last_result
+        assert last is not None
+        self.held += 1
+        timings["total"] = sum(timings.values())
+        kf_id = self.keyframe.id if self.keyframe is not None else last.keyframe_id
+        return TrackResult(
+            index,
+            self.T_world_last.copy(),
+            last.state,
+            last.inliers,
+            last.rmse,
+            last.condition,
+            kf_id,
+            False,
+            timings,
+            repeated=repeated,
+        )
+
+    def _remember(self, result: TrackResult) -> TrackResult:
+        self._last_result = result
+        return result
+
     def _check_prior(self, T_device_camera: FloatArray | None) -> FloatArray | None:
         """The prior to use for this frame, or None (none sent, disabled, or not finite)."""
         if T_device_camera is None or not self.cfg.prior.enabled:

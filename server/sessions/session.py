@@ -140,6 +140,7 @@ class Session:
         self._fuse_jobs: queue.Queue[_FuseJob | None] = queue.Queue(maxsize=4)
         self._mapping_thread: threading.Thread | None = None
         self.fusion_skipped = 0
+        self.repeated = 0  # frames held at the pose before: a repeated colour or depth image
         self.last_seen = time.monotonic()
         self._trajectory: list[tuple[float, np.ndarray]] = []
         self._states = {s.value: 0 for s in TrackingState}
@@ -479,6 +480,7 @@ class Session:
             self._last_seq_processed = frame.seq
             self.processed += 1
             self._states[result.state.value] += 1
+            self.repeated += result.repeated is not None
             self._device_pose["frames"] += frame.T_device_camera is not None
             self._device_pose["guesses"] += result.prior_used
             dropped, processed = self.dropped, self.processed
@@ -505,8 +507,15 @@ class Session:
         # room's map (a fresh session's first frame is its first keyframe anyway).
         first_placed = tracked and not self._placed
         self._placed = self._placed or tracked
-        if tracked and (
-            new_keyframe or first_placed or (processed - 1) % self.config.mapping.fuse_every == 0
+        # A held repeat (TrackResult.repeated) pairs images of two moments: not fused.
+        if (
+            tracked
+            and result.repeated is None
+            and (
+                new_keyframe
+                or first_placed
+                or (processed - 1) % self.config.mapping.fuse_every == 0
+            )
         ):
             self._queue_fusion(
                 _FuseJob(
@@ -903,6 +912,7 @@ class Session:
                 "frames_dropped": self.dropped,
                 "frames_failed": failures["frames_failed"],
                 "fusion_skipped": self.fusion_skipped,
+                "frames_repeated": self.repeated,
                 "tracking_states": dict(self._states),
                 "device_pose": dict(self._device_pose),
                 "trajectory_poses": len(self._trajectory),

@@ -286,6 +286,12 @@ class SessionStatus(_Body):
     fusion_skipped: int = Field(
         description="tracked frames not fused into the map because the mapper was behind"
     )
+    frames_repeated: int = Field(
+        0,
+        description="frames whose colour or depth image was the very same as the frame before's: "
+        "colour and depth of two moments, so held at the previous pose (state as before), not "
+        "tracked or fused (registration.state.hold_repeated_frames)",
+    )
     fusion_failed: int = Field(description="frames whose fusion into the map failed (logged)")
     tracking_states: dict[str, int] = Field(
         description="processed frames by tracking state: ok, weak, lost"

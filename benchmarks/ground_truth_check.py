@@ -12,6 +12,11 @@ the frames against their keyframe (issue 15's 7scenes_a row).
    score it. Our ATE against that corrected ground truth is printed beside.
 3. The same tracker with every new keyframe moved to its true pose as it is made: the ATE left
    is the frames' error against their keyframe; the rest of the normal run's is the chain's.
+4. With ``--there-and-back N``: the first N frames played forward then back
+   (``server.datasets.there_and_back``) tracked as ``track`` does with loop closure off and on,
+   each scored against the ground truth and against the ground truth cleared of the stretches
+   of 2 (replayed the same way): does a loop correction that looks worse against the first only
+   meet the ground truth's glitch twice, once each way?
 
     python benchmarks/ground_truth_check.py ../shared/data/7scenes_a \\
         --against benchmarks/results/trajectories/7scenes_a/o3d_legacy.tum \\
@@ -29,6 +34,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import copy  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -44,9 +50,11 @@ sys.path.insert(0, str(REPO_ROOT))
 from benchmarks.provenance import run_heading, utc_stamp  # noqa: E402
 from benchmarks.registration_sweep import track_all  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
+from server.datasets.there_and_back import ThereAndBack  # noqa: E402
 from server.evaluation.ground_truth import disputed_stretches, with_stretches_replaced  # noqa: E402
 from server.evaluation.metrics import associate_trajectories, evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory, read_tum  # noqa: E402
+from server.pipeline import run_odometry  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 
 
@@ -65,6 +73,37 @@ def _step_mm(poses: np.ndarray) -> np.ndarray:
     return 1e3 * np.linalg.norm(steps[:, :3, 3], axis=1)
 
 
+def _there_and_back_rows(ds, cleared: Trajectory, cases: list[int]) -> list[str]:
+    """Loop closure off and on over each there-and-back case, scored against the ground truth
+    and against ``cleared`` (the ground truth without its disputed stretches), as table rows."""
+    ds_cleared = copy.copy(ds)
+    ds_cleared.ground_truth = cleared
+    rows = [
+        "there and back: ATE cm against the ground truth / against it cleared of the stretches",
+        "",
+        "| case | loops | odometry | loop closure |",
+        "|---|---:|---|---|",
+    ]
+    on = RegistrationConfig().with_overrides(loops={"enabled": True})
+    for n in cases:
+        played, played_cleared = ThereAndBack(ds, n), ThereAndBack(ds_cleared, n)
+        print(f"there and back {n}: odometry, then with loop closure ...", flush=True)
+        odometry = run_odometry(played, progress=False, keep_room=False).trajectory
+        run = run_odometry(played, on, progress=False)
+        found = (run.summary.get("loops") or {}).get("found", 0)
+
+        def cm(truth: Trajectory, est: Trajectory) -> str:
+            return f"{100 * evaluate(truth, est)['ate_rmse_m']:.2f}"
+
+        rows.append(
+            f"| {ds.name} {n} | {found} "
+            f"| {cm(played.ground_truth, odometry)} / {cm(played_cleared.ground_truth, odometry)} "
+            f"| {cm(played.ground_truth, run.trajectory)} / "
+            f"{cm(played_cleared.ground_truth, run.trajectory)} |"
+        )
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequence", type=Path)
@@ -73,6 +112,7 @@ def main() -> None:
                         help="another method's TUM trajectory over the same frames")  # fmt: skip
     parser.add_argument("--threshold-mm", type=float, default=20.0)
     parser.add_argument("--agree-mm", type=float, default=10.0)
+    parser.add_argument("--there-and-back", type=int, nargs="*", default=[], metavar="N")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
     args = parser.parse_args()
     ds = open_dataset(args.sequence)
@@ -125,6 +165,8 @@ def main() -> None:
         f"| {100 * pinned['ate_rmse_m']:.2f} |",
         f"| keyframes | {ours['keyframes']} |",
     ]
+    if args.there_and_back:
+        lines += ["", *_there_and_back_rows(ds, cleared, args.there_and_back)]
     print("\n".join(lines))
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "ground_truth_check.md", "a") as f:

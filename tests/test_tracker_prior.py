@@ -230,3 +230,21 @@ def test_when_no_keyframe_sees_the_view_tracking_resumes_from_the_prior(room):
         errors.append(np.linalg.norm(E[:3, 3]))
         assert rotation_angle_deg(E) < 2.0, f"frame {i}"
     assert errors[0] < 0.04 and max(errors) < 0.08, np.round(errors, 3)
+
+
+def test_a_repeated_frame_with_a_prior_moves_with_the_device(room):
+    """A frame that repeats the previous depth is not tracked, but the device's own pose says
+    how far the camera moved: the frame is placed by it, and tracking goes on after it."""
+    ds, frames, _, gt = room
+    priors = exact_device_poses(gt)
+    tracker = Tracker(ds.intrinsics, T_world_first=gt[0])
+    for i in range(5):
+        tracker.track(frames[i].colour, frames[i].depth, priors[i])
+        tracker.update_keyframe()
+    held = tracker.track(frames[5].colour, frames[4].depth, priors[5])  # depth one frame late
+    assert held.repeated == "depth" and held.prior_used
+    dt = np.linalg.norm((invert(gt[5]) @ held.T_world_camera)[:3, 3])
+    assert dt < 0.002, f"{dt * 1e3:.1f} mm from the frame's true pose"
+    after = tracker.track(frames[6].colour, frames[6].depth, priors[6])
+    assert after.repeated is None and after.state is TrackingState.OK
+    assert np.linalg.norm((invert(gt[6]) @ after.T_world_camera)[:3, 3]) < 0.002

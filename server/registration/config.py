@@ -139,8 +139,9 @@ class StateConfig:
     # A frame whose colour or depth image is the very same as the frame before's is out of step:
     # a sensor that delivers depth slower than colour (or a dropped frame filled with a repeat)
     # pairs one moment's colour with another's depth, and corners paired that way give a wrong
-    # pose. Such a frame keeps the previous frame's pose and state, is not tracked, fused or made
-    # a keyframe (TrackResult.repeated says which image repeated). 7scenes_a has 75 of them in
+    # pose. Such a frame keeps the previous frame's pose (moved by the device's motion when it
+    # carries a prior) and state, and is not tracked, fused or made a keyframe
+    # (TrackResult.repeated says which image repeated). 7scenes_a has 75 of them in
     # 600 frames: 2.83 -> 2.7 cm (benchmarks/README.md, "Where 7scenes_a's ATE comes from").
     hold_repeated_frames: bool = True
 

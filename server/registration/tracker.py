@@ -253,12 +253,12 @@ class Tracker:
         self.frame_count += 1
         t0 = time.perf_counter()
         grey = to_grey(colour)
+        prior = self._check_prior(T_device_camera)
         repeated = self._repeated(grey, depth)
         if repeated is not None and self._last_result is not None and not self.lost:
-            return self._hold(index, repeated, {"preprocess": _ms(t0)})
+            return self._hold(index, repeated, {"preprocess": _ms(t0)}, prior)
         depth = clean_depth(depth, self.cfg.depth)
         timings = {"preprocess": _ms(t0)}
-        prior = self._check_prior(T_device_camera)
 
         if self.keyframe is None:
             return self._remember(self._start(index, grey, depth, timings, prior))
@@ -387,16 +387,21 @@ class Tracker:
             return "both"
         return "colour" if same_colour else "depth" if same_depth else None
 
-    def _hold(self, index: int, repeated: str, timings: dict[str, float]) -> TrackResult:
-        """A repeated frame: the previous frame's pose and state, nothing tracked or changed."""
+    def _hold(
+        self, index: int, repeated: str, timings: dict[str, float], prior: FloatArray | None
+    ) -> TrackResult:
+        """A repeated frame: the previous frame's state and pose, moved by the device's own
+        motion since then when the frame carries a prior (its camera did move, and AR draws on
+        this frame); nothing tracked, and the tracker goes on from the last tracked frame."""
         last = self._last_result
         assert last is not None
         self.held += 1
+        T_prior = self._prior_guess(prior)
         timings["total"] = sum(timings.values())
         kf_id = self.keyframe.id if self.keyframe is not None else last.keyframe_id
         return TrackResult(
             index,
-            self.T_world_last.copy(),
+            self.T_world_last.copy() if T_prior is None else T_prior,
             last.state,
             last.inliers,
             last.rmse,
@@ -404,6 +409,7 @@ class Tracker:
             kf_id,
             False,
             timings,
+            prior_used=T_prior is not None,
             repeated=repeated,
         )
 

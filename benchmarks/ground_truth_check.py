@@ -48,8 +48,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from benchmarks.provenance import run_heading, utc_stamp  # noqa: E402
-from benchmarks.registration_sweep import track_all  # noqa: E402
-from server.datasets import open_dataset  # noqa: E402
+from benchmarks.registration_sweep import load_frames, track_all  # noqa: E402
 from server.datasets.there_and_back import ThereAndBack  # noqa: E402
 from server.evaluation.ground_truth import disputed_stretches, with_stretches_replaced  # noqa: E402
 from server.evaluation.metrics import associate_trajectories, evaluate  # noqa: E402
@@ -115,11 +114,8 @@ def main() -> None:
     parser.add_argument("--there-and-back", type=int, nargs="*", default=[], metavar="N")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
     args = parser.parse_args()
-    ds = open_dataset(args.sequence)
-    if ds.ground_truth is None:
-        raise SystemExit(f"{args.sequence} has no ground truth")
-    n = len(ds) if args.frames is None else min(args.frames, len(ds))
-    frames = [ds[i] for i in range(n)]
+    ds, frames = load_frames(args.sequence, args.frames)
+    n = len(frames)
     cfg = RegistrationConfig()
     print(f"{ds.name}: tracking {n} frames (defaults) ...", flush=True)
     ours = track_all(ds, frames, cfg)

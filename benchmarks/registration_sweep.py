@@ -84,6 +84,16 @@ def track_all(ds, frames, cfg: RegistrationConfig, true_keyframes: bool = False)
     }
 
 
+def load_frames(sequence: Path, frames: int | None) -> tuple:
+    """The dataset and its first ``frames`` frames (all when None) in memory; exits when it
+    has no ground truth to score against."""
+    ds = open_dataset(sequence)
+    if ds.ground_truth is None:
+        raise SystemExit(f"{sequence} has no ground truth")
+    n = len(ds) if frames is None else min(frames, len(ds))
+    return ds, [ds[i] for i in range(n)]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequence", type=Path)
@@ -91,11 +101,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="one run's changes")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "benchmarks" / "results")
     args = parser.parse_args()
-    ds = open_dataset(args.sequence)
-    if ds.ground_truth is None:
-        raise SystemExit(f"{args.sequence} has no ground truth")
-    n = len(ds) if args.frames is None else min(args.frames, len(ds))
-    frames = [ds[i] for i in range(n)]
+    ds, frames = load_frames(args.sequence, args.frames)
+    n = len(frames)
     runs = [("defaults", RegistrationConfig())]
     for change in args.set:
         overrides = parse_overrides(change.split())

@@ -44,14 +44,21 @@ def frame_bytes(ds, seq: int) -> bytes:
     return P.encode(P.make_frame(seq, f.timestamp, f.colour, f.depth))
 
 
-def test_frames_cross_as_bytes_and_poses_come_back_from_another_process(manager, room):
+def streamed(manager, room, frames: int):
+    """A started, configured session that has tracked the room's first ``frames`` frames, and
+    the updates it sent."""
     session, _ = manager.create()
     updates = Updates()
     session.start(updates)
     session.configure(hello(room))
-    for seq in range(3):
+    for seq in range(frames):
         session.submit(seq, frame_bytes(room, seq))
         assert session.drain(30)  # one at a time: the newest would win over a waiting frame
+    return session, updates
+
+
+def test_frames_cross_as_bytes_and_poses_come_back_from_another_process(manager, room):
+    session, updates = streamed(manager, room, 3)
     poses = updates.wait_for(PoseUpdate, 3)
     assert [p.seq for p in poses] == [0, 1, 2]
     assert all(p.timings_ms["server_total"] >= p.timings_ms["track"] for p in poses)
@@ -143,13 +150,7 @@ def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
 def test_a_repeated_frame_is_held_at_the_last_pose_and_counted(manager, room):
     """A frame with the same images as the one before (a phone that sends its last depth again)
     keeps the previous pose, is not fused, and the status counts it."""
-    session, _ = manager.create()
-    updates = Updates()
-    session.start(updates)
-    session.configure(hello(room))
-    for seq in range(2):
-        session.submit(seq, frame_bytes(room, seq))
-        assert session.drain(30)
+    session, updates = streamed(manager, room, 2)
     f = room[1]
     session.submit(2, P.encode(P.make_frame(2, f.timestamp + 1 / 30, f.colour, f.depth)))
     assert session.drain(30)

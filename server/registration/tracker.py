@@ -378,7 +378,8 @@ class Tracker:
         """Which of this frame's images are the very same as the previous frame's: "colour",
         "depth", "both" or None (state.hold_repeated_frames; None when that is off)."""
         previous = self._previous
-        self._previous = (grey, np.array(depth, copy=True))
+        # Copies: a caller may refill its own buffers with the next frame.
+        self._previous = (grey.copy(), np.array(depth, copy=True))
         if previous is None or not self.cfg.state.hold_repeated_frames:
             return None
         same_colour = previous[0].shape == grey.shape and np.array_equal(previous[0], grey)

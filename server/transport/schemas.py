@@ -289,8 +289,9 @@ class SessionStatus(_Body):
     frames_repeated: int = Field(
         0,
         description="frames whose colour or depth image was the very same as the frame before's: "
-        "colour and depth of two moments, so held at the previous pose (state as before), not "
-        "tracked or fused (registration.state.hold_repeated_frames)",
+        "colour and depth of two moments, so held at the previous pose (moved by the device's "
+        "own motion when the frame carries T_device_camera; state as before), not tracked or "
+        "fused (registration.state.hold_repeated_frames)",
     )
     fusion_failed: int = Field(description="frames whose fusion into the map failed (logged)")
     tracking_states: dict[str, int] = Field(

@@ -663,6 +663,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         type=Path,
         help="TUM-layout folders (default: every ../shared/data/* and the demo)",
     )
+    parser.add_argument(
+        "--demo-seeds",
+        nargs="+",
+        type=int,
+        default=[],
+        metavar="SEED",
+        help="also synthetic rooms generated as the demo is, with these seeds (another room, "
+        "path and noise each; cached like the demo): sequences no setting was chosen on",
+    )
     parser.add_argument("--frames", type=int, help="use only the first N frames of each sequence")
     parser.add_argument(
         "--stride",
@@ -727,7 +736,15 @@ def main(argv: list[str] | None = None) -> int:
         f"{threads['cv2']}, open3d.utility.set_max_threads(1) -> {threads['open3d_max']}\n"
         f"command: {header['command']}"
     )
-    sequences = [(p.name, p) for p in args.sequences] or default_sequences()
+    sequences = [(p.name, p) for p in args.sequences]
+    if args.demo_seeds:
+        from server.datasets.demo import DemoSpec, demo_sequence_path
+
+        sequences += [
+            (f"demo_seed{seed}", Path(demo_sequence_path(DemoSpec(seed=seed))))
+            for seed in args.demo_seeds
+        ]
+    sequences = sequences or default_sequences()
 
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "registration_prior" if args.prior_mode else "registration"

@@ -185,7 +185,7 @@ def track(
     paths["config"] = write_config(config, out / "config.yaml")
     s = run.summary
     stats = Table(title=f"{ds.name}: registration")
-    for col in ("frames", "keyframes", "ok", "weak", "lost", "median ms", "p90 ms"):
+    for col in ("frames", "keyframes", "ok", "weak", "lost", "repeated", "median ms", "p90 ms"):
         stats.add_column(col, justify="right")
     st = s["states"]
     stats.add_row(
@@ -194,6 +194,7 @@ def track(
         str(st.get("ok", 0)),
         str(st.get("weak", 0)),
         str(st.get("lost", 0)),
+        str(sum(s.get("repeated", {}).values())),
         f"{s['median_ms']:.1f}",
         f"{s['p90_ms']:.1f}",
     )

@@ -14,6 +14,7 @@ import gc
 import os
 import shutil
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -205,6 +206,10 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         front1.stop()
         servers.remove(front1)
         assert _actor_alive(s1) and _actor_alive(s2)
+        # Its threads ended with it, those of the sessions it let go of too (a poll still inside
+        # ray.get after ray.shutdown would end this whole process): only front2 polls, for s1.
+        polls = sorted(t.name for t in threading.enumerate() if t.name.startswith("ray-poll-"))
+        assert polls == [f"ray-poll-{s1}"], polls
         front3 = LiveServer(data, ray=cluster.address)
         servers.append(front3)
         status = session_status(front3.url, s2, t2)

@@ -40,6 +40,7 @@ import re
 import threading
 import time
 import uuid
+import weakref
 from collections import deque
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -259,6 +260,7 @@ class RayWorker:
         for thread in self._threads:
             thread.start()
         backend._workers.add(self)
+        backend._with_threads.add(self)
 
     @property
     def alive(self) -> bool:
@@ -537,6 +539,10 @@ class RayWorkers:
         self.local = _connect(address)
         self.detached = False
         self._workers: set[RayWorker] = set()
+        # Every worker whose threads may still run, let go of or not (a worker's running threads
+        # keep it here): close joins them all before Ray shuts down, as a poll still in
+        # ``ray.get`` then would end the whole process (Ray's core worker exits).
+        self._with_threads: weakref.WeakSet[RayWorker] = weakref.WeakSet()
         self._closed = False
 
     def start(self, args, session) -> RayWorker:
@@ -599,7 +605,7 @@ class RayWorkers:
         if self._closed:
             return
         self._closed = True
-        workers = list(self._workers)
+        workers = list(set(self._workers) | set(self._with_threads))
         for worker in workers:
             worker.detach_threads()
         for worker in workers:

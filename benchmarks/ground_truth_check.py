@@ -52,18 +52,17 @@ from benchmarks.registration_sweep import load_frames, track_all  # noqa: E402
 from server.datasets.there_and_back import ThereAndBack  # noqa: E402
 from server.evaluation.ground_truth import disputed_stretches, with_stretches_replaced  # noqa: E402
 from server.evaluation.metrics import associate_trajectories, evaluate  # noqa: E402
-from server.evaluation.trajectory import Trajectory, read_tum  # noqa: E402
+from server.evaluation.trajectory import Trajectory, associate, read_tum  # noqa: E402
 from server.pipeline import run_odometry  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 
 
 def _on_frames(traj: Trajectory, stamps: np.ndarray) -> np.ndarray:
-    """The trajectory's poses at exactly these timestamps (every frame must be there)."""
-    index = {round(float(t), 4): i for i, t in enumerate(traj.timestamps)}
-    missing = [t for t in stamps if round(float(t), 4) not in index]
-    if missing:
-        raise SystemExit(f"a trajectory lacks {len(missing)} of the frames (first at {missing[0]})")
-    return traj.poses[[index[round(float(t), 4)] for t in stamps]]
+    """The trajectory's poses at these timestamps (every frame must be there)."""
+    idx_frame, idx_traj = associate(stamps, traj.timestamps, 0.02)
+    if len(idx_frame) < len(stamps):
+        raise SystemExit(f"a trajectory lacks {len(stamps) - len(idx_frame)} of the frames")
+    return traj.poses[idx_traj]
 
 
 def _step_mm(poses: np.ndarray) -> np.ndarray:
@@ -128,8 +127,10 @@ def main() -> None:
     others = [(p.stem, _on_frames(read_tum(p), stamps)) for p in args.against]
     estimates = [est.poses, *(poses for _, poses in others)]
     print("checking the ground truth against the methods ...", flush=True)
-    steps = disputed_stretches(gt.poses, estimates, args.threshold_mm / 1e3, args.agree_mm / 1e3)
-    cleared = Trajectory(stamps, with_stretches_replaced(gt.poses, est.poses, steps))
+    stretches = disputed_stretches(
+        gt.poses, estimates, args.threshold_mm / 1e3, args.agree_mm / 1e3
+    )
+    cleared = Trajectory(stamps, with_stretches_replaced(gt.poses, est.poses, stretches))
     floor = evaluate(gt, cleared)["ate_rmse_m"]
     ours_on_cleared = evaluate(cleared, est)["ate_rmse_m"]
 
@@ -143,7 +144,7 @@ def main() -> None:
         "| two methods differ mm |",
         "|---|---|---|---:|",
     ]
-    for s in steps:
+    for s in stretches:
         lines.append(
             f"| {s.first} -> {s.last} | {1e3 * s.truth_m:.1f}, {s.truth_deg:.2f} "
             f"| {1e3 * s.disagreement_m:.1f}, {s.disagreement_deg:.2f} "
@@ -173,7 +174,7 @@ def main() -> None:
     ax.plot(idx, _step_mm(gt.poses), label="ground truth", color="black", lw=1.2)
     for name, P in [("ours", est.poses), *others]:
         ax.plot(idx, _step_mm(P), label=name, lw=0.8, alpha=0.8)
-    for s in steps:
+    for s in stretches:
         ax.axvspan(s.first, s.last, color="red", alpha=0.2, lw=0)
     ax.set_xlabel("frame")
     ax.set_ylabel("step to the next frame [mm]")

@@ -139,12 +139,7 @@ def run_odometry(
                 behind.submit(_add_keyframe, room, room_map, closer, result, colour, frame, i, cfg)
             results.append(result)
             stamps.append(frame.timestamp)
-            # A held repeat (TrackResult.repeated) pairs images of two moments: not fused.
-            if (
-                result.state.value != "lost"
-                and result.repeated is None
-                and (result.new_keyframe or i % fuse_every == 0)
-            ):
+            if result.fusable and (result.new_keyframe or i % fuse_every == 0):
                 behind.submit(
                     world_map.fuse, colour, frame.depth, dataset.intrinsics, result.T_world_camera
                 )

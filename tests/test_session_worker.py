@@ -149,7 +149,7 @@ def test_a_frame_the_tracker_fails_on_is_answered_and_counted(tmp_path, room):
 
 def test_a_repeated_frame_is_held_at_the_last_pose_and_counted(manager, room):
     """A frame with the same images as the one before (a phone that sends its last depth again)
-    keeps the previous pose, is not fused, and the status counts it."""
+    keeps the previous pose and state, and the status counts it."""
     session, updates = streamed(manager, room, 2)
     f = room[1]
     session.submit(2, P.encode(P.make_frame(2, f.timestamp + 1 / 30, f.colour, f.depth)))

@@ -317,9 +317,9 @@ def test_holding_repeated_frames_can_be_turned_off(demo_clean):
     assert not np.array_equal(tracked.T_world_camera, first.T_world_camera)
 
 
-def test_out_of_step_frames_of_7scenes_are_held_and_not_fused(shared_data):
+def test_out_of_step_frames_of_7scenes_are_held_by_track(shared_data):
     """7scenes_a frames 215-235: frame 222 repeats its depth (colour new), 228 and 234 repeat
-    both images. ``track`` holds them and leaves them out of the map."""
+    both images. ``track`` holds them at the pose before and counts them."""
     ds = open_dataset(shared_data / "7scenes_a")
     run = run_odometry(ds, max_frames=21, start=215, progress=False, keep_room=False)
     assert run.summary["repeated"] == {"depth": 1, "both": 2}

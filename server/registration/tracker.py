@@ -81,6 +81,12 @@ class TrackResult:
     # at that frame's pose, not tracked (state.hold_repeated_frames); None for a tracked frame.
     repeated: str | None = None
 
+    @property
+    def fusable(self) -> bool:
+        """Its images and its pose belong together, so it may go into a map: tracked (not lost)
+        and not a held repeat (whose colour and depth are of two moments)."""
+        return self.state is not TrackingState.LOST and self.repeated is None
+
 
 @dataclass
 class _PendingKeyframe:
@@ -257,21 +263,31 @@ class Tracker:
         repeated = self._repeated(grey, depth)
         if repeated is not None and self._last_result is not None and not self.lost:
             return self._hold(index, repeated, {"preprocess": _ms(t0)}, prior)
+        self._last_result = self._register(index, grey, depth, prior, t0)
+        return self._last_result
+
+    def _register(
+        self,
+        index: int,
+        grey: GreyImage,
+        depth: Float32Array,
+        prior: FloatArray | None,
+        t0: float,
+    ) -> TrackResult:
+        """Steps 1-5 for a frame that is not a held repeat (``track``): depth as given, metres."""
         depth = clean_depth(depth, self.cfg.depth)
         timings = {"preprocess": _ms(t0)}
 
         if self.keyframe is None:
-            return self._remember(self._start(index, grey, depth, timings, prior))
+            return self._start(index, grey, depth, timings, prior)
 
         # 1. Predict the pose: by the device's own motion when it sends one, else with a
         # constant-velocity model (also the fallback when the prior's guess fails), over the
         # frames held since the last tracked one too.
-        T_world_pred = self.T_world_last
-        for _ in range(1 + self.held):
-            T_world_pred = T_world_pred @ self.velocity
-        T_world_pred = orthonormalize(T_world_pred)
-        gap = 1 + self.held
-        self.held = 0
+        gap, self.held = 1 + self.held, 0
+        T_world_pred = orthonormalize(
+            self.T_world_last @ np.linalg.matrix_power(self.velocity, gap)
+        )
         T_world_prior = self._prior_guess(prior)
 
         # 2-3. Track corners (from the previous frame, or from keyframes after a loss), solve.
@@ -293,16 +309,13 @@ class Tracker:
         if state in (None, TrackingState.LOST) and prior is not None and T_world_prior is not None:
             resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
             if resumed is not None:
-                return self._remember(resumed)
+                return resumed
         if found is None:
-            return self._remember(
-                self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
-            )
+            return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
         kf, solution = found.kf, found.solution
         if state is None or state is TrackingState.LOST:
-            n_inliers = int(solution.inliers.sum())
-            return self._remember(
-                self._lose(index, grey, timings, n_inliers, solution.rmse, solution.condition)
+            return self._lose(
+                index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition
             )
 
         # 4. Dense refinement from the sparse estimate.
@@ -343,7 +356,7 @@ class Tracker:
         )
         if due:
             self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result, found)
-        return self._remember(result)
+        return result
 
     def update_keyframe(self) -> bool:
         """Carry out the keyframe change the last :meth:`track` found due: go back to an earlier
@@ -377,10 +390,12 @@ class Tracker:
     def _repeated(self, grey: GreyImage, depth: Float32Array) -> str | None:
         """Which of this frame's images are the very same as the previous frame's: "colour",
         "depth", "both" or None (state.hold_repeated_frames; None when that is off)."""
+        if not self.cfg.state.hold_repeated_frames:
+            return None
         previous = self._previous
         # Copies: a caller may refill its own buffers with the next frame.
         self._previous = (grey.copy(), np.array(depth, copy=True))
-        if previous is None or not self.cfg.state.hold_repeated_frames:
+        if previous is None:
             return None
         same_colour = previous[0].shape == grey.shape and np.array_equal(previous[0], grey)
         same_depth = previous[1].shape == depth.shape and np.array_equal(previous[1], depth)
@@ -413,10 +428,6 @@ class Tracker:
             prior_used=T_prior is not None,
             repeated=repeated,
         )
-
-    def _remember(self, result: TrackResult) -> TrackResult:
-        self._last_result = result
-        return result
 
     def _check_prior(self, T_device_camera: FloatArray | None) -> FloatArray | None:
         """The prior to use for this frame, or None (none sent, disabled, or not finite)."""

@@ -605,7 +605,7 @@ class RayWorkers:
         if self._closed:
             return
         self._closed = True
-        workers = list(set(self._workers) | set(self._with_threads))
+        workers = list(self._with_threads)  # the held ones too: they are among them
         for worker in workers:
             worker.detach_threads()
         for worker in workers:

@@ -507,15 +507,8 @@ class Session:
         # room's map (a fresh session's first frame is its first keyframe anyway).
         first_placed = tracked and not self._placed
         self._placed = self._placed or tracked
-        # A held repeat (TrackResult.repeated) pairs images of two moments: not fused.
-        if (
-            tracked
-            and result.repeated is None
-            and (
-                new_keyframe
-                or first_placed
-                or (processed - 1) % self.config.mapping.fuse_every == 0
-            )
+        if result.fusable and (
+            new_keyframe or first_placed or (processed - 1) % self.config.mapping.fuse_every == 0
         ):
             self._queue_fusion(
                 _FuseJob(

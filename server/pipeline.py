@@ -20,6 +20,7 @@ from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import invert
+from server.geometry.arrays import FloatArray
 from server.mapping.config import MappingConfig
 from server.mapping.pointcloud import PointCloudMap
 from server.mapping.tsdf import TSDFMap
@@ -83,8 +84,8 @@ def run_odometry(
     world frame; the frames before have no pose and are left out of the trajectory. The room
     gains this run's keyframes (``run.room`` is the same object) and its map is cleared, to be
     re-fused from all keyframes when saved. With loop closure (``config.loops.enabled``) every
-    frame moves with its keyframe's correction and the map is fused again from the same frames
-    at the corrected poses. ``keep_room=False`` keeps no keyframes (no place
+    frame moves with its keyframe's correction, and so do the points it put into the map (the
+    map keeps one segment per keyframe). ``keep_room=False`` keeps no keyframes (no place
     features computed; ``run.room`` stays as it was), unless loop closure needs them.
 
     Frames are read ahead of the tracker, and fused, described and added to the room behind it,
@@ -109,14 +110,15 @@ def run_odometry(
     # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
     to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
     results, stamps = [], []
-    fused: list[tuple[int, int]] = []  # (frame index, result index) of each frame in the map
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     keep = keep_room or closer is not None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
     with_device_pose = 0  # frames that had a device pose to give
     # The room's map grows with its keyframes behind tracking (the map a saved room holds);
     # a room continued here starts from its own keyframes again, as save_room would re-fuse it.
-    room_map = TSDFMap() if keep else None
+    # With loop closure it is fused once, when the room is saved, from the corrected keyframes
+    # (Open3D's integration holds the GIL: fused behind tracking it would also slow the tracker).
+    room_map = TSDFMap() if keep and closer is None else None
     behind = Behind(threaded=overlap, name="map")
     if room_map is not None:
         behind.submit(room.fuse_into, room_map, list(room.keyframes))
@@ -141,9 +143,13 @@ def run_odometry(
             stamps.append(frame.timestamp)
             if result.fusable and (result.new_keyframe or i % fuse_every == 0):
                 behind.submit(
-                    world_map.fuse, colour, frame.depth, dataset.intrinsics, result.T_world_camera
+                    world_map.fuse,
+                    colour,
+                    frame.depth,
+                    dataset.intrinsics,
+                    result.T_world_camera,
+                    result.keyframe_id,
                 )
-                fused.append((i, len(results) - 1))
             bar.set_postfix(
                 state=result.state.value,
                 inliers=result.inliers,
@@ -164,13 +170,9 @@ def run_odometry(
     loops = None
     if closer is not None:
         odometry = trajectory
-        trajectory = _close_loops(closer, room, results, trajectory)
-        if closer.loops:  # the map follows the corrected poses: the same frames fused again
-            world_map = PointCloudMap(voxel_m=voxel_m)
-            for i, k in fused:
-                frame = dataset[i]
-                colour = to_depth(frame.colour, frame.depth)
-                world_map.fuse(colour, frame.depth, dataset.intrinsics, trajectory.poses[k])
+        trajectory, moves = _close_loops(closer, room, results, trajectory)
+        # The map follows the corrected poses: each keyframe's frames move with it.
+        world_map = world_map.moved(moves)
         loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
         if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
             loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)
@@ -238,23 +240,28 @@ def _add_keyframe(
 
 def _close_loops(
     closer: LoopCloser, room: Room, results: list[TrackResult], trajectory: Trajectory
-) -> Trajectory:
+) -> tuple[Trajectory, dict[int, FloatArray]]:
     """Optimise the pose graph and move every frame with its keyframe: each frame keeps its
     pose relative to the keyframe it was tracked against; the room's keyframes take the
-    corrected poses (its map is re-fused from them when saved)."""
+    corrected poses (its map is re-fused from them when saved). Returns the trajectory and each
+    moved keyframe's correction T_corrected_tracked (4x4, metres; none without loops)."""
     if not closer.loops:
-        return trajectory
+        return trajectory, {}
     corrected = closer.optimise()
-    tracked = {kf.id: kf.T_world_keyframe.copy() for kf in room.keyframes}
+    moves = {
+        kf.id: corrected[kf.id] @ invert(kf.T_world_keyframe)
+        for kf in room.keyframes
+        if kf.id in corrected
+    }
     poses = trajectory.poses.copy()
     for k, r in enumerate(results):
-        if r.keyframe_id in corrected and r.keyframe_id in tracked:
-            poses[k] = corrected[r.keyframe_id] @ invert(tracked[r.keyframe_id]) @ poses[k]
+        if r.keyframe_id in moves:
+            poses[k] = moves[r.keyframe_id] @ poses[k]
     for kf in room.keyframes:
         if kf.id in corrected:
             kf.T_world_keyframe = corrected[kf.id]
     room.map = None
-    return Trajectory(trajectory.timestamps.copy(), poses)
+    return Trajectory(trajectory.timestamps.copy(), poses), moves
 
 
 def _relocalisation_summary(tracker: RoomTracker, start: int) -> dict:

@@ -63,8 +63,14 @@ def _nearest(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
     return np.array([np.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in points])
 
 
-def test_without_loop_closure_the_tracker_is_unchanged(shared_data):
-    """Loop closure is off by default and then changes nothing: no loops in the summary."""
+def test_loop_closure_is_on_by_default_and_without_a_loop_changes_nothing(shared_data):
+    """``track`` closes loops unless told not to; a run that finds none keeps the odometry's
+    trajectory and map, as a run with loop closure off."""
     ds = open_dataset(shared_data / "synthetic_room0")
-    run = run_odometry(ds, RegistrationConfig(), max_frames=10, progress=False)
-    assert "loops" not in run.summary
+    on = run_odometry(ds, RegistrationConfig(), max_frames=10, progress=False)
+    assert on.summary["loops"] == {"found": 0, "edges": []}
+    off_cfg = RegistrationConfig().with_overrides(loops={"enabled": False})
+    off = run_odometry(ds, off_cfg, max_frames=10, progress=False)
+    assert "loops" not in off.summary
+    np.testing.assert_array_equal(on.trajectory.poses, off.trajectory.poses)
+    np.testing.assert_array_equal(on.map.points, off.map.points)

@@ -212,15 +212,17 @@ class PlaceConfig:
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """Loop closure over keyframes (server/registration/loops.py). ``enabled``: offline, at the
-    end of ``track``. ``live``: in the background of every live session that keeps its room's
-    keyframes (``server.save_rooms``) and starts an empty world (a session continuing in a
-    saved room has none: server/sessions/loop_closing.py says why). Both off by default: live,
-    a keyframe costs the session's worker ~0.1 s of CPU and a rebuild the mapper ~0.17 s per
-    keyframe (README, "Loop closure"), and on a shared 2-core machine the drone's map lagged
-    more with it on."""
+    """Loop closure over keyframes (server/registration/loops.py). ``enabled``: offline, in
+    ``track`` (keyframes looked up behind tracking, the graph optimised at the end), on by
+    default: on 7scenes_a it costs ``track`` 1-3 s of its 23-25 s and takes the ATE from 2.71 to
+    2.51 cm (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live
+    session that keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a
+    session continuing in a saved room has none: server/sessions/loop_closing.py says why); off
+    by default: a keyframe costs the session's worker ~0.1 s of CPU and a rebuild the mapper
+    ~0.17 s per keyframe (README, "Loop closure"), and on a shared 2-core machine the drone's
+    map lagged more with it on."""
 
-    enabled: bool = False
+    enabled: bool = True
     live: bool = False
     min_separation: int = 10  # a loop joins keyframes at least this many keyframes apart
     icp_distance_m: float = 0.05  # point-to-plane refinement of a loop; the graph's too

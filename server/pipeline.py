@@ -171,8 +171,8 @@ def run_odometry(
     if closer is not None:
         odometry = trajectory
         trajectory, moves = _close_loops(closer, room, results, trajectory)
-        # The map follows the corrected poses: each keyframe's frames move with it.
-        world_map = world_map.moved(moves)
+        if moves:  # the map follows the corrected poses: each keyframe's frames move with it
+            world_map = world_map.moved(moves)
         loops = {"found": len(closer.loops), "edges": [[e.old, e.new] for e in closer.loops]}
         if dataset.ground_truth is not None and len(odometry) > 1 and closer.loops:
             loops["odometry_metrics"] = evaluate(dataset.ground_truth, odometry)

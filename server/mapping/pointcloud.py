@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Hashable, Mapping
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -61,7 +62,7 @@ class PointCloudMap:
         if self._pending[segment] > 1_000_000:
             self._downsample(segment)
 
-    def moved(self, T_new_old: Mapping[Hashable, FloatArray]) -> PointCloudMap:
+    def moved(self, T_new_old: Mapping[Any, FloatArray]) -> PointCloudMap:
         """A new map with each segment moved rigidly by ``T_new_old[segment]`` (4x4, metres; a
         segment not named stays where it is). This map is unchanged."""
         out = PointCloudMap(self.voxel_m, self.stride, self.max_depth_m)
@@ -91,8 +92,8 @@ class PointCloudMap:
                 self._downsample(key)
                 merged += self._segments[key]
             # One segment is downsampled already; several overlap and are merged per voxel.
-            self._merged = merged if len(self._segments) <= 1 else merged.voxel_down_sample(
-                self.voxel_m
+            self._merged = (
+                merged if len(self._segments) <= 1 else merged.voxel_down_sample(self.voxel_m)
             )
         return self._merged
 

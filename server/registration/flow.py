@@ -41,7 +41,7 @@ def track_points(
         grey_from,
         grey_to,
         p0,
-        start,  # type: ignore[arg-type]  # nextPts=None is valid; OpenCV's stubs omit None
+        start,  # type: ignore[arg-type, unused-ignore]  # None is valid; stubs before 5.1 omit it
         winSize=win,
         maxLevel=cfg.pyramid_levels,
         criteria=criteria,

@@ -58,7 +58,8 @@ def match_descriptors(a: PlaceFeatures, b: PlaceFeatures, ratio: float) -> Index
     of_b = np.unique(pairs[:, 1])
     back = np.full(len(b), -1, np.intp)
     back[of_b] = [m.trainIdx for m in matcher.match(b.descriptors[of_b], a.descriptors)]
-    return pairs[back[pairs[:, 1]] == pairs[:, 0]]
+    mutual: IndexArray = pairs[back[pairs[:, 1]] == pairs[:, 0]]
+    return mutual
 
 
 def kabsch(P: FloatArray, Q: FloatArray) -> FloatArray:

@@ -49,8 +49,12 @@ class DeviceProfile:
     fps: float = 30.0  # camera rate
     display_hz: float = 30.0  # XR frames per second
     empty_depth_s: float = 1.0  # depth from motion: all zero for this long after the start
-    missing_depth_every: int = 37  # every n-th camera frame comes without depth information
-    missing_camera_every: int = 53  # every n-th without a camera image (0: never)
+    missing_depth_every: int = 37  # every n-th camera frame starts a run without depth information
+    missing_camera_every: int = 53  # ... a run without a camera image (0: never)
+    # Frames in each such run: ARCore's depth misses a few frames in a row. A run also outlasts
+    # the page's gaps between frames it samples (66 ms at 15 fps, ~200 ms on a loaded machine),
+    # so a page that checks availability meets some: one-frame gaps were all sampled past once.
+    missing_run: int = 3
     features: tuple[str, ...] = ("depth-sensing", "camera-access")
     # The camera image and XR framebuffer at this fraction of the view's pixels: software WebGL
     # on two cores cannot fill 1080x2400 at 30 Hz beside a tracking server. The projection
@@ -246,8 +250,8 @@ def prepare(
         "depthFormat": profile.depth_format,
         "normDepthBufferFromNormView": norm.T.reshape(-1).tolist(),
         "emptyDepthS": profile.empty_depth_s,
-        "missingDepth": _every(n, profile.missing_depth_every, 5),
-        "missingCamera": _every(n, profile.missing_camera_every, 11),
+        "missingDepth": _every(n, profile.missing_depth_every, 5, profile.missing_run),
+        "missingCamera": _every(n, profile.missing_camera_every, 11, profile.missing_run),
         "features": list(profile.features),
     }
     K_pixels = Intrinsics(
@@ -261,8 +265,11 @@ def prepare(
     return PreparedDevice(config, T_world_view, K_pixels, stamps, crop, out)
 
 
-def _every(n: int, every: int, start: int) -> list[int]:
-    return list(range(start, n, every)) if every > 0 else []
+def _every(n: int, every: int, start: int, run: int) -> list[int]:
+    """Frame indices below n in runs of ``run``, one starting every ``every`` frames."""
+    if every <= 0:
+        return []
+    return [i + k for i in range(start, n, every) for k in range(run) if i + k < n]
 
 
 def _nearest(stamps: np.ndarray, t: float) -> int:

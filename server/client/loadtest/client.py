@@ -113,6 +113,7 @@ class _Client:
                     "frames_dropped",
                     "fusion_skipped",
                     "device_pose",
+                    "loops",  # what the session's loop closure did (null: not running)
                 )
             }
             r.server_dropped = max(r.server_dropped, status.get("frames_dropped") or 0)

@@ -116,7 +116,7 @@ COLUMNS = [
     "server CPU ms/frame",
     "keyframes",
     "loops found",
-    "map rebuilds",
+    "map rebuilds (skipped)",
     "look-up CPU ms/keyframe (worst session)",
     "last rebuild ms (keyframes)",
 ]
@@ -134,7 +134,7 @@ def cells(row: dict) -> list[str]:
         _cell(row["cpu_ms_per_frame"]),
         str(_sum(row, "keyframes")) if row["loops"] else "-",
         str(_sum(row, "found")) if row["loops"] else "-",
-        str(_sum(row, "rebuilds")) if row["loops"] else "-",
+        f"{_sum(row, 'rebuilds')} ({_sum(row, 'rebuilds_skipped')})" if row["loops"] else "-",
         _cell(_worst(row, "lookup_cpu_ms")),
         "-" if rebuild_ms is None else f"{rebuild_ms:.0f} ({rebuild_kf:.0f})",
     ]

@@ -29,6 +29,9 @@ LOOPS = RegistrationConfig().with_overrides(loops={"live": True, "min_separation
 # Keyframes and every 10th frame fused: the map is rebuilt from keyframes anyway, and the test
 # runs on a couple of shared cores.
 MAPPING = MappingConfig(fuse_every=10)
+# The synthetic room's corrections move keyframes by under a millimetre, which the defaults
+# leave unfused (mapping.rebuild_min_move_m): to test the rebuild, every correction re-fuses.
+REFUSE_ALL = dataclasses.replace(MAPPING, rebuild_min_move_m=0.0)
 
 
 def _status(server, sid: str, token: str) -> dict:
@@ -83,7 +86,7 @@ def _keyframe_ate(gt: Trajectory, poses: dict[int, np.ndarray]) -> float:
 
 def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_data, tmp_path):
     ds = ThereAndBack(open_dataset(shared_data / "synthetic_room0"), FRAMES)
-    server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
+    server = live_server(tmp_path / "data", registration=LOOPS, mapping=REFUSE_ALL)
     sid, token = server.create_session()
     messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, _corrected_then_reset))
 
@@ -137,12 +140,54 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
     assert saved_map.samefile(tmp_path / "data" / "sessions" / sid / "map.npz")
 
 
+def test_a_correction_below_the_maps_resolution_moves_poses_and_room_but_not_the_map(
+    live_server, shared_data, tmp_path
+):
+    """With the defaults a sub-millimetre correction (the synthetic room's) is sent and taken
+    by the tracker, the drone and the room's keyframes, but the map is not re-fused: no reset
+    preview, the skip counted, how far the map is behind said (under one voxel)."""
+    ds = ThereAndBack(open_dataset(shared_data / "synthetic_room0"), FRAMES)
+    server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
+    sid, token = server.create_session()
+
+    def skipped(_messages) -> bool:  # the mapping thread saw the correction
+        return _status(server, sid, token)["loops"]["rebuilds_skipped"] >= 1
+
+    messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, skipped))
+    kinds = _kinds(messages)
+    assert "map_corrected" in kinds and "map_chunk/reset" not in kinds, "no loop, or re-fused"
+    status = _status(server, sid, token)
+    loops = status["loops"]
+    print("status loops:", loops)
+    assert loops["corrections"] >= 1 and loops["rebuilds"] == 0 and loops["rebuilds_skipped"] >= 1
+    assert 0 < loops["map_behind_m"] <= MAPPING.rebuild_min_move_m
+    assert status["drone"]["spawned"] and status["failures"]["loops_failed"] == 0
+
+    server.stop()  # shutdown saves the session: its room takes the corrected poses all the same
+    _, keyframes = P.decode_map_corrected([m for m in messages if m["type"] == "map_corrected"][-1])
+    sent = {p["seq"]: P.pose_matrix(p) for p in poses}
+    meta = json.loads((tmp_path / "data" / "sessions" / sid / "room" / "room.json").read_text())
+    room = {
+        k["frame_index"]: np.array(k["T_world_keyframe"]).reshape(4, 4) for k in meta["keyframes"]
+    }
+    # The room's poses are corrected ones (a loop found while the session stopped may have
+    # moved them a little more since the last map_corrected), not the odometry sent.
+    moved = max(np.abs(room[s] - sent[s]).max() for s, _ in keyframes.values())
+    print(f"the room's keyframes moved by up to {moved * 1e3:.2f} mm")
+    assert moved > 2e-4  # runs here: 1.3-1.4 mm
+    assert (tmp_path / "data" / "sessions" / sid / "room" / "map.npz").exists()
+
+
 def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_data, tmp_path):
-    """Also: a session asks for loop closure when it is off on the server (the default)."""
+    """Also: on by default; a session turns it off or, where the server has it off, on."""
     ds = open_dataset(shared_data / "synthetic_room0")
-    server = live_server(tmp_path / "data", mapping=MAPPING)
+    url = f"{live_server(tmp_path / 'default').url}/api/sessions"
+    assert httpx.post(url).json()["loop_closure"] is True  # the server's default: on
+    assert httpx.post(url, json={"loop_closure": False}).json()["loop_closure"] is False
+    off = RegistrationConfig().with_overrides(loops={"live": False})
+    server = live_server(tmp_path / "data", mapping=MAPPING, registration=off)
     url = f"{server.url}/api/sessions"
-    assert httpx.post(url).json()["loop_closure"] is False  # the server's default: off
+    assert httpx.post(url).json()["loop_closure"] is False  # the server's setting: off
     created = httpx.post(url, json={"loop_closure": True}).json()
     assert created["loop_closure"] is True
     sid, token = created["id"], created["token"]
@@ -396,7 +441,8 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
 
     ds = open_dataset(shared_data / "synthetic_room0")
     K = ds.intrinsics
-    config = SessionConfig.from_config(Config(registration=LOOPS))
+    # The correction below moves nothing: only with rebuild_min_move_m 0 is it re-fused.
+    config = SessionConfig.from_config(Config(registration=LOOPS, mapping=REFUSE_ALL))
     session = Session("1" * 16, "hash", SessionStore(tmp_path / "data"), config)
     session.configure(Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height))
     assert session.loops is not None
@@ -438,7 +484,7 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
 
 
 def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_room(tmp_path):
-    """Off by default; on with registration.loops.live, but never without the room's keyframe
+    """On by default, off with registration.loops.live false; never without the room's keyframe
     files (the rebuild reads them) nor in a session continuing in a saved room (its keyframes
     keep the room's world)."""
     from server.config import Config
@@ -454,7 +500,8 @@ def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_ro
         config = dataclasses.replace(config, save_room=save_rooms)
         return Session("2" * 16, "hash", store, config, room_dir=room_dir).loops_wanted
 
-    assert not wanted()
+    assert wanted()
+    assert not wanted(RegistrationConfig().with_overrides(loops={"live": False}))
     assert wanted(LOOPS)
     assert not wanted(LOOPS, save_rooms=False)
     assert not wanted(LOOPS, room_dir=tmp_path / "a_room")

@@ -67,6 +67,12 @@ class MappingConfig:
     # After a loop closure the map is re-fused from the keyframes (server/sessions/session.py)
     # this many at a time between two fusions (30-50 ms each): new frames wait at most that.
     rebuild_keyframes_per_step: int = 2
+    # A loop correction re-fuses the map only once it moves some keyframe by more than this
+    # since the map was last fused (metres, at a point 2 m in front of the keyframe's camera:
+    # translation plus rotation angle times 2 m). Smaller moves are below the map's resolution
+    # (one voxel); re-fusing for each of them cost two phones on two cores their rate
+    # (benchmarks/README.md, "Online, in live sessions"). 0: every correction re-fuses.
+    rebuild_min_move_m: float = 0.02
 
     def __post_init__(self) -> None:
         # A session's voxel: below 1 mm the grid outgrows any memory, above 20 cm the map and
@@ -77,6 +83,10 @@ class MappingConfig:
             )
         if self.fuse_every < 1:
             raise ConfigError(f"mapping.fuse_every must be >= 1, got {self.fuse_every}")
+        if self.rebuild_min_move_m < 0:
+            raise ConfigError(
+                f"mapping.rebuild_min_move_m must be >= 0, got {self.rebuild_min_move_m}"
+            )
         if not 100 <= self.preview_points <= MAX_PREVIEW_POINTS:
             raise ConfigError(
                 f"mapping.preview_points must be in [100, {MAX_PREVIEW_POINTS}] (the protocol's "

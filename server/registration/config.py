@@ -217,13 +217,13 @@ class LoopConfig:
     default: on 7scenes_a it costs ``track`` 1-3 s of its 23-25 s and takes the ATE from 2.71 to
     2.51 cm (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live
     session that keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a
-    session continuing in a saved room has none: server/sessions/loop_closing.py says why); off
-    by default: a keyframe costs the session's worker ~0.1 s of CPU and a rebuild the mapper
-    ~0.17 s per keyframe (README, "Loop closure"), and on a shared 2-core machine the drone's
-    map lagged more with it on."""
+    session continuing in a saved room has none: server/sessions/loop_closing.py says why); on
+    by default: with one or two phones at 15 fps on 2 cores it keeps capacity's target (p95 <=
+    100 ms, < 5 % of frames without a pose) for a few more ms of latency and CPU per frame
+    (``benchmarks/live_loops.py``; benchmarks/README.md, "Online, in live sessions")."""
 
     enabled: bool = True
-    live: bool = False
+    live: bool = True
     min_separation: int = 10  # a loop joins keyframes at least this many keyframes apart
     icp_distance_m: float = 0.05  # point-to-plane refinement of a loop; the graph's too
     min_icp_fitness: float = 0.5  # share of the new keyframe's depth that must fit the old one

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.geometry import Intrinsics, invert
+from server.geometry import Intrinsics, invert, rotation_angle_deg
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.place import PlaceFeatures
@@ -108,6 +108,14 @@ class Worlds:
     def delta(self, world: int, to: int) -> np.ndarray:
         """What moves a pose that no correction names from world ``world`` into ``to``."""
         return self.carry(None, np.eye(4), world, to)
+
+
+def pose_move_m(T_a: np.ndarray, T_b: np.ndarray, reach_m: float = 2.0) -> float:
+    """How far a correction from camera pose T_a to T_b (4x4 T_world_camera, metres) moves what
+    the camera saw: its centre's shift plus its turn (radians) times ``reach_m``, a bound on
+    how far a point ``reach_m`` in front of it moves."""
+    shift = float(np.linalg.norm(T_b[:3, 3] - T_a[:3, 3]))
+    return shift + np.radians(rotation_angle_deg(invert(T_a) @ T_b)) * reach_m
 
 
 @dataclass

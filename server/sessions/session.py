@@ -40,7 +40,7 @@ from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
 from server.sessions.flight import CommandRefused, Flight
 from server.sessions.flight_log import FlightLog
-from server.sessions.loop_closing import Correction, LoopClosing, LoopKeyframe
+from server.sessions.loop_closing import Correction, LoopClosing, LoopKeyframe, pose_move_m
 from server.sessions.mapping import (
     MAPPING_NICE,
     Mapper,
@@ -169,7 +169,13 @@ class Session:
         self._rebuilding: Correction | None = None  # mapping thread
         self._rebuild_t0 = 0.0
         self._map_world = 0  # the world the map and the drone's map are in (mapping thread)
+        # Each room keyframe's pose in the map (fused there at it), and in the map a rebuild
+        # in progress makes (mapping thread): what a correction's move is measured against.
+        self._map_poses: dict[int, np.ndarray] = {}
+        self._rebuild_poses: dict[int, np.ndarray] = {}
         self._rebuilds = 0
+        self._rebuilds_skipped = 0
+        self._map_behind_m = 0.0  # the most a keyframe moved since the map was fused, m
         self._last_rebuild: dict[str, float] = {}
         self._last_seq_processed = -1
         if room_dir is not None:
@@ -417,6 +423,8 @@ class Session:
             figures.update(self.loops.figures())
         with self._lock:
             figures["rebuilds"] = self._rebuilds
+            figures["rebuilds_skipped"] = self._rebuilds_skipped
+            figures["map_behind_m"] = round(self._map_behind_m, 4)
             figures["last_rebuild_ms"] = self._last_rebuild.get("ms")
             figures["last_rebuild_cpu_ms"] = self._last_rebuild.get("cpu_ms")
             figures["last_rebuild_keyframes"] = self._last_rebuild.get("keyframes")
@@ -591,6 +599,7 @@ class Session:
             rebuild_pose = self.loops.worlds.carry(
                 job.keyframe_id, job.T_world_camera, job.world, rebuilding.world
             )
+            self._rebuild_poses[job.keyframe_id] = rebuild_pose
         try:
             fused = self.mapper.fuse(
                 job.colour, job.depth, K, job.T_world_camera, occupancy, rebuild_pose
@@ -603,6 +612,8 @@ class Session:
                 self.failures.fusions_failed += 1
             return
         self._fused += 1
+        if job.keyframe:
+            self._map_poses[job.keyframe_id] = job.T_world_camera
         if job.keyframe and self.config.save_room:
             self._keep_room_keyframe(job, K)
         with self._lock:
@@ -620,7 +631,9 @@ class Session:
         keyframe written so far at its pose in the corrected world; the room's keyframe poses
         become these. A rebuild in progress finishes first (restarting it at every loop would
         never finish while the camera keeps closing loops); corrections that came meanwhile
-        wait, and only the newest of them is rebuilt."""
+        wait, and only the newest of them is rebuilt. A correction that moves no keyframe by
+        more than ``mapping.rebuild_min_move_m`` from its pose in the map leaves the map as it
+        is (counted as skipped): the moves add up until one is worth a rebuild."""
         if self._rebuilding is not None:
             return
         with self._lock:
@@ -635,6 +648,17 @@ class Session:
             ]
             self._room_worlds = {i: wanted.world for i, _, _ in self._room_keyframes}
             entries = [(i, T) for i, _, T in self._room_keyframes]
+        moves = [pose_move_m(self._map_poses[i], T) for i, T in entries if i in self._map_poses]
+        move = max(moves, default=0.0)
+        with self._lock:
+            self._map_behind_m = move
+        if move <= self.config.mapping.rebuild_min_move_m:
+            with self._lock:
+                self._rebuilds_skipped += 1
+            self.log.info(
+                "world %d moves the map by %.3f m at most: not re-fused", wanted.world, move
+            )
+            return
         K, _ = self._configured()
         try:
             self.mapper.rebuild_start(self.store.folder(self.id) / ROOM_FOLDER, entries, K)
@@ -644,6 +668,7 @@ class Session:
             self._rebuild_failed()
             return
         self._rebuilding = wanted
+        self._rebuild_poses = dict(entries)
         self._rebuild_t0 = time.perf_counter()
 
     def _rebuild_step(self) -> None:
@@ -666,8 +691,10 @@ class Session:
         ms = (time.perf_counter() - self._rebuild_t0) * 1e3
         T_map = self.loops.worlds.delta(self._map_world, correction.world)
         self._map_world = correction.world
+        self._map_poses, self._rebuild_poses = self._rebuild_poses, {}
         with self._lock:
             self._rebuilds += 1
+            self._map_behind_m = 0.0
             self._last_rebuild = {
                 "ms": round(ms, 1),
                 "cpu_ms": round(rebuilt.cpu_ms, 1),

@@ -178,6 +178,16 @@ class LoopClosure(_Body):
         "and verification, ms",
     )
     rebuilds: int = Field(description="maps rebuilt from the corrected keyframes and swapped in")
+    rebuilds_skipped: int = Field(
+        0,
+        description="corrections that moved no keyframe by more than mapping.rebuild_min_move_m "
+        "from its pose in the map, which was therefore not re-fused",
+    )
+    map_behind_m: float = Field(
+        0.0,
+        description="the most the corrections since the map was last fused moved a keyframe "
+        "(its camera's shift plus its turn times 2 m), m; 0 right after a rebuild",
+    )
     last_rebuild_ms: float | None = Field(
         None, description="wall time of the latest rebuild, from its start to the swap, ms"
     )

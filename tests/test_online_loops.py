@@ -179,15 +179,14 @@ def test_a_correction_below_the_maps_resolution_moves_poses_and_room_but_not_the
 
 
 def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_data, tmp_path):
-    """Also: on by default; a session turns it off or, where the server has it off, on."""
+    """Also: off by default; a session turns it on, or off where the server has it on."""
     ds = open_dataset(shared_data / "synthetic_room0")
-    url = f"{live_server(tmp_path / 'default').url}/api/sessions"
-    assert httpx.post(url).json()["loop_closure"] is True  # the server's default: on
+    url = f"{live_server(tmp_path / 'on', registration=LOOPS).url}/api/sessions"
+    assert httpx.post(url).json()["loop_closure"] is True  # the server's setting: on
     assert httpx.post(url, json={"loop_closure": False}).json()["loop_closure"] is False
-    off = RegistrationConfig().with_overrides(loops={"live": False})
-    server = live_server(tmp_path / "data", mapping=MAPPING, registration=off)
+    server = live_server(tmp_path / "data", mapping=MAPPING)
     url = f"{server.url}/api/sessions"
-    assert httpx.post(url).json()["loop_closure"] is False  # the server's setting: off
+    assert httpx.post(url).json()["loop_closure"] is False  # the server's default: off
     created = httpx.post(url, json={"loop_closure": True}).json()
     assert created["loop_closure"] is True
     sid, token = created["id"], created["token"]
@@ -484,7 +483,7 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
 
 
 def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_room(tmp_path):
-    """On by default, off with registration.loops.live false; never without the room's keyframe
+    """Off by default; on with registration.loops.live, but never without the room's keyframe
     files (the rebuild reads them) nor in a session continuing in a saved room (its keyframes
     keep the room's world)."""
     from server.config import Config
@@ -500,8 +499,7 @@ def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_ro
         config = dataclasses.replace(config, save_room=save_rooms)
         return Session("2" * 16, "hash", store, config, room_dir=room_dir).loops_wanted
 
-    assert wanted()
-    assert not wanted(RegistrationConfig().with_overrides(loops={"live": False}))
+    assert not wanted()
     assert wanted(LOOPS)
     assert not wanted(LOOPS, save_rooms=False)
     assert not wanted(LOOPS, room_dir=tmp_path / "a_room")

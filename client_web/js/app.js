@@ -90,11 +90,10 @@ class App {
    * Start streaming from a capture mode into a session.
    * @param {{mode?: "demo"|"demo-small"|"demo-loop"|"folder"|"iphone"|"live", fps?: number, fresh?: boolean,
    *   room?: boolean, loops?: boolean, files?: FileList, recording?: File}} options
-   *   loops: a new session closes loops (true) or does not (false); null: the server's setting.
-   *   The demo there and back always starts a new session that does, as showing it is what it
-   *   is for.
+   *   loops: a new session closes loops (the server's setting otherwise); the demo there and
+   *   back always starts a new session that does, as showing it is what it is for.
    */
-  async start({ mode = "demo", fps = 15, fresh = false, room = false, loops = null, files = null, recording = null } = {}) {
+  async start({ mode = "demo", fps = 15, fresh = false, room = false, loops = false, files = null, recording = null } = {}) {
     if (mode === "demo-loop") [fresh, loops] = [true, true];
     this.stopStreaming();
     this.source?.stop?.();
@@ -120,7 +119,7 @@ class App {
       this.source = source;
       const info = source.info;
       const hello = this.protocol.hello(info);
-      const { id, resumed } = await this.client.open(hello, { fresh, room, loopClosure: loops });
+      const { id, resumed } = await this.client.open(hello, { fresh, room, loopClosure: loops || null });
       if (!resumed) this.#resetViews();
       this.hud.toast(resumed ? `continuing session ${id}` : `new session ${id}`, "ok");
       this.hello = hello;

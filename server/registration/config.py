@@ -217,13 +217,14 @@ class LoopConfig:
     default: on 7scenes_a it costs ``track`` 1-3 s of its 23-25 s and takes the ATE from 2.71 to
     2.51 cm (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live
     session that keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a
-    session continuing in a saved room has none: server/sessions/loop_closing.py says why); on
-    by default: with one or two phones at 15 fps on 2 cores it keeps capacity's target (p95 <=
-    100 ms, < 5 % of frames without a pose) for a few more ms of latency and CPU per frame
-    (``benchmarks/live_loops.py``; benchmarks/README.md, "Online, in live sessions")."""
+    session continuing in a saved room has none: server/sessions/loop_closing.py says why); off
+    by default: on 2 cores it costs each phone's session 14-28 ms more server CPU per frame (the
+    map's re-fusing most of it), and two phones at 15 fps then miss capacity's target (10 % of
+    frames without a pose against 3 % with it off; ``benchmarks/live_loops.py``,
+    benchmarks/README.md, "Online, in live sessions")."""
 
     enabled: bool = True
-    live: bool = True
+    live: bool = False
     min_separation: int = 10  # a loop joins keyframes at least this many keyframes apart
     icp_distance_m: float = 0.05  # point-to-plane refinement of a loop; the graph's too
     min_icp_fitness: float = 0.5  # share of the new keyframe's depth that must fit the old one

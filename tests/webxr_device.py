@@ -51,10 +51,12 @@ class DeviceProfile:
     empty_depth_s: float = 1.0  # depth from motion: all zero for this long after the start
     missing_depth_every: int = 37  # every n-th camera frame starts a run without depth information
     missing_camera_every: int = 53  # ... a run without a camera image (0: never)
-    # Frames in each such run: ARCore's depth misses a few frames in a row. A run also outlasts
-    # the page's gaps between frames it samples (66 ms at 15 fps, ~200 ms on a loaded machine),
-    # so a page that checks availability meets some: one-frame gaps were all sampled past once.
-    missing_run: int = 3
+    # Frames in each such run (ARCore's depth can miss a few in a row). A page that samples
+    # every k-th camera frame meets a run of 2 with a chance of about 2/k, and passes all 27
+    # runs of a 600-frame recording with (1 - 2/k)^27: 2e-5 at k = 6, a loaded machine's rate
+    # (96 of 600 sampled), where single missing frames were once all passed. Longer runs cost
+    # the emulated phone more of its frames (3: 41-49 without depth against 7 at 1).
+    missing_run: int = 2
     features: tuple[str, ...] = ("depth-sensing", "camera-access")
     # The camera image and XR framebuffer at this fraction of the view's pixels: software WebGL
     # on two cores cannot fill 1080x2400 at 30 Hz beside a tracking server. The projection

@@ -308,7 +308,7 @@ class App {
     if (s.corrections.length > 50) s.corrections.shift();
     this.map.replaceTrajectory(correction.keyframes.map((k) => k.T_world_keyframe));
     const shift = Math.hypot(correction.T_correction[3], correction.T_correction[7], correction.T_correction[11]);
-    this.hud.toast(`loop closed (${correction.loops}): map corrected by ${(100 * shift).toFixed(1)} cm here, re-fusing`, "ok", 5000);
+    this.hud.toast(`loop closed (${correction.loops}): map corrected by ${(100 * shift).toFixed(1)} cm here`, "ok", 5000);
   }
 
   #serverError(error) {

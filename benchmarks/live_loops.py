@@ -98,6 +98,10 @@ def _sum(row: dict, key: str) -> int:
     return sum(int(s.get(key) or 0) for s in row["loop_status"])
 
 
+def _sum_float(row: dict, key: str) -> float:
+    return sum(float(s.get(key) or 0.0) for s in row["loop_status"])
+
+
 def _worst(row: dict, key: str) -> float | None:
     values = [s[key] for s in row["loop_status"] if s.get(key) is not None]
     return max(values) if values else None
@@ -119,6 +123,7 @@ COLUMNS = [
     "map rebuilds (skipped)",
     "look-up CPU ms/keyframe (worst session)",
     "last rebuild ms (keyframes)",
+    "rebuilds' CPU s, all",
 ]
 
 
@@ -137,6 +142,7 @@ def cells(row: dict) -> list[str]:
         f"{_sum(row, 'rebuilds')} ({_sum(row, 'rebuilds_skipped')})" if row["loops"] else "-",
         _cell(_worst(row, "lookup_cpu_ms")),
         "-" if rebuild_ms is None else f"{rebuild_ms:.0f} ({rebuild_kf:.0f})",
+        f"{_sum_float(row, 'rebuilds_cpu_ms') / 1e3:.1f}" if row["loops"] else "-",
     ]
 
 

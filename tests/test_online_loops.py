@@ -117,6 +117,7 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
     print("status loops:", loops)
     assert loops["enabled"] and loops["found"] >= 1 and loops["corrections"] >= 1
     assert loops["rebuilds"] >= 1 and loops["last_rebuild_ms"] > 0
+    assert loops["rebuilds_cpu_ms"] >= loops["last_rebuild_cpu_ms"] > 0
     assert loops["keyframes"] >= len(keyframes) and loops["last_optimise_ms"] < 1000
     assert status["failures"]["loops_failed"] == 0
     deadline = time.monotonic() + 10  # the flight thread applies the rebuilt map at its step
@@ -161,6 +162,7 @@ def test_a_correction_below_the_maps_resolution_moves_poses_and_room_but_not_the
     print("status loops:", loops)
     assert loops["corrections"] >= 1 and loops["rebuilds"] == 0 and loops["rebuilds_skipped"] >= 1
     assert 0 < loops["map_behind_m"] <= MAPPING.rebuild_min_move_m
+    assert loops["rebuilds_cpu_ms"] == 0
     assert status["drone"]["spawned"] and status["failures"]["loops_failed"] == 0
 
     server.stop()  # shutdown saves the session: its room takes the corrected poses all the same

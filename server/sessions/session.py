@@ -175,6 +175,7 @@ class Session:
         self._rebuild_poses: dict[int, np.ndarray] = {}
         self._rebuilds = 0
         self._rebuilds_skipped = 0
+        self._rebuilds_cpu_ms = 0.0  # the mapping process's CPU over every rebuild so far
         self._map_behind_m = 0.0  # the most a keyframe moved since the map was fused, m
         self._last_rebuild: dict[str, float] = {}
         self._last_seq_processed = -1
@@ -424,6 +425,7 @@ class Session:
         with self._lock:
             figures["rebuilds"] = self._rebuilds
             figures["rebuilds_skipped"] = self._rebuilds_skipped
+            figures["rebuilds_cpu_ms"] = round(self._rebuilds_cpu_ms, 1)
             figures["map_behind_m"] = round(self._map_behind_m, 4)
             figures["last_rebuild_ms"] = self._last_rebuild.get("ms")
             figures["last_rebuild_cpu_ms"] = self._last_rebuild.get("cpu_ms")
@@ -694,6 +696,7 @@ class Session:
         self._map_poses, self._rebuild_poses = self._rebuild_poses, {}
         with self._lock:
             self._rebuilds += 1
+            self._rebuilds_cpu_ms += rebuilt.cpu_ms
             self._map_behind_m = 0.0
             self._last_rebuild = {
                 "ms": round(ms, 1),

@@ -183,6 +183,9 @@ class LoopClosure(_Body):
         description="corrections that moved no keyframe by more than mapping.rebuild_min_move_m "
         "from its pose in the map, which was therefore not re-fused",
     )
+    rebuilds_cpu_ms: float = Field(
+        0.0, description="the mapping process's CPU time over every rebuild so far, ms"
+    )
     map_behind_m: float = Field(
         0.0,
         description="the most the corrections since the map was last fused moved a keyframe "

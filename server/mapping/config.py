@@ -70,9 +70,9 @@ class MappingConfig:
     # A loop correction re-fuses the map only once it moves some keyframe by more than this
     # since the map was last fused (metres, at a point 2 m in front of the keyframe's camera:
     # translation plus rotation angle times 2 m). Smaller moves are below the map's resolution
-    # (one voxel), and each re-fusion reads and fuses every keyframe so far, the largest cost of
-    # live loop closure (on 7scenes_a this skips 30 of 38; benchmarks/README.md, "Online, in
-    # live sessions"). 0: every correction re-fuses.
+    # (one voxel), and each re-fusion reads and fuses every keyframe so far: a third of what
+    # live loop closure costs (on 7scenes_a this skips 21-30 of 28-38; benchmarks/README.md,
+    # "Online, in live sessions"). 0: every correction re-fuses.
     rebuild_min_move_m: float = 0.02
 
     def __post_init__(self) -> None:

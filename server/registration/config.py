@@ -218,10 +218,10 @@ class LoopConfig:
     2.51 cm (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live
     session that keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a
     session continuing in a saved room has none: server/sessions/loop_closing.py says why); off
-    by default: on 2 cores it costs each phone's session 14-28 ms more server CPU per frame (the
-    map's re-fusions the largest share), and two phones at 15 fps then miss capacity's target
-    (10 % of frames without a pose against 3 % with it off; ``benchmarks/live_loops.py``,
-    benchmarks/README.md, "Online, in live sessions")."""
+    by default: on 2 cores it costs each phone's session 14-36 ms more server CPU per frame (a
+    third of it re-fusing the map, a seventh the look-ups), and two phones at 15 fps then miss
+    capacity's target (10 % of frames without a pose against 3 % with it off;
+    ``benchmarks/live_loops.py``, benchmarks/README.md, "Online, in live sessions")."""
 
     enabled: bool = True
     live: bool = False

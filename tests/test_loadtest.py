@@ -8,7 +8,9 @@ import sys
 from pathlib import Path
 
 import httpx
+import numpy as np
 
+from server import protocol as P
 from server.client.loadtest import EncodedSequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -97,3 +99,21 @@ def test_the_sequence_plays_back_and_forth_so_the_motion_stays_continuous():
     assert [seq.index(k) for k in range(10)] == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
     single = EncodedSequence("one", (500.0, 500.0, 320.0, 240.0), (640, 480), [{}])
     assert {single.index(k) for k in range(5)} == {0}
+
+
+def test_a_loop_correction_moves_the_drone_target_with_the_world():
+    """After map_corrected the load tester's goto target (the drone's spawn point, kept in the
+    old world) is moved by T_correction, as the server reads targets in the corrected world:
+    kept as it was, it pointed into walls (11 targets unreachable in a 120 s run with loops)."""
+    from server.client.loadtest.client import _Client
+    from server.client.loadtest.results import LoadTestConfig
+
+    client = _Client(0, None, LoadTestConfig(url="http://127.0.0.1:9"), None)  # no socket used
+    client.spawn = [1.0, 0.0, 0.5]
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 deg about z
+    T[:3, 3] = [0.0, 0.1, 0.0]
+    client._handle(P.make_map_corrected(1, 40, T, [(3, 30, np.eye(4))], 0), None)
+    assert np.allclose(client.spawn, [0.0, 1.1, 0.5])
+    goto = [client._next_command() for _ in range(2)][1]
+    assert goto["name"] == "goto" and np.allclose(goto["target"], [0.0, 1.1, 0.5])

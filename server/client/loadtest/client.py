@@ -184,6 +184,12 @@ class _Client:
             r.drone_states += 1
             if self.spawn is None:
                 self.spawn = [float(v) for v in proto.pose_matrix(msg, "T_world_drone")[:3, 3]]
+        elif kind == "map_corrected":
+            # A loop closure moved the world: the spawn point, a place in the old world, is
+            # where T_correction puts it in the new one (the server reads targets there).
+            if self.spawn is not None:
+                T, _ = proto.decode_map_corrected(msg)
+                self.spawn = [float(v) for v in T[:3, :3] @ self.spawn + T[:3, 3]]
         elif kind == "drone_event":
             r.drone_events[msg["event"]] += 1
             if msg["event"] == "spawned" and self.spawn is None:

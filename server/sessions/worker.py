@@ -255,8 +255,10 @@ class ProcessWorker:
                     self._waiting_frames -= 1
             try:
                 self._conn.send(message)
-            except (OSError, ValueError):
-                return  # the reader sees the end and reports it
+            except (OSError, ValueError, TypeError):
+                # The reader sees the end and reports it. TypeError: close() on another thread
+                # emptied the connection's handle mid-send (seen once in CI, a killed mapper).
+                return
 
     # ------------------------------------------------------------------ the reader thread
     def _read(self) -> None:

@@ -94,11 +94,7 @@ def run_once(
     return row
 
 
-def _sum(row: dict, key: str) -> int:
-    return sum(int(s.get(key) or 0) for s in row["loop_status"])
-
-
-def _sum_float(row: dict, key: str) -> float:
+def _sum(row: dict, key: str) -> float:
     return sum(float(s.get(key) or 0.0) for s in row["loop_status"])
 
 
@@ -137,12 +133,14 @@ def cells(row: dict) -> list[str]:
         f"{100 * row['drop_rate']:.1f} %",
         "yes" if row["meets"] else "no",
         _cell(row["cpu_ms_per_frame"]),
-        str(_sum(row, "keyframes")) if row["loops"] else "-",
-        str(_sum(row, "found")) if row["loops"] else "-",
-        f"{_sum(row, 'rebuilds')} ({_sum(row, 'rebuilds_skipped')})" if row["loops"] else "-",
+        f"{_sum(row, 'keyframes'):.0f}" if row["loops"] else "-",
+        f"{_sum(row, 'found'):.0f}" if row["loops"] else "-",
+        f"{_sum(row, 'rebuilds'):.0f} ({_sum(row, 'rebuilds_skipped'):.0f})"
+        if row["loops"]
+        else "-",
         _cell(_worst(row, "lookup_cpu_ms")),
         "-" if rebuild_ms is None else f"{rebuild_ms:.0f} ({rebuild_kf:.0f})",
-        f"{_sum_float(row, 'rebuilds_cpu_ms') / 1e3:.1f}" if row["loops"] else "-",
+        f"{_sum(row, 'rebuilds_cpu_ms') / 1e3:.1f}" if row["loops"] else "-",
     ]
 
 

@@ -614,7 +614,7 @@ class Session:
                 self.failures.fusions_failed += 1
             return
         self._fused += 1
-        if job.keyframe:
+        if job.keyframe and self.loops is not None:  # only corrections read it
             self._map_poses[job.keyframe_id] = job.T_world_camera
         if job.keyframe and self.config.save_room:
             self._keep_room_keyframe(job, K)

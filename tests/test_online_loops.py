@@ -505,3 +505,63 @@ def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_ro
     assert wanted(LOOPS)
     assert not wanted(LOOPS, save_rooms=False)
     assert not wanted(LOOPS, room_dir=tmp_path / "a_room")
+
+
+def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_the_graph(
+    shared_data,
+):
+    """The loop thread as a live session feeds it, over 64 keyframes that close a loop at
+    nearly every one: each keyframe is chained, as the corrected tracker chains it, from the
+    previous keyframe's pose carried into the latest world (which is the graph's own estimate
+    once a correction named it). Every correction stays a rotation plus a shift, and small.
+    Before the graph's estimates were projected onto SO(3), each such keyframe doubled their
+    rotations' departure from it: the corrections grew from millimetres to metres within ~90
+    keyframes, and live sessions lost tracking for good."""
+    from server.geometry import invert, orthonormalize, rotation_angle_deg
+    from server.pipeline import ground_truth_pose_at
+    from server.registration.place import describe_place
+    from server.registration.preprocess import clean_depth, to_grey
+    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    K = ds.intrinsics
+    cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
+    views = list(range(0, 150, 10))
+    order = (views + views[-2:0:-1]) * 3  # forward and back, round again: 84 visits
+    order = order[:64]
+    frames = {}
+    for i in views:
+        f = ds[i]
+        depth = clean_depth(f.depth, cfg.depth)
+        place = describe_place(to_grey(f.colour), depth, K, cfg.place, cfg.depth)
+        frames[i] = (place, depth, ground_truth_pose_at(ds, f.timestamp))
+    corrections, failures = [], []
+    loops = LoopClosing(K, cfg, corrections.append, failures.append)
+    loops.start()
+    rng = np.random.default_rng(7)
+    prev = None  # (keyframe id, its view, its pose, its world)
+    try:
+        for kf_id, i in enumerate(order):
+            place, depth, T_true = frames[i]
+            world = loops.worlds.latest
+            if prev is None:
+                T = T_true
+            else:  # the true motion from the previous view with an odometry error on it
+                T_prev = loops.worlds.carry(prev[0], prev[2], prev[3], world)
+                noise = _turn(np.radians(rng.normal(0.0, 0.2)), rng.normal(0.0, 0.003, 3))
+                T = orthonormalize(T_prev @ invert(frames[prev[1]][2]) @ T_true @ noise)
+            loops.submit(LoopKeyframe(kf_id, i, T, world, place, depth))
+            deadline = time.monotonic() + 30
+            while loops.figures()["keyframes"] <= kf_id and time.monotonic() < deadline:
+                time.sleep(0.005)
+            prev = (kf_id, i, T, world)
+    finally:
+        loops.stop()
+    assert not failures
+    assert len(corrections) >= 30, len(corrections)
+    for c in corrections:
+        for T in (c.T_correction, *c.keyframes.values()):
+            R = T[:3, :3]
+            assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12, c.world
+        assert np.linalg.norm(c.T_correction[:3, 3]) < 0.1, c.world
+        assert rotation_angle_deg(c.T_correction) < 3.0, c.world

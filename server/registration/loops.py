@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from server.geometry import Intrinsics, backproject, invert
+from server.geometry import Intrinsics, backproject, invert, orthonormalize
 from server.geometry.arrays import Float32Array, FloatArray
 from server.registration.config import RegistrationConfig
 from server.registration.place import KeyframeDatabase, PlaceFeatures
@@ -100,8 +100,12 @@ class LoopCloser:
         if self.nodes:
             prev = self.nodes[-1]
             T_prev = prev.T_world_keyframe if T_world_previous is None else T_world_previous
-            T_a_b = invert(T_prev) @ T_world_keyframe
-            node.estimate = prev.estimate @ T_a_b
+            # Projected onto SO(3) before ``invert`` (which takes R^T for the inverse) and after
+            # chaining: a live session's T_prev is the previous estimate carried back from the
+            # graph, and unprojected, each keyframe doubled its rotation's departure from
+            # orthonormality (1e-16 grew to a metre-sized correction within ~90 keyframes).
+            T_a_b = invert(orthonormalize(T_prev)) @ T_world_keyframe
+            node.estimate = orthonormalize(prev.estimate @ T_a_b)
             info = _reg.get_information_matrix_from_point_clouds(
                 node.cloud, prev.cloud, c.icp_distance_m, T_a_b
             )
@@ -172,7 +176,7 @@ class LoopCloser:
                 option,
             )
         for i, n in enumerate(self.nodes):
-            n.estimate = np.asarray(graph.nodes[i].pose, dtype=np.float64).copy()
+            n.estimate = orthonormalize(np.asarray(graph.nodes[i].pose, dtype=np.float64))
         return {n.kf_id: n.estimate.copy() for n in self.nodes}
 
     def edges(self) -> list[tuple[int, int, FloatArray, bool]]:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.geometry import Intrinsics, invert, rotation_angle_deg
+from server.geometry import Intrinsics, invert, orthonormalize, rotation_angle_deg
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.place import PlaceFeatures
@@ -239,7 +239,7 @@ class LoopClosing:
             latest + 1,
             corrected,
             seqs,
-            corrected[kf.kf_id] @ invert(T_old),
+            orthonormalize(corrected[kf.kf_id] @ invert(T_old)),
             len(self.closer.loops),
             self.closer.refused,
             ms,

@@ -120,6 +120,8 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
     assert loops["rebuilds_cpu_ms"] >= loops["last_rebuild_cpu_ms"] > 0
     assert loops["keyframes"] >= len(keyframes) and loops["last_optimise_ms"] < 1000
     assert status["failures"]["loops_failed"] == 0
+    worker = status["worker"]  # the loop closer ran in a process of its own, off the tracker's
+    assert worker["loops_pid"] not in (None, worker["pid"], worker["mapper_pid"])
     deadline = time.monotonic() + 10  # the flight thread applies the rebuilt map at its step
     while status["drone"]["corrections"] < 1 and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -507,6 +509,52 @@ def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_ro
     assert not wanted(LOOPS, room_dir=tmp_path / "a_room")
 
 
+def _views(shared_data, cfg: RegistrationConfig) -> tuple:
+    """synthetic_room0 every 10th frame: (its intrinsics, {frame: (place features, cleaned
+    depth, true T_world_camera)})."""
+    from server.pipeline import ground_truth_pose_at
+    from server.registration.place import describe_place
+    from server.registration.preprocess import clean_depth, to_grey
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    K = ds.intrinsics
+    frames = {}
+    for i in range(0, 150, 10):
+        f = ds[i]
+        depth = clean_depth(f.depth, cfg.depth)
+        place = describe_place(to_grey(f.colour), depth, K, cfg.place, cfg.depth)
+        frames[i] = (place, depth, ground_truth_pose_at(ds, f.timestamp))
+    return K, frames
+
+
+def _feed(loops, frames: dict, count: int, seed: int = 7) -> None:
+    """Keyframes into the loop thread ``loops`` as a live session gives them, going forward and
+    back over ``frames`` (and round again) for ``count`` keyframes, one at a time: each chained
+    from the previous keyframe's pose carried into the latest world (the graph's own estimate
+    once a correction named it), with an odometry error (0.2 deg, 3 mm) on the true motion."""
+    from server.geometry import invert, orthonormalize
+    from server.sessions.loop_closing import LoopKeyframe
+
+    views = sorted(frames)
+    order = ((views + views[-2:0:-1]) * 3)[:count]
+    rng = np.random.default_rng(seed)
+    prev = None  # (keyframe id, its view, its pose, its world)
+    for kf_id, i in enumerate(order):
+        place, depth, T_true = frames[i]
+        world = loops.worlds.latest
+        if prev is None:
+            T = T_true
+        else:
+            T_prev = loops.worlds.carry(prev[0], prev[2], prev[3], world)
+            noise = _turn(np.radians(rng.normal(0.0, 0.2)), rng.normal(0.0, 0.003, 3))
+            T = orthonormalize(T_prev @ invert(frames[prev[1]][2]) @ T_true @ noise)
+        loops.submit(LoopKeyframe(kf_id, i, T, world, place, depth))
+        deadline = time.monotonic() + 30
+        while loops.figures()["keyframes"] <= kf_id and time.monotonic() < deadline:
+            time.sleep(0.005)
+        prev = (kf_id, i, T, world)
+
+
 def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_the_graph(
     shared_data,
 ):
@@ -517,44 +565,16 @@ def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_th
     Before the graph's estimates were projected onto SO(3), each such keyframe doubled their
     rotations' departure from it: the corrections grew from millimetres to metres within ~90
     keyframes, and live sessions lost tracking for good."""
-    from server.geometry import invert, orthonormalize, rotation_angle_deg
-    from server.pipeline import ground_truth_pose_at
-    from server.registration.place import describe_place
-    from server.registration.preprocess import clean_depth, to_grey
-    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
+    from server.geometry import rotation_angle_deg
+    from server.sessions.loop_closing import LoopClosing
 
-    ds = open_dataset(shared_data / "synthetic_room0")
-    K = ds.intrinsics
     cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
-    views = list(range(0, 150, 10))
-    order = (views + views[-2:0:-1]) * 3  # forward and back, round again: 84 visits
-    order = order[:64]
-    frames = {}
-    for i in views:
-        f = ds[i]
-        depth = clean_depth(f.depth, cfg.depth)
-        place = describe_place(to_grey(f.colour), depth, K, cfg.place, cfg.depth)
-        frames[i] = (place, depth, ground_truth_pose_at(ds, f.timestamp))
+    K, frames = _views(shared_data, cfg)
     corrections, failures = [], []
     loops = LoopClosing(K, cfg, corrections.append, failures.append)
     loops.start()
-    rng = np.random.default_rng(7)
-    prev = None  # (keyframe id, its view, its pose, its world)
     try:
-        for kf_id, i in enumerate(order):
-            place, depth, T_true = frames[i]
-            world = loops.worlds.latest
-            if prev is None:
-                T = T_true
-            else:  # the true motion from the previous view with an odometry error on it
-                T_prev = loops.worlds.carry(prev[0], prev[2], prev[3], world)
-                noise = _turn(np.radians(rng.normal(0.0, 0.2)), rng.normal(0.0, 0.003, 3))
-                T = orthonormalize(T_prev @ invert(frames[prev[1]][2]) @ T_true @ noise)
-            loops.submit(LoopKeyframe(kf_id, i, T, world, place, depth))
-            deadline = time.monotonic() + 30
-            while loops.figures()["keyframes"] <= kf_id and time.monotonic() < deadline:
-                time.sleep(0.005)
-            prev = (kf_id, i, T, world)
+        _feed(loops, frames, 64)
     finally:
         loops.stop()
     assert not failures
@@ -565,3 +585,93 @@ def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_th
             assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12, c.world
         assert np.linalg.norm(c.T_correction[:3, 3]) < 0.1, c.world
         assert rotation_angle_deg(c.T_correction) < 3.0, c.world
+
+
+def _loop_process():
+    """A loop process (server/sessions/loop_process.py) from the workers' forkserver, as a
+    worker process's session has one: (the process, this end of its pipe)."""
+    from server.sessions.loop_process import loops_main
+    from server.sessions.worker import _context
+
+    ctx = _context()
+    here, there = ctx.Pipe(duplex=True)
+    process = ctx.Process(target=loops_main, args=(there,), daemon=True, name="test-loops")
+    process.start()
+    there.close()
+    return process, here
+
+
+def test_the_loop_process_closes_the_same_loops_as_the_loop_thread(shared_data):
+    """The loop closer in a process of its own (a live session in a worker process has it
+    there, off the tracker's GIL) gives the corrections it gives in the loop thread, counts
+    the process's CPU, and the process ends when the session's loop thread stops."""
+    from server.sessions.loop_closing import LoopClosing
+
+    cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
+    K, frames = _views(shared_data, cfg)
+    process, conn = _loop_process()
+    runs = {}
+    for where in ("thread", "process"):
+        corrections, failures = [], []
+        loops = LoopClosing(
+            K, cfg, corrections.append, failures.append, conn=conn if where == "process" else None
+        )
+        loops.start()
+        try:
+            _feed(loops, frames, 24)
+            figures = loops.figures()
+        finally:
+            loops.stop()
+        assert not failures, (where, failures)
+        runs[where] = (corrections, figures)
+    process.join(10)
+    assert process.exitcode == 0  # ended when the loop thread let go of its pipe
+
+    (here, here_figures), (there, there_figures) = runs["thread"], runs["process"]
+    assert len(here) >= 5 and len(there) == len(here)
+    assert there_figures["found"] == here_figures["found"] >= 5
+    for a, b in zip(here, there, strict=True):
+        assert (a.world, a.loops, a.refused) == (b.world, b.loops, b.refused)
+        assert a.keyframes.keys() == b.keyframes.keys()
+        for kf_id, T in a.keyframes.items():
+            assert np.allclose(T, b.keyframes[kf_id], atol=1e-6), (a.world, kf_id)
+        assert np.allclose(a.T_correction, b.T_correction, atol=1e-6)
+    # The process's CPU is counted (the thread itself only waits on the pipe there).
+    assert there_figures["lookup_cpu_ms"] > 0.3 * here_figures["lookup_cpu_ms"] > 0
+
+
+def test_a_lost_loop_process_fails_each_keyframe_after_it_counted_and_the_thread_goes_on(
+    shared_data,
+):
+    """The loop process is killed mid-session: every keyframe after it fails with a clear
+    error (the session counts them as loops_failed), none blocks, and the thread stops."""
+    import os
+    import signal
+
+    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
+    from server.sessions.loop_process import LoopProcessError
+
+    cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
+    K, frames = _views(shared_data, cfg)
+    process, conn = _loop_process()
+    corrections, failures = [], []
+    loops = LoopClosing(K, cfg, corrections.append, failures.append, conn=conn)
+    loops.start()
+    try:
+        _feed(loops, frames, 3)
+        assert loops.figures()["keyframes"] == 3 and not failures
+        os.kill(process.pid, signal.SIGKILL)
+        process.join(10)
+        t0 = time.monotonic()
+        place, depth, T = frames[0]
+        for kf_id in (3, 4):
+            loops.submit(LoopKeyframe(kf_id, 0, T, loops.worlds.latest, place, depth))
+        deadline = time.monotonic() + 10
+        while len(failures) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert time.monotonic() - t0 < 5
+    finally:
+        loops.stop(timeout_s=10)
+    assert len(failures) == 2 and all(isinstance(e, LoopProcessError) for e in failures)
+    assert "loop process is gone" in str(failures[0])
+    assert loops.figures()["keyframes"] == 3  # the failed keyframes are not in the graph

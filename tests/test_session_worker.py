@@ -64,6 +64,7 @@ def test_frames_cross_as_bytes_and_poses_come_back_from_another_process(manager,
     assert all(p.timings_ms["server_total"] >= p.timings_ms["track"] for p in poses)
     status = session.status()
     assert status["worker"]["kind"] == "process" and status["worker"]["pid"] != os.getpid()
+    assert status["worker"]["loops_pid"] is None  # no loop process without online loops
     assert status["frames_received"] == 3 and status["frames_processed"] == 3
 
 

@@ -117,9 +117,15 @@ class SessionHost:
     """A live session in its worker: frames in as bytes, updates out through ``publish``."""
 
     def __init__(
-        self, args: HostArgs, publish: Callable[[object], None], mapper: MapperClient | None = None
+        self,
+        args: HostArgs,
+        publish: Callable[[object], None],
+        mapper: MapperClient | None = None,
+        loops_conn=None,
     ) -> None:
-        """mapper: the session's mapping process; None maps in a thread of this process."""
+        """mapper: the session's mapping process; None maps in a thread of this process.
+        loops_conn: a pipe to the session's loop process; None closes loops (where configured)
+        in a thread of this process."""
         limit_threads(args.threads)
         self.args = args
         self.publish = publish
@@ -131,6 +137,7 @@ class SessionHost:
             created_at=args.created_at,
             mapper=mapper,
             room_dir=None if args.room_dir is None else Path(args.room_dir),
+            loops_conn=loops_conn,
         )
         self._hello: dict | None = None
 

@@ -2,11 +2,12 @@
 among the older ones, and on a verified loop optimises the pose graph and hands the session a
 corrected world (``Correction``).
 
-The numerical work is ``server/registration/loops.py``'s ``LoopCloser``; this module only
-feeds it from a queue (every keyframe, none dropped), at a priority below the mapping thread's
-(when cores are short the loops fall behind the map, never the poses), and keeps the sequence of
-corrected worlds (``Worlds``), so that a pose tracked in one world can be carried into a later
-one exactly as the tracker was.
+The numerical work is ``server/registration/loops.py``'s ``LoopCloser``, in a process of its own
+when the session has one (``server/sessions/loop_process.py``: in the tracking process it would
+share the tracker's GIL), else in this thread; this module only feeds it from a queue (every
+keyframe, none dropped), at a priority below the mapping's (when cores are short the loops fall
+behind the map, never the poses), and keeps the sequence of corrected worlds (``Worlds``), so
+that a pose tracked in one world can be carried into a later one exactly as the tracker was.
 
 Not for a session continuing in a saved room: the room's keyframes would have to stay fixed
 nodes of the graph (their poses are the room's world, shared with the map on disk and with
@@ -29,13 +30,10 @@ from server.geometry import Intrinsics, invert, orthonormalize, rotation_angle_d
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.place import PlaceFeatures
-from server.sessions.mapping import MAPPING_NICE, lower_this_threads_priority
+from server.sessions.loop_process import LOOPS_NICE, LoopCloserClient
+from server.sessions.mapping import lower_this_threads_priority
 
 log = logging.getLogger(__name__)
-
-# Below the mapping thread's priority: when the cores are short, loops fall behind the map,
-# and the map behind the poses (the drone flies in the map: it must not wait for loops).
-LOOPS_NICE = MAPPING_NICE + 5
 
 
 @dataclass
@@ -128,7 +126,9 @@ class LoopStats:
     corrections: int = 0
     last_optimise_ms: float | None = None
     last_optimise_cpu_ms: float | None = None
-    lookup_cpu_s: float = 0.0  # per keyframe: its cloud, odometry edge, lookup, verification
+    # per keyframe: its cloud, odometry edge, look-up, verification (this thread's CPU and, with
+    # a loop process, that process's)
+    lookup_cpu_s: float = 0.0
     optimise_ms: list[float] = field(default_factory=list)
 
 
@@ -136,7 +136,8 @@ class LoopClosing:
     """The loop thread of one session. ``submit`` keyframes in order (any thread; never
     blocks); ``on_correction(Correction)`` is called from the loop thread after each verified
     loop's optimisation, and ``on_failure(exc)`` when a keyframe fails (it is left out of the
-    graph; the thread goes on)."""
+    graph; the thread goes on). ``conn``: a pipe to the session's loop process
+    (``loop_process.loops_main``), which then does the work; None: this thread does it."""
 
     def __init__(
         self,
@@ -145,8 +146,11 @@ class LoopClosing:
         on_correction: Callable[[Correction], None],
         on_failure: Callable[[BaseException], None],
         name: str = "loops",
+        conn=None,
     ) -> None:
-        self.closer = LoopCloser(K, cfg)
+        self.closer: LoopCloser | LoopCloserClient = (
+            LoopCloser(K, cfg) if conn is None else LoopCloserClient(conn, K, cfg)
+        )
         self.worlds = Worlds()
         self.stats = LoopStats()
         self.on_correction = on_correction
@@ -166,10 +170,12 @@ class LoopClosing:
         self._queue.put(keyframe)
 
     def stop(self, timeout_s: float = 60.0) -> None:
-        """Process the keyframes queued so far, then end the thread."""
+        """Process the keyframes queued so far, then end the thread (and the loop process)."""
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join(timeout_s)
+        if isinstance(self.closer, LoopCloserClient) and not self._thread.is_alive():
+            self.closer.close()
 
     def figures(self) -> dict:
         """For the status: counts, the latest optimisation's wall time, mean CPU per keyframe."""
@@ -206,8 +212,13 @@ class LoopClosing:
             except Exception as exc:  # this keyframe is left out; the next ones go on
                 self.on_failure(exc)
 
+    def _cpu_s(self) -> float:
+        """CPU seconds spent on loop closure so far: this thread's and the loop process's."""
+        remote = self.closer.cpu_s if isinstance(self.closer, LoopCloserClient) else 0.0
+        return time.thread_time() + remote
+
     def _add(self, kf: LoopKeyframe) -> None:
-        cpu0 = time.thread_time()
+        cpu0 = self._cpu_s()
         prev = self._last
         # The odometry edge joins the two keyframes in one world: the previous one carried
         # into this one's (the tracker may have been corrected between them).
@@ -225,12 +236,12 @@ class LoopClosing:
             self.stats.keyframes += 1
             self.stats.found = len(self.closer.loops)
             self.stats.refused = self.closer.refused
-            self.stats.lookup_cpu_s += time.thread_time() - cpu0
+            self.stats.lookup_cpu_s += self._cpu_s() - cpu0
         if loop is None:
             return
-        t0, cpu0 = time.perf_counter(), time.thread_time()
+        t0, cpu0 = time.perf_counter(), self._cpu_s()
         corrected = self.closer.optimise()
-        ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.thread_time() - cpu0) * 1e3
+        ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (self._cpu_s() - cpu0) * 1e3
         latest = self.worlds.latest
         T_old = self.worlds.carry(kf.kf_id, kf.T_world_keyframe, kf.world, latest)
         with self._lock:

@@ -3,7 +3,7 @@ its own beside the session's tracking (or, for a session hosted elsewhere, in th
 
 Why a process: Open3D's ``VoxelBlockGrid.integrate`` holds the GIL for the whole call (30-50 ms
 for a 640x480 frame), so in a thread beside tracking every fusion stalls the tracker. Measured
-on 7scenes_a at 15 fps with a fusion every 200 ms (benchmarks/fusion_beside_tracking.py):
+on 7scenes_a at 15 fps with a fusion every 200 ms (benchmarks/beside_tracking.py):
 tracking p95 26.5 ms alone, 65.7 ms beside fusion in a thread, 24.8 ms beside fusion in
 another process.
 """

@@ -101,9 +101,12 @@ class Session:
         created_at: float | None = None,
         mapper: Mapper | MapperClient | None = None,
         room_dir: Path | None = None,
+        loops_conn=None,
     ) -> None:
         """room_dir: a saved room (server/rooms/) to continue in: the tracker relocalises the
-        first frames in it and the map starts as the room's; None starts an empty world."""
+        first frames in it and the map starts as the room's; None starts an empty world.
+        loops_conn: a pipe to a loop process (server/sessions/loop_process.py) for the loop
+        closer, when this session closes loops; None closes them in a thread of this process."""
         self.id = session_id
         self.log = SessionLog(log, session_id)
         self.token_hash = token_hash
@@ -163,6 +166,7 @@ class Session:
         # configured. Corrections wait for the tracking thread in _corrections (under _wake)
         # and for the mapping thread in _rebuild_wanted (newest wins, under _lock).
         self.loops: LoopClosing | None = None
+        self._loops_conn = loops_conn
         self._world = 0  # the corrected world the tracker is in (tracking thread)
         self._corrections: list[Correction] = []
         self._rebuild_wanted: Correction | None = None
@@ -205,6 +209,7 @@ class Session:
                     self._loop_corrected,
                     self._loop_failed,
                     name=f"loops-{self.id}",
+                    conn=self._loops_conn,
                 )
         if self.flight is None and self.config.simulation is not None:
             self.flight = Flight(

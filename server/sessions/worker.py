@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 _INLINE = {"configure", "frame", "command", "drain", "stop"}  # in order, on the main thread
 # Imported once in the forkserver, shared by every worker and mapper it forks.
-_PRELOAD = ["server.sessions.host", "server.sessions.mapping"]
+_PRELOAD = ["server.sessions.host", "server.sessions.mapping", "server.sessions.loop_process"]
 
 
 class WorkerLost(SessionError):
@@ -50,9 +50,10 @@ class WorkerLost(SessionError):
 # ---- the worker's side ------------------------------------------------------------------------
 
 
-def _worker_main(conn, args, mapper_conn) -> None:
+def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     """Entry point of a worker process: host the session (its map in the mapping process at
-    the other end of ``mapper_conn``) and serve the pipe until told to stop or until the web
+    the other end of ``mapper_conn``, its loop closer in the loop process at the other end of
+    ``loops_conn`` when it closes loops) and serve the pipe until told to stop or until the web
     process goes away."""
     # A Ctrl-C or SIGTERM meant for the server reaches the whole process group; the web process
     # then stops each session with a final save, which must find its worker alive.
@@ -81,7 +82,7 @@ def _worker_main(conn, args, mapper_conn) -> None:
         # A dead mapper fails the session, which then ends cleanly: stopped and saved by the
         # web side (Session.fail), this process serving it to the end.
         mapper = MapperClient(mapper_conn)
-        host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper)
+        host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper, loops_conn)
     except Exception as exc:
         outgoing.put(("reply", 0, False, as_remote(exc)))
         outgoing.put(None)
@@ -122,7 +123,8 @@ def _worker_main(conn, args, mapper_conn) -> None:
 
 
 class ProcessWorker:
-    """The web process's handle on one session's worker process (and its mapper process).
+    """The web process's handle on one session's worker process (and its mapper process, and
+    its loop process when the session closes loops online).
 
     ``call`` blocks until the worker answers (run it off the event loop); ``post`` only queues:
     a writer thread sends, so a worker busy with a command never blocks the caller. Frames
@@ -141,11 +143,24 @@ class ProcessWorker:
         start_timeout_s: float = 60.0,
         max_waiting_frames: int = 4,
     ) -> None:
+        from server.sessions.loop_process import loops_main
         from server.sessions.mapping import mapper_main
 
         ctx = _context()
         self._conn, child = ctx.Pipe(duplex=True)
         to_mapper, mapper_end = ctx.Pipe(duplex=True)
+        # The loop closer apart from tracking too: in the worker it would share the tracker's
+        # GIL (server/sessions/loop_process.py). Siblings, as a worker (a daemon) may not fork.
+        self.loops_process = None
+        to_loops = loops_end = None
+        if args.config.closes_loops(in_room=args.room_dir is not None):
+            to_loops, loops_end = ctx.Pipe(duplex=True)
+            self.loops_process = ctx.Process(
+                target=loops_main,
+                daemon=True,
+                name=f"session-{args.session_id}-loops",
+                args=(loops_end,),
+            )
         # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
         # call, which in one process would stall tracking (server/sessions/mapping.py).
         self.mapper_process = ctx.Process(
@@ -156,7 +171,7 @@ class ProcessWorker:
         )
         self.process = ctx.Process(
             target=_worker_main,
-            args=(child, args, to_mapper),
+            args=(child, args, to_mapper, to_loops),
             daemon=True,
             name=f"session-{args.session_id}",
         )
@@ -173,10 +188,13 @@ class ProcessWorker:
         self.dropped = 0  # frames dropped here, before the worker saw them
         self._wake = threading.Condition(self._lock)
         self.mapper_process.start()
+        if self.loops_process is not None:
+            self.loops_process.start()
         self.process.start()
         _RUNNING.add(self)
-        for end in (child, to_mapper, mapper_end):  # theirs now
-            end.close()
+        for end in (child, to_mapper, mapper_end, to_loops, loops_end):  # theirs now
+            if end is not None:
+                end.close()
         self._reader = threading.Thread(
             target=self._read, name=f"worker-{args.session_id}", daemon=True
         )
@@ -187,7 +205,13 @@ class ProcessWorker:
         self.info = self._wait(started, start_timeout_s, "start")
 
     def describe(self) -> dict:
-        return {"kind": self.kind, **self.info, "mapper_pid": self.mapper_process.pid}
+        loops = self.loops_process
+        return {
+            "kind": self.kind,
+            **self.info,
+            "mapper_pid": self.mapper_process.pid,
+            "loops_pid": None if loops is None else loops.pid,
+        }
 
     # ------------------------------------------------------------------ calls
     def post(self, method: str, *args) -> None:
@@ -326,11 +350,16 @@ class ProcessWorker:
         self._end_mapper()
 
     def _end_mapper(self) -> None:
-        """The mapping process ends when its worker closes the pipe; make sure of it."""
-        self.mapper_process.join(timeout=10)
-        if self.mapper_process.is_alive():
-            self.mapper_process.kill()
-            self.mapper_process.join(timeout=10)
+        """The mapping (and loop) process ends when its worker closes the pipe; make sure."""
+        for process in self.helpers():
+            process.join(timeout=10)
+            if process.is_alive():
+                process.kill()
+                process.join(timeout=10)
+
+    def helpers(self) -> list:
+        """The session's processes beside its worker: the mapper, and the loop process."""
+        return [p for p in (self.mapper_process, self.loops_process) if p is not None]
 
 
 def _ignore(*_) -> None:
@@ -360,7 +389,7 @@ def _kill_leftovers() -> None:
     running: a server stops its sessions before it exits, so these are leftovers; kill them.
     (Registered after multiprocessing's handler, so it runs before it.)"""
     for worker in list(_RUNNING):
-        for process in (worker.process, worker.mapper_process):
+        for process in (worker.process, *worker.helpers()):
             if process.is_alive():
                 process.kill()
 

@@ -257,6 +257,11 @@ class WorkerInfo(_Body):
     mapper_pid: int | None = Field(
         None, description="process workers: the session's mapper process id"
     )
+    loops_pid: int | None = Field(
+        None,
+        description="process workers of sessions that close loops online: the session's loop "
+        "process id",
+    )
     node_id: str | None = Field(None, description="Ray: the node the actor runs on")
     node_ip: str | None = Field(None, description="Ray: that node's address")
 

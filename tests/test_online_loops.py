@@ -675,3 +675,29 @@ def test_a_lost_loop_process_fails_each_keyframe_after_it_counted_and_the_thread
     assert len(failures) == 2 and all(isinstance(e, LoopProcessError) for e in failures)
     assert "loop process is gone" in str(failures[0])
     assert loops.figures()["keyframes"] == 3  # the failed keyframes are not in the graph
+
+
+def test_a_loop_process_gone_before_the_first_keyframe_fails_that_keyframe_not_the_hello(
+    shared_data,
+):
+    """The loop closer is made at the session's hello: it neither waits for its process nor
+    fails with it; the first keyframe then fails, counted, and the thread goes on."""
+    import os
+    import signal
+
+    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
+    from server.sessions.loop_process import LoopProcessError
+
+    cfg = RegistrationConfig().with_overrides(loops={"live": True})
+    K, frames = _views(shared_data, cfg)
+    process, conn = _loop_process()
+    os.kill(process.pid, signal.SIGKILL)
+    process.join(10)
+    failures: list = []
+    loops = LoopClosing(K, cfg, lambda c: None, failures.append, conn=conn)  # no error here
+    loops.start()
+    place, depth, T = frames[0]
+    loops.submit(LoopKeyframe(0, 0, T, 0, place, depth))
+    loops.stop(timeout_s=10)
+    assert len(failures) == 1 and isinstance(failures[0], LoopProcessError)
+    assert loops.figures()["keyframes"] == 0

@@ -89,10 +89,12 @@ class LoopCloserClient:
     def __init__(self, conn, K: Intrinsics, cfg: RegistrationConfig) -> None:
         self._conn = conn
         self._lock = threading.Lock()
+        # Sent with the first keyframe, not here: the session's hello (which makes this) must
+        # neither wait for the loop process nor fail with it.
+        self._start: tuple | None = (K, cfg)
         self.loops: list[LoopEdge] = []
         self.refused = 0
         self.cpu_s = 0.0
-        self._call("start", K, cfg)
 
     def add_keyframe(
         self,
@@ -122,11 +124,18 @@ class LoopCloserClient:
 
     def _call(self, method: str, *args):
         with self._lock:
-            try:
-                self._conn.send((method, args))
-                ok, value, cpu_s = self._conn.recv()
-            except (EOFError, OSError, ValueError) as exc:
-                raise LoopProcessError(f"the session's loop process is gone ({exc})") from None
+            if self._start is not None:
+                self._exchange("start", self._start)
+                self._start = None
+            return self._exchange(method, args)
+
+    def _exchange(self, method: str, args: tuple):
+        """One call and its answer (under the lock)."""
+        try:
+            self._conn.send((method, args))
+            ok, value, cpu_s = self._conn.recv()
+        except (EOFError, OSError, ValueError) as exc:
+            raise LoopProcessError(f"the session's loop process is gone ({exc})") from None
         self.cpu_s += cpu_s
         if not ok:
             raise LoopProcessError(f"loop process: {method} failed: {value}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import numpy as np
@@ -233,6 +234,51 @@ def test_a_bye_still_gets_answers_for_the_frames_in_flight(live_server, shared_d
     assert close_code == 1000
     poses = [m for m in received if m["type"] == "pose"]
     assert poses and poses[-1]["seq"] == 1  # acknowledges both frames
+
+
+def test_a_client_gone_right_after_its_bye_is_not_an_error(live_server, shared_data, caplog):
+    """A phone that says bye and drops its socket at once (the page closing): the server's
+    answers to the frames in flight find the socket gone, and its closing frame after the bye
+    must then be skipped quietly, not end the handler in an exception (Starlette refuses a
+    close once a send found the socket closed); the session stays usable."""
+    import logging
+
+    ds = open_dataset(shared_data / "synthetic_room0")
+    server = live_server()
+    sid, token = server.create_session()
+    K = ds.intrinsics
+    hello = proto.make_hello("t", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+    url = f"{server.ws_url}/ws/sessions/{sid}"
+
+    async def send_and_drop() -> None:
+        conn = await Connection.open(url, token, hello)
+        for i in range(3):
+            f = ds[i]
+            await conn.send_frame(proto.make_frame(i, f.timestamp, f.colour, f.depth))
+        await conn.send(proto.make_bye("done"))
+        conn.abort()
+
+    async def back_again() -> dict:
+        async with await Connection.open(url, token, hello) as conn:
+            f = ds[3]
+            await conn.send_frame(proto.make_frame(3, f.timestamp, f.colour, f.depth))
+            while (m := await conn.receive(60))["type"] != "pose":
+                pass
+            return m
+
+    # uvicorn's own logger (where an exception that ends a handler goes) does not propagate.
+    uvicorn_log = logging.getLogger("uvicorn.error")
+    uvicorn_log.addHandler(caplog.handler)
+    try:
+        with caplog.at_level(logging.ERROR):
+            for _ in range(3):
+                asyncio.run(send_and_drop())
+                time.sleep(1.0)  # the answers, then the close after the bye
+    finally:
+        uvicorn_log.removeHandler(caplog.handler)
+    failures = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert not failures, [r.getMessage() for r in failures]
+    assert asyncio.run(back_again())["seq"] == 3
 
 
 def test_a_reconnecting_client_may_number_its_frames_from_zero_again(live_server, shared_data):

@@ -312,7 +312,14 @@ async def _close_after_answers(ws: WebSocket, session: LiveSession, outbox: Outb
     deadline = time.monotonic() + 2.0
     while not outbox.empty() and time.monotonic() < deadline:
         await asyncio.sleep(0.01)
-    await ws.close(code=1000, reason="bye")
+    if _closed(ws):
+        return  # the client left meanwhile (a send found its socket gone): nothing to close
+    try:
+        await ws.close(code=1000, reason="bye")
+    except (RuntimeError, OSError):
+        if not _closed(ws):
+            raise
+        # Starlette's answer when the socket closed between the check and the close frame
 
 
 _COMMAND_FIELDS = tuple(

@@ -840,6 +840,59 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     assert not s["errors"], s["errors"]
 
 
+def test_frames_packed_while_the_next_is_read_are_sent_in_capture_order(live_server, open_page):
+    """A live source hands a frame over once its pixels are read ({packing, anchor}) and packs
+    it (JPEG, zlib) while the Streamer reads the next one. Here the packing of every other frame
+    takes 150 ms and of the rest 5 ms, so later frames finish packing first: the page's Streamer
+    must still send them in capture order, with increasing seqs, never more than max_in_flight
+    sent or packing at once, and the server must answer them."""
+    server = live_server()
+    page = open_page(server, "/?autostart=demo-small", **PHONE)
+    page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
+    page.page.evaluate(
+        """async () => {
+      const app = window.dronesim, replay = app.source;
+      app.streamer.stop();
+      const { Streamer } = await import('/app/js/streamer.js');
+      let order = 0;
+      const slow = {
+        kind: 'live',
+        capture: async (tick, t) => {
+          const frame = await replay.capture(tick, t), index = order++;
+          const ms = index % 2 === 0 ? 150 : 5;
+          const packing = new Promise((r) => setTimeout(() => r({ ...frame, index }), ms));
+          return { anchor: null, packing };
+        },
+      };
+      const s = app.testStreamer = new Streamer(app.client, slow, { fps: 30 });
+      app.sentLog = [];
+      app.pendingMax = 0;
+      s.addEventListener('sent', (e) => app.sentLog.push([e.detail.index, e.detail.seq]));
+      const watch = setInterval(() => {
+        app.pendingMax = Math.max(app.pendingMax, app.client.inFlight.size + s.packing);
+        if (!s.running) clearInterval(watch);
+      }, 1);
+      s.start();
+    }"""
+    )
+    before = page.snapshot()["poses"]
+    page.wait(
+        f"window.dronesim.seen.poses >= {before + 20}"
+        " && window.dronesim.testStreamer.overlapped >= 3",
+        90,
+        "20 more poses, 3 frames read while another was packed",
+    )
+    page.page.evaluate("window.dronesim.testStreamer.stop()")
+    sent = page.page.evaluate("window.dronesim.sentLog")
+    indices, seqs = [i for i, _ in sent], [q for _, q in sent]
+    assert len(sent) >= 20
+    assert indices == sorted(indices) and len(set(indices)) == len(indices), indices
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), seqs
+    pending_max = page.page.evaluate("window.dronesim.pendingMax")
+    assert 2 <= pending_max <= page.page.evaluate("window.dronesim.client.maxInFlight")
+    assert not [e for e in page.snapshot()["errors"] if e["fatal"]]
+
+
 def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server, open_page):
     """A live source resolves {skip: reason} for a frame without depth or camera image (normal
     while ARCore re-initialises). The capture loop counts it and goes on: here a source that

@@ -1,6 +1,8 @@
 // The capture loop: a camera that "captures" at up to `fps`; a frame captured while the session
-// already has max_in_flight frames unanswered (or is still packing the previous one, or is not
-// connected) is skipped, as a phone's camera would drop it. A recording (holdBack) has no reason
+// already has max_in_flight frames unanswered or being packed (or is still reading the previous
+// one, or is not connected) is skipped, as a phone's camera would drop it. A source may
+// hand its frame over once its pixels are read and pack it (JPEG, zlib) while the next frame is
+// read: reading and packing overlap, and frames are still sent in the order they were captured. A recording (holdBack) has no reason
 // to drop frames: it sends a frame when the previous one's pose came back, or at its own rate,
 // whichever is slower; while the server is behind, its clock stops and the frame waits, so a
 // slow server gives a slower replay, never a lost one. Sent frames keep their image for the AR view
@@ -21,6 +23,9 @@ export class Streamer extends EventTarget {
     this.running = false;
     this.tick = 0;
     this.capturing = false;
+    this.packing = 0; // frames read, not yet sent (with those in flight, <= max_in_flight)
+    this.sendChain = Promise.resolve(); // packed frames go out in capture order
+    this.overlapped = 0; // frames read while the one before was still being packed
     this.skipped = 0; // camera frames dropped on this side
     this.unavailable = {}; // frames the source could not give (reason -> count), e.g. "no depth"
     this.holdBack = holdBack; // a recording: wait for the server instead of dropping frames
@@ -76,7 +81,10 @@ export class Streamer extends EventTarget {
     }
     const tick = this.tick++;
     this.#schedule();
-    if (this.capturing || !this.client.isOpen || this.client.busy) {
+    // Frames being packed will be in flight soon: they count against max_in_flight already, so
+    // a frame is not read only to find no room for it.
+    const pending = this.client.inFlight.size + this.packing;
+    if (this.capturing || !this.client.isOpen || pending >= this.client.maxInFlight) {
       this.skipped += 1;
       if (this.client.isOpen) this.client.skipSeq();
       else this.client.wake(); // a session paused by the server's idle timeout reconnects
@@ -100,21 +108,45 @@ export class Streamer extends EventTarget {
         this.dispatchEvent(new CustomEvent("unavailable", { detail: { reason: captured.skip } }));
         return;
       }
-      const seq = this.client.sendFrame(captured.fields);
-      if (seq === null) {
-        this.skipped += 1;
-        captured.bitmap?.close();
-      } else {
-        this.images.set(seq, captured.bitmap);
-        if (captured.anchor) this.source.keep?.(seq, captured.anchor);
-        this.dispatchEvent(new CustomEvent("sent", { detail: { seq, index: captured.index, fields: captured.fields } }));
+      if (!captured.packing) {
+        this.#send(captured);
+        return;
       }
+      // Read, not yet packed: the next tick may read the next frame meanwhile.
+      if (this.packing > 0) this.overlapped += 1;
+      this.packing += 1;
+      // Counted until handed to the client (not only until packed: a frame packed before the one
+      // ahead of it waits in the chain, and is as good as in flight).
+      this.sendChain = this.sendChain
+        .then(() => captured.packing)
+        .then(
+          (frame) => (this.running ? this.#send({ ...frame, anchor: captured.anchor }) : frame.bitmap?.close()),
+          (exc) => this.running && this.#failed(exc))
+        .finally(() => (this.packing -= 1));
     } catch (exc) {
-      this.stop(`capture failed: ${exc.message}`);
-      this.dispatchEvent(new CustomEvent("failure", { detail: exc }));
+      this.#failed(exc);
     } finally {
       this.capturing = false;
     }
+  }
+
+  /** Send a captured frame ({fields, bitmap, anchor?, index?}), or count it skipped when the
+   * session has no room for it now. */
+  #send(captured) {
+    const seq = this.client.sendFrame(captured.fields);
+    if (seq === null) {
+      this.skipped += 1;
+      captured.bitmap?.close();
+      return;
+    }
+    this.images.set(seq, captured.bitmap);
+    if (captured.anchor) this.source.keep?.(seq, captured.anchor);
+    this.dispatchEvent(new CustomEvent("sent", { detail: { seq, index: captured.index, fields: captured.fields } }));
+  }
+
+  #failed(exc) {
+    this.stop(`capture failed: ${exc.message}`);
+    this.dispatchEvent(new CustomEvent("failure", { detail: exc }));
   }
 
   /** The image of frame seq (for the AR view), releasing the images of older frames. */

@@ -13,6 +13,7 @@ import {
 
 const COLOUR_LONG_SIDE = 640; // colour sent at 640 px on the long side (see PROTOCOL.md, bandwidth)
 const ANCHORS_KEPT = 64;
+const READ_POLL_MS = 2; // how often a camera read looks whether the GPU has written its pixels
 
 /** Whether this browser can run the live mode, and if not, why, in plain words. */
 export async function liveSupport() {
@@ -96,8 +97,9 @@ export class LiveSource {
     this.session?.end();
   }
 
-  /** The next XR frame, packed: resolves {fields, bitmap, anchor}, or {skip: reason} when this
-   * frame has no depth or no camera image. */
+  /** The next XR frame, read: resolves {packing, anchor} once its pixels are copied out of the
+   * XR frame (packing: a promise of {fields, bitmap}, settled while the next frame may be read),
+   * or {skip: reason} when this frame has no depth or no camera image. */
   capture(tick, timestamp) {
     if (!this.session) return Promise.resolve(null);
     return new Promise((resolve, reject) => (this.request = { resolve, reject }));
@@ -146,13 +148,16 @@ export class LiveSource {
         request.resolve({ skip: !depth ? "no depth" : "no camera image" });
         return;
       }
-      const rgba = this.#readCamera(view);
+      // Both copied out now: the camera texture and the depth buffer are only valid in this frame.
+      const reading = this.#readCamera(view);
+      const depthValues = this.#depthValues(depth);
       const anchor = new THREE.Matrix4().fromArray(view.transform.matrix);
       // Stamped with the XR frame's time (when its camera image was taken), not the request's;
       // the phone's own pose of this image goes along as the tracker's prior.
       const deviceCamera = deviceCameraFromView(view.transform.matrix);
-      this.#pack(rgba, depth, time / 1000).then(
-        (packed) => request.resolve({ ...packed, fields: { ...packed.fields, deviceCamera }, anchor }), request.reject);
+      const packing = reading.then((rgba) => this.#pack(rgba, depthValues, depth.rawValueToMeters))
+        .then((packed) => ({ ...packed, fields: { ...packed.fields, timestamp: time / 1000, deviceCamera } }));
+      request.resolve({ packing, anchor });
     } catch (exc) {
       request.reject(exc);
     }
@@ -174,9 +179,12 @@ export class LiveSource {
     occlusion.setDepth(metres, depth.width, depth.height, null, depth.normDepthBufferFromNormView.matrix);
   }
 
-  /** The camera image, downscaled to colourSize, as top-down RGBA ImageData: the camera
-   * texture is blitted into a small renderbuffer and read there (a full-size read of a 1920 px
-   * camera image at 15 fps would cost ~170 MB/s); if the blit fails, it is read at full size. */
+  /** The camera image, downscaled to colourSize, as top-down RGBA ImageData (a promise). The
+   * camera texture is blitted into a small renderbuffer (a full-size read of a 1920 px camera
+   * image at 15 fps would cost ~170 MB/s) and read into a pixel buffer without waiting for the
+   * GPU: the pixels are taken once its fence signals, while the page goes on (a synchronous
+   * readPixels stalls the whole GL pipeline, the overlay's frames with it). If the blit fails,
+   * the image is read at full size, synchronously. */
   #readCamera(view) {
     const gl = this.gl;
     const texture = this.binding.getCameraImage(view.camera);
@@ -200,9 +208,7 @@ export class LiveSource {
     let image;
     if (gl.getError() === gl.NO_ERROR) {
       gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.smallFb);
-      const pixels = new Uint8Array(w * h * 4);
-      gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
-      image = new ImageData(flipRows(pixels, w, h), w, h); // GL rows are bottom-up
+      image = this.#readAsync(w, h);
     } else {
       const pixels = new Uint8Array(cw * ch * 4);
       gl.readPixels(0, 0, cw, ch, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
@@ -210,24 +216,61 @@ export class LiveSource {
       full.getContext("2d").putImageData(new ImageData(flipRows(pixels, cw, ch), cw, ch), 0, 0);
       const small = new OffscreenCanvas(w, h).getContext("2d");
       small.drawImage(full, 0, 0, w, h);
-      image = small.getImageData(0, 0, w, h);
+      image = Promise.resolve(small.getImageData(0, 0, w, h));
     }
     gl.bindFramebuffer(gl.FRAMEBUFFER, previous);
     this.arView.renderer.resetState(); // three.js tracks GL state: tell it we touched it
     return image;
   }
 
-  async #pack(rgba, depthInfo, timestamp) {
+  /** The bound read framebuffer's w x h pixels, read into a pixel-pack buffer now and taken
+   * out when the GPU has written them: a promise of top-down ImageData. */
+  #readAsync(w, h) {
+    const gl = this.gl;
+    this.pixelBuffers ??= [];
+    const buffer = this.pixelBuffers.pop() ?? gl.createBuffer();
+    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buffer);
+    gl.bufferData(gl.PIXEL_PACK_BUFFER, w * h * 4, gl.STREAM_READ);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, 0);
+    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
+    const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+    gl.flush();
+    return new Promise((resolve, reject) => {
+      const poll = () => {
+        if (gl.isContextLost()) {
+          reject(new Error("the WebGL context was lost while reading the camera image"));
+          return;
+        }
+        if (gl.clientWaitSync(fence, 0, 0) === gl.TIMEOUT_EXPIRED) {
+          setTimeout(poll, READ_POLL_MS);
+          return;
+        }
+        gl.deleteSync(fence);
+        const pixels = new Uint8Array(w * h * 4);
+        gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buffer);
+        gl.getBufferSubData(gl.PIXEL_PACK_BUFFER, 0, pixels);
+        gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
+        this.pixelBuffers.push(buffer);
+        resolve(new ImageData(flipRows(pixels, w, h), w, h)); // GL rows are bottom-up
+      };
+      setTimeout(poll, 0);
+    });
+  }
+
+  /** The depth buffer resampled onto depthSize (raw values, times rawValueToMeters for metres):
+   * "luminance-alpha" and "unsigned-short" are uint16, "float32" float. */
+  #depthValues(depthInfo) {
     const [dw, dh] = this.depthSize;
-    // "luminance-alpha" and "unsigned-short" are uint16, "float32" float; all times rawValueToMeters.
-    // Copied here, inside the XR frame: the depth buffer is only valid during it.
     const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depthInfo.data) : new Uint16Array(depthInfo.data);
-    const values = resampleDepth(raw, depthInfo.width, depthInfo.height, dw, dh, depthInfo.normDepthBufferFromNormView.matrix);
+    return resampleDepth(raw, depthInfo.width, depthInfo.height, dw, dh, depthInfo.normDepthBufferFromNormView.matrix);
+  }
+
+  async #pack(rgba, depthValues, rawValueToMeters) {
     const [colour, depth, bitmap] = await Promise.all([
       encodeJpeg(rgba, 0.8),
-      packDepth(values, { rawValueToMeters: depthInfo.rawValueToMeters, depthScale: DEPTH_SCALE_MM }),
+      packDepth(depthValues, { rawValueToMeters, depthScale: DEPTH_SCALE_MM }),
       createImageBitmap(rgba),
     ]);
-    return { bitmap, fields: { timestamp, colour, ...depth } };
+    return { bitmap, fields: { colour, ...depth } };
   }
 }

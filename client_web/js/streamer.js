@@ -1,12 +1,12 @@
 // The capture loop: a camera that "captures" at up to `fps`; a frame captured while the session
 // already has max_in_flight frames unanswered or being packed (or is still reading the previous
-// one, or is not connected) is skipped, as a phone's camera would drop it. A source may
-// hand its frame over once its pixels are read and pack it (JPEG, zlib) while the next frame is
-// read: reading and packing overlap, and frames are still sent in the order they were captured. A recording (holdBack) has no reason
-// to drop frames: it sends a frame when the previous one's pose came back, or at its own rate,
-// whichever is slower; while the server is behind, its clock stops and the frame waits, so a
-// slow server gives a slower replay, never a lost one. Sent frames keep their image for the AR view
-// until their pose arrives.
+// one, or is not connected) is skipped, as a phone's camera would drop it. A source may hand its
+// frame over once its pixels are read and pack it (JPEG, zlib) while the next frame is read:
+// reading and packing overlap, and frames are still sent in the order they were captured. A
+// recording (holdBack) has no reason to drop frames: it sends a frame when the previous one's
+// pose came back, or at its own rate, whichever is slower; while the server is behind, its clock
+// stops and the frame waits, so a slow server gives a slower replay, never a lost one. Sent
+// frames keep their image for the AR view until their pose arrives.
 
 const HOLD_POLL_MS = 10; // how often a held-back recording looks for room again
 

@@ -840,22 +840,39 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     assert not s["errors"], s["errors"]
 
 
+def _page_with_test_streamer(live_server, open_page, make_streamer_js: str):
+    """The page on the small demo with 5 poses, its own Streamer stopped, and a test Streamer
+    (window.dronesim.testStreamer) started on the page's client: ``make_streamer_js`` is the body
+    of a function of ``app``, ``replay`` (the demo's replay source) and ``Streamer`` that returns
+    it."""
+    server = live_server()
+    page = open_page(server, "/?autostart=demo-small", **PHONE)
+    page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
+    page.page.evaluate(
+        """async (body) => {
+      const app = window.dronesim, replay = app.source;
+      app.streamer.stop();
+      const { Streamer } = await import('/app/js/streamer.js');
+      app.testStreamer = new Function('app', 'replay', 'Streamer', body)(app, replay, Streamer);
+      app.testStreamer.start();
+    }""",
+        make_streamer_js,
+    )
+    return page
+
+
 def test_frames_packed_while_the_next_is_read_are_sent_in_capture_order(live_server, open_page):
     """A live source hands a frame over once its pixels are read ({packing, anchor}) and packs
     it (JPEG, zlib) while the Streamer reads the next one. Here the packing of every other frame
     takes 150 ms and of the rest 5 ms, so later frames finish packing first: the page's Streamer
     must still send them in capture order, with increasing seqs, never more than max_in_flight
     sent or packing at once, and the server must answer them."""
-    server = live_server()
-    page = open_page(server, "/?autostart=demo-small", **PHONE)
-    page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
-    page.page.evaluate(
-        """async () => {
-      const app = window.dronesim, replay = app.source;
-      app.streamer.stop();
-      const { Streamer } = await import('/app/js/streamer.js');
+    page = _page_with_test_streamer(
+        live_server,
+        open_page,
+        """
       let order = 0;
-      const slow = {
+      const source = {
         kind: 'live',
         capture: async (tick, t) => {
           const frame = await replay.capture(tick, t), index = order++;
@@ -864,7 +881,7 @@ def test_frames_packed_while_the_next_is_read_are_sent_in_capture_order(live_ser
           return { anchor: null, packing };
         },
       };
-      const s = app.testStreamer = new Streamer(app.client, slow, { fps: 30 });
+      const s = new Streamer(app.client, source, { fps: 30 });
       app.sentLog = [];
       app.pendingMax = 0;
       s.addEventListener('sent', (e) => app.sentLog.push([e.detail.index, e.detail.seq]));
@@ -872,8 +889,7 @@ def test_frames_packed_while_the_next_is_read_are_sent_in_capture_order(live_ser
         app.pendingMax = Math.max(app.pendingMax, app.client.inFlight.size + s.packing);
         if (!s.running) clearInterval(watch);
       }, 1);
-      s.start();
-    }"""
+      return s;""",
     )
     before = page.snapshot()["poses"]
     page.wait(
@@ -898,22 +914,16 @@ def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server
     while ARCore re-initialises). The capture loop counts it and goes on: here a source that
     gives every 3rd frame without depth, driving the page's own Streamer and client (the live
     source on an emulated AR device: tests/test_webxr_live.py)."""
-    server = live_server()
-    page = open_page(server, "/?autostart=demo-small", **PHONE)
-    page.wait("window.dronesim.seen.poses >= 5", 120, "5 poses")
-    page.page.evaluate(
-        """async () => {
-      const app = window.dronesim, replay = app.source;
-      app.streamer.stop();
-      const { Streamer } = await import('/app/js/streamer.js');
+    page = _page_with_test_streamer(
+        live_server,
+        open_page,
+        """
       const flaky = {
         kind: 'live',
         capture: (tick, t) => (tick % 3 === 0 ? Promise.resolve({ skip: 'no depth' })
                                               : replay.capture(tick, t)),
       };
-      app.testStreamer = new Streamer(app.client, flaky, { fps: 15 });
-      app.testStreamer.start();
-    }"""
+      return new Streamer(app.client, flaky, { fps: 15 });""",
     )
     before = page.snapshot()["poses"]
     page.wait(

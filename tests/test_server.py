@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 
 import httpx
@@ -241,8 +242,6 @@ def test_a_client_gone_right_after_its_bye_is_not_an_error(live_server, shared_d
     answers to the frames in flight find the socket gone, and its closing frame after the bye
     must then be skipped quietly, not end the handler in an exception (Starlette refuses a
     close once a send found the socket closed); the session stays usable."""
-    import logging
-
     ds = open_dataset(shared_data / "synthetic_room0")
     server = live_server()
     sid, token = server.create_session()

@@ -305,7 +305,7 @@ class ProcessWorker:
         self.process.join(timeout=5)
         code = self.process.exitcode
         if not self._stopped:
-            self._end_mapper()
+            self._end_helpers()
         reason = (
             "the session's worker process ended"
             if code in (0, None) and self._stopped
@@ -338,7 +338,7 @@ class ProcessWorker:
                 self._stopped = False
             raise
         self.process.join(timeout=10)
-        self._end_mapper()
+        self._end_helpers()
         return meta
 
     def kill(self) -> None:
@@ -347,10 +347,11 @@ class ProcessWorker:
         if self.process.is_alive():
             self.process.kill()
         self.process.join(timeout=10)
-        self._end_mapper()
+        self._end_helpers()
 
-    def _end_mapper(self) -> None:
-        """The mapping (and loop) process ends when its worker closes the pipe; make sure."""
+    def _end_helpers(self) -> None:
+        """The helper processes (mapper, loops) end when their worker closes its pipes; make
+        sure."""
         for process in self.helpers():
             process.join(timeout=10)
             if process.is_alive():

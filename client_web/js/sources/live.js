@@ -228,9 +228,15 @@ export class LiveSource {
   #readAsync(w, h) {
     const gl = this.gl;
     this.pixelBuffers ??= [];
-    const buffer = this.pixelBuffers.pop() ?? gl.createBuffer();
-    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buffer);
-    gl.bufferData(gl.PIXEL_PACK_BUFFER, w * h * 4, gl.STREAM_READ);
+    let buffer = this.pixelBuffers.pop();
+    if (buffer) {
+      gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buffer);
+    } else {
+      // Sized once: the colour size is fixed for the session, and a buffer is reused once read.
+      buffer = gl.createBuffer();
+      gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buffer);
+      gl.bufferData(gl.PIXEL_PACK_BUFFER, w * h * 4, gl.STREAM_READ);
+    }
     gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, 0);
     gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
     const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);

@@ -81,13 +81,15 @@ def test_an_exact_prior_keeps_every_4th_to_8th_frame_tracked(room):
 @pytest.mark.parametrize("burst", [10, 15, 20])
 def test_an_exact_prior_bridges_bursts_of_dropped_frames(room, burst):
     """``burst`` frames in a row dropped after every 3 x burst received: constant velocity
-    predicts one frame's motion for a gap of burst + 1 frames, and tracking is lost (or worse);
-    the prior knows the motion and every frame is tracked."""
+    predicts one frame's motion for a gap of burst + 1 frames, and flow alone loses track (or
+    worse: place recognition, off here, is what recovers it without a prior); the prior knows
+    the motion and every frame is tracked."""
     _, frames, _, gt = room
     i = np.arange(len(frames))
     keep = i[i % (4 * burst) < 3 * burst]
     priors = exact_device_poses(gt)
-    without, _ = run(room, keep)
+    flow_only = RegistrationConfig().with_overrides(relocalise={"enabled": False})
+    without, _ = run(room, keep, config=flow_only)
     with_prior, _ = run(room, keep, priors)
     ate_with, ate_without = ate(room, keep, with_prior), ate(room, keep, without)
     assert lost(with_prior) == 0
@@ -209,11 +211,14 @@ def test_when_no_keyframe_sees_the_view_tracking_resumes_from_the_prior(room):
     """A long gap (the server too busy, the page hidden): the camera has moved on to a view no
     keyframe registers. With resume_after_loss (the default) the first frame after the gap
     starts a new keyframe at the device's pose (WEAK) and tracking goes on in the map; without
-    it, tracking stays lost for the rest of the sequence."""
+    it (and without place recognition's recovery), tracking stays lost for the rest of the
+    sequence."""
     _, frames, stamps, gt = room
     priors = drifting_device_poses(gt, stamps, DeviceDrift(seed=2))
     keep = np.concatenate([np.arange(0, 40, 2), np.arange(74, len(frames), 2)])  # 0.9 m, 63 deg
-    off = RegistrationConfig().with_overrides(prior={"resume_after_loss": False})
+    off = RegistrationConfig().with_overrides(
+        prior={"resume_after_loss": False}, relocalise={"enabled": False}
+    )
     stuck, _ = run(room, keep, priors, config=off)
     resumed, _ = run(room, keep, priors)
     first = list(keep).index(74)

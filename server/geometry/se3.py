@@ -72,6 +72,13 @@ def rotation_angle_deg(T: FloatArray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def pose_distance(T_a: FloatArray, T_b: FloatArray) -> float:
+    """How far apart two poses are: the translation between them in metres plus 0.1 m per 10
+    degrees of rotation (a ranking, not a metric of its own)."""
+    T = invert(T_a) @ T_b
+    return float(np.linalg.norm(T[:3, 3]) + 0.01 * rotation_angle_deg(T))
+
+
 def pose_from_quaternion(t: FloatArray, q_xyzw: FloatArray) -> FloatArray:
     """4x4 transform from a translation and a unit quaternion (x, y, z, w), TUM order."""
     x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)

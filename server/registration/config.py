@@ -211,6 +211,37 @@ class PlaceConfig:
 
 
 @dataclass(frozen=True)
+class RelocaliseConfig:
+    """Recovery after a loss (server/registration/relocalise.py, Tracker._recover).
+
+    Every keyframe the tracker makes is described for place recognition (ORB with depth, as
+    ``place``, but lighter: this runs inside a frame's time); a frame flow cannot register is
+    looked up among them in the same frame. When nothing registers ``reinit_after`` frames in a
+    row, a new map segment starts from the current frame at the motion model's pose: tracked on
+    its own, reported weak and not fused, and merged into the map (moved rigidly) as soon as a
+    look-up links one of its frames to the map's keyframes.
+    """
+
+    enabled: bool = True
+    # ORB keypoints per image and descriptors that vote (of the query and of each keyframe):
+    # half and fewer than ``place``'s, so that describing a keyframe costs ~8 ms and a look-up
+    # with two verifications ~40-60 ms on a 640x480 frame.
+    orb_features: int = 1000
+    vote_features: int = 200
+    # Keyframes voted on per frame, nearest the last good pose first; a frame that finds none
+    # goes on with the next ones, so that the whole map is searched over a few frames.
+    vote_keyframes: int = 60
+    candidates: int = 2  # verified per frame, after the current keyframe
+    reinit_after: int = 3  # frames lost in a row before a new segment starts
+    # In a segment, every n-th frame is looked up in the map (a look-up costs as much as
+    # tracking a frame).
+    merge_every: int = 2
+    # A place that flow cannot follow (too wide a baseline) is refined by ICP against the
+    # keyframe's surface; it stands when this share of the frame's points find that surface.
+    min_icp_overlap: float = 0.5
+
+
+@dataclass(frozen=True)
 class LoopConfig:
     """Loop closure over keyframes (server/registration/loops.py). ``enabled``: offline, in
     ``track`` (keyframes looked up behind tracking, the graph optimised at the end), on by
@@ -255,6 +286,7 @@ class RegistrationConfig:
     state: StateConfig = field(default_factory=StateConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     place: PlaceConfig = field(default_factory=PlaceConfig)
+    relocalise: RelocaliseConfig = field(default_factory=RelocaliseConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
 
     def __post_init__(self) -> None:
@@ -287,6 +319,20 @@ class RegistrationConfig:
             raise ConfigError(
                 "registration.place: need orb_features >= 10, candidates >= 1, min_inliers >= 3 "
                 "and ransac_iterations >= 1"
+            )
+
+        r = self.relocalise
+        if (
+            r.orb_features < 10
+            or r.vote_features < 1
+            or r.vote_keyframes < 1
+            or r.candidates < 0
+            or r.reinit_after < 1
+            or r.merge_every < 1
+        ):
+            raise ConfigError(
+                "registration.relocalise: need orb_features >= 10, vote_features, "
+                "vote_keyframes, reinit_after and merge_every >= 1, candidates >= 0"
             )
 
     def to_dict(self) -> dict[str, Any]:

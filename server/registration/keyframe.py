@@ -31,6 +31,10 @@ class Keyframe:
     points: FloatArray
     covariances: FloatArray
     dense: DenseModel | None
+    # The map segment it belongs to (Tracker: 0 is the map; a new segment starts after a loss
+    # that nothing recovered, and merges into 0 when place recognition links them). Poses of
+    # two segments are in two worlds until then.
+    segment: int = 0
 
 
 def make_keyframe(

@@ -25,6 +25,7 @@ from server.geometry import (
     exp_se3,
     invert,
     orthonormalize,
+    pose_distance,
     project,
     rotation_angle_deg,
 )
@@ -33,12 +34,14 @@ from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
+from server.registration.place import KeyframeDatabase
 from server.registration.preprocess import (
     clean_depth,
     sample_stable_depth,
     to_grey,
 )
 from server.registration.prior import DeviceAlignment, prior_motion
+from server.registration.relocalise import Relocalisation, Relocaliser
 from server.registration.sparse import (
     NormalEquations,
     SparseSolution,
@@ -80,12 +83,20 @@ class TrackResult:
     # "colour", "depth" or "both": this frame repeats the previous frame's image(s) and was held
     # at that frame's pose, not tracked (state.hold_repeated_frames); None for a tracked frame.
     repeated: str | None = None
+    # The map segment the pose is in: 0 is the map; another one is a segment started after a
+    # loss that nothing recovered, placed by the motion model only (state WEAK) until it merges.
+    segment: int = 0
+    # Set on the frame that merged a segment into the map: (segment, T_correction), the 4x4
+    # that moved the segment's poses into the map (T_map = T_correction @ T_segment).
+    merged: tuple[int, FloatArray] | None = None
+    relocalised: bool = False  # found again by place recognition after flow failed
 
     @property
     def fusable(self) -> bool:
-        """Its images and its pose belong together, so it may go into a map: tracked (not lost)
-        and not a held repeat (whose colour and depth are of two moments)."""
-        return self.state is not TrackingState.LOST and self.repeated is None
+        """Its images and its pose belong together, so it may go into a map: tracked (not lost),
+        not a held repeat (whose colour and depth are of two moments), and in the map (not in a
+        segment whose place in it is a guess)."""
+        return self.state is not TrackingState.LOST and self.repeated is None and self.segment == 0
 
 
 @dataclass
@@ -174,6 +185,15 @@ class Tracker:
         self._previous: tuple[GreyImage, Float32Array] | None = None
         self._last_result: TrackResult | None = None
         self.held = 0
+        # Recovery (relocalise config): every keyframe's place features; the map segment being
+        # tracked (0: the map), how many were started, where the current one started, frames
+        # lost in a row, and the motion before the loss (to carry the pose over a new segment).
+        self.relocaliser = Relocaliser(intrinsics, self.cfg)
+        self.segment = 0
+        self.segments_started = 0
+        self._segment_start = 0
+        self.lost_run = 0
+        self._velocity_before_loss: FloatArray = np.eye(4)
 
     @property
     def T_world_device(self) -> FloatArray | None:
@@ -184,14 +204,26 @@ class Tracker:
         )
 
     def resume_in_map(
-        self, T_world_camera: FloatArray, keyframe: Keyframe, map_keyframes: list[Keyframe]
+        self,
+        T_world_camera: FloatArray,
+        keyframe: Keyframe,
+        map_keyframes: list[Keyframe],
+        places: KeyframeDatabase | None = None,
     ) -> None:
         """Continue in a saved map: the next frame is tracked against ``keyframe`` (one of
         ``map_keyframes``, in the map's world frame) from ``T_world_camera`` (4x4, metres; e.g.
         from place recognition), with its corners followed straight from the keyframe image.
         ``map_keyframes`` stay candidates for keyframe switches; new keyframes get ids above
-        theirs. Whatever was tracked before is dropped."""
+        theirs. ``places``: the map's place database, which a later loss looks up too. Whatever
+        was tracked before is dropped."""
         self.map_keyframes = list(map_keyframes)
+        for kf in self.map_keyframes:
+            kf.segment = 0
+        self.relocaliser = Relocaliser(self.K, self.cfg)
+        for entry in places.entries if places is not None else []:
+            self.relocaliser.add(entry.keyframe_id, 0, entry.T_world_keyframe, entry.features)
+        self.segment = 0
+        self.lost_run = 0
         self.recent.clear()
         self.recent.append(keyframe)
         self.keyframe = keyframe
@@ -227,6 +259,16 @@ class Tracker:
             T = keyframe_poses.get(kf.id)
             kf.T_world_keyframe = orthonormalize(
                 T_correction @ kf.T_world_keyframe if T is None else np.asarray(T, np.float64)
+            )
+        for entry in self.relocaliser.database.entries:
+            T = keyframe_poses.get(entry.keyframe_id)
+            self.relocaliser.set_pose(
+                entry.keyframe_id,
+                orthonormalize(
+                    T_correction @ entry.T_world_keyframe
+                    if T is None
+                    else np.asarray(T, np.float64)
+                ),
             )
         self.T_world_last = orthonormalize(T_correction @ self.T_world_last)
         self.T_world_first = orthonormalize(T_correction @ self.T_world_first)
@@ -310,13 +352,27 @@ class Tracker:
             resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
             if resumed is not None:
                 return resumed
-        if found is None:
-            return self._lose(index, grey, timings, inliers=0, rmse=np.inf, condition=0.0)
+        relocalised = False
+        if state in (None, TrackingState.LOST):
+            # 3b. Flow found nothing: look the frame up among every keyframe, in this frame.
+            t = time.perf_counter()
+            recovered = self._recover(grey, depth)
+            timings["relocalise"] = _ms(t)
+            if isinstance(recovered, Relocalisation):
+                restarted = self._restart_at_place(index, grey, depth, timings, recovered)
+                if restarted is not None:
+                    return restarted
+            elif recovered is not None:
+                found, state, relocalised = recovered, self._judge(recovered.solution), True
+        if found is None or state is None or state is TrackingState.LOST:
+            n, rmse, cond = (0, np.inf, 0.0) if found is None else _quality(found.solution)
+            lost = self._lose(index, grey, timings, n, rmse, cond)
+            if self.lost_run >= self.cfg.relocalise.reinit_after and self.cfg.relocalise.enabled:
+                started = self._start_segment(index, grey, depth, timings)
+                if started is not None:
+                    return started
+            return lost
         kf, solution = found.kf, found.solution
-        if state is None or state is TrackingState.LOST:
-            return self._lose(
-                index, grey, timings, int(solution.inliers.sum()), solution.rmse, solution.condition
-            )
 
         # 4. Dense refinement from the sparse estimate.
         T_kf_cur = solution.T
@@ -327,12 +383,25 @@ class Tracker:
 
         # 5. Accept the pose, keep the surviving tracks, and note whether a keyframe change is due.
         T_world_cur = orthonormalize(kf.T_world_keyframe @ T_kf_cur)
-        if self.lost:
+        if self.lost or relocalised:
             self.velocity = np.eye(4)
         elif gap == 1:  # after held frames the motion spans several frames: keep the old one
             self.velocity = invert(self.T_world_last) @ T_world_cur
+        self.lost, self.lost_run = False, 0
+        # 6. In a segment: now and then, look for the map; found, the segment moves into it.
+        merged = None
+        if (
+            self.segment != 0
+            and (index - self._segment_start) % self.cfg.relocalise.merge_every == 0
+        ):
+            t = time.perf_counter()
+            merged = self._merge_segment(grey, depth, T_world_cur)
+            timings["merge"] = _ms(t)
+            if merged is not None:
+                T_world_cur = orthonormalize(merged[1] @ T_world_cur)
         self.T_world_last = T_world_cur
-        self.lost = False
+        if self.segment != 0 and state is TrackingState.OK:
+            state = TrackingState.WEAK  # tracked, but where the segment lies is a guess
         self.keyframe = kf
         self.device_last = prior
         if prior is not None and state is TrackingState.OK:
@@ -353,6 +422,9 @@ class Tracker:
             timings,
             keyframe_due=due,
             prior_used=found.guess_from_prior,
+            segment=self.segment,
+            merged=merged,
+            relocalised=relocalised,
         )
         if due:
             self.pending = _PendingKeyframe(index, grey, depth, T_world_cur, result, found)
@@ -476,6 +548,7 @@ class Tracker:
         if state is TrackingState.LOST:
             self.keyframe, self.lost = None, True
             self.recent.clear()
+            self.relocaliser = Relocaliser(self.K, self.cfg)
         else:
             self.device_last = prior
             if prior is not None:
@@ -563,7 +636,7 @@ class Tracker:
         for kf in reversed(self.recent):
             if len(others) >= c.window:
                 break
-            if kf is reg.kf:
+            if kf is reg.kf or kf.segment != reg.kf.segment:
                 continue
             T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
             if (
@@ -617,10 +690,11 @@ class Tracker:
         T_world_prior: FloatArray | None = None,
     ) -> _Registration | None:
         """After a loss: with a prior, its guess against the keyframes nearest to it first; then
-        the held pose against the current keyframe and recent ones, newest first."""
+        the held pose against the recent keyframes of this segment, newest first (only the
+        current one when place recognition follows: it finds the others for less)."""
         if T_world_prior is not None:
             near = sorted(
-                self.recent, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_prior)
+                self.recent, key=lambda k: pose_distance(k.T_world_keyframe, T_world_prior)
             )
             for kf in near:
                 found = self._track_keyframe(kf, grey, depth, T_world_prior, chained=False)
@@ -628,12 +702,231 @@ class Tracker:
                     log.info("recovered against keyframe %d from the device pose", kf.id)
                     found.guess_from_prior = True
                     return found
-        for kf in reversed(self.recent):
+        held = [k for k in reversed(self.recent) if k.segment == self.segment]
+        if self.cfg.relocalise.enabled:
+            held = [k for k in held if k is self.keyframe]
+        for kf in held:
             found = self._track_keyframe(kf, grey, depth, T_world_pred, chained=False)
             if found is not None and self._judge(found.solution) is TrackingState.OK:
                 log.info("recovered against keyframe %d", kf.id)
                 return found
         return None
+
+    def _recover(
+        self, grey: GreyImage, depth: Float32Array
+    ) -> _Registration | Relocalisation | None:
+        """Place recognition for a frame flow could not register (relocalise config): the
+        current keyframe, then the keyframes of the map (and of this segment) the database votes
+        for; a verified place is the guess from which flow registers the frame against that
+        keyframe (or, when it is no longer held, the nearest held one). Returns that
+        registration; the place alone when flow cannot follow the keyframe's corners this far
+        (a wide baseline; ``_restart_at_place`` goes on from it); None when nothing verifies."""
+        if not self.cfg.relocalise.enabled or len(self.relocaliser) == 0:
+            return None
+        query = self.relocaliser.describe(grey, depth)
+        current = None if self.keyframe is None else self.keyframe.id
+        place = self.relocaliser.find(query, self.T_world_last, {0, self.segment}, current)
+        if place is None:
+            return None
+        segment = self.relocaliser.segment_of[place.keyframe_id]
+        found = None
+        if self.tracks is not None and self.keyframe is not None and segment == self.segment:
+            # Lost just now: the corners as last seen, searched for around the place's pose,
+            # span less than a keyframe's corners would.
+            found = self._track_keyframe(self.keyframe, grey, depth, place.T_world_camera, True)
+        if found is None or self._judge(found.solution) is TrackingState.LOST:
+            kf = self._held_keyframe(place.keyframe_id, segment, place.T_world_camera)
+            found = (
+                None
+                if kf is None
+                else self._track_keyframe(kf, grey, depth, place.T_world_camera, chained=False)
+            )
+        if found is None or self._judge(found.solution) is TrackingState.LOST:
+            log.debug("place found (keyframe %d), flow does not follow", place.keyframe_id)
+            return place
+        if segment != self.segment:
+            log.info("back in the map from segment %d (not merged)", self.segment)
+        self.segment = segment
+        self.relocaliser.restart_sweep()
+        log.info(
+            "relocalised against keyframe %d (%d place inliers, %.0f ms)",
+            place.keyframe_id,
+            place.match.inliers,
+            place.ms,
+        )
+        return found
+
+    def _restart_at_place(
+        self,
+        index: int,
+        grey: GreyImage,
+        depth: Float32Array,
+        timings: dict[str, float],
+        place: Relocalisation,
+    ) -> TrackResult | None:
+        """A verified place that flow could not follow: the pose from its descriptor matches,
+        refined by dense ICP against the keyframe's surface when that keyframe is still held,
+        and this frame a new keyframe there (WEAK). None when ICP disagrees with the place."""
+        segment = self.relocaliser.segment_of[place.keyframe_id]
+        T_world_cur = self._place_pose(place, depth)
+        if T_world_cur is None:
+            return None
+        t = time.perf_counter()
+        kf = make_keyframe(self.keyframe_count, index, T_world_cur, grey, depth, self.K, self.cfg)
+        if len(kf.points) < self.cfg.state.ok_inliers:
+            return None
+        self.segment = segment
+        self._adopt_keyframe(kf, grey, depth)
+        self.relocaliser.restart_sweep()
+        timings["keyframe"] = _ms(t)
+        timings["total"] = sum(v for k, v in timings.items() if k != "total")
+        log.info(
+            "frame %d: relocalised against keyframe %d by place (%d inliers); new keyframe",
+            index,
+            place.keyframe_id,
+            place.match.inliers,
+        )
+        self.velocity = np.eye(4)
+        self.T_world_last = T_world_cur
+        self.lost, self.lost_run = False, 0
+        return TrackResult(
+            index,
+            T_world_cur.copy(),
+            TrackingState.WEAK,
+            len(kf.points),
+            place.match.rmse,
+            1.0,
+            kf.id,
+            True,
+            timings,
+            segment=self.segment,
+            relocalised=True,
+        )
+
+    def _place_pose(self, place: Relocalisation, depth: Float32Array) -> FloatArray | None:
+        """T_world_camera (4x4, metres) of a verified place, refined by point-to-plane ICP
+        (coarse, then at the tracker's own distance) against the matched keyframe's surface, or
+        the nearest held keyframe's of its segment when it is no longer held; None when fewer
+        than ``relocalise.min_icp_overlap`` of the frame's points find the surface at the end."""
+        segment = self.relocaliser.segment_of[place.keyframe_id]
+        kf = self._held_keyframe(place.keyframe_id, segment, place.T_world_camera)
+        if kf is None or kf.dense is None:
+            return place.T_world_camera
+        points, _ = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride)
+        if len(points) == 0:
+            return None
+        T = invert(kf.T_world_keyframe) @ place.T_world_camera
+
+        def no_sparse(_: FloatArray) -> NormalEquations:
+            return NormalEquations(np.zeros((6, 6)), np.zeros(6))
+
+        solver = self.cfg.solver
+        matches = 0
+        for reach in (2.0, 1.0):
+            cfg = replace(
+                solver,
+                dense_max_distance_m=reach * solver.dense_max_distance_m,
+                dense_iterations=2 * solver.dense_iterations,
+            )
+            T, matches = refine_dense(T, kf.dense, points, no_sparse, cfg, self.cfg.depth)
+        if matches < self.cfg.relocalise.min_icp_overlap * len(points):
+            log.info("place of keyframe %d refused by ICP (%d/%d)", kf.id, matches, len(points))
+            return None
+        return orthonormalize(kf.T_world_keyframe @ T)
+
+    def _held_keyframe(
+        self, keyframe_id: int, segment: int, T_world_camera: FloatArray
+    ) -> Keyframe | None:
+        """The keyframe object with this id, if still held; else the held keyframe of
+        ``segment`` nearest ``T_world_camera`` (4x4, metres); None when it holds none."""
+        held = [k for k in [self.keyframe, *self.recent, *self.map_keyframes] if k is not None]
+        for kf in held:
+            if kf.id == keyframe_id:
+                return kf
+        same = [k for k in held if k.segment == segment]
+        if not same:
+            return None
+        return min(same, key=lambda k: pose_distance(k.T_world_keyframe, T_world_camera))
+
+    def _start_segment(
+        self, index: int, grey: GreyImage, depth: Float32Array, timings: dict[str, float]
+    ) -> TrackResult | None:
+        """Nothing has registered for ``relocalise.reinit_after`` frames: this frame starts a
+        new map segment, as its first keyframe, at the pose the motion before the loss carries
+        the last good pose to. Its frames are WEAK and not fused until it merges into the map
+        (``_merge_segment``); the trajectory stays in one frame meanwhile. None when the frame
+        cannot anchor tracking (too little texture or depth)."""
+        t = time.perf_counter()
+        frames = self.lost_run  # this one included
+        T_world_guess = orthonormalize(
+            self.T_world_last @ np.linalg.matrix_power(self._velocity_before_loss, frames)
+        )
+        kf = make_keyframe(self.keyframe_count, index, T_world_guess, grey, depth, self.K, self.cfg)
+        if len(kf.points) < self.cfg.state.ok_inliers:
+            return None
+        self.segments_started += 1
+        self.segment, self._segment_start = self.segments_started, index
+        self._adopt_keyframe(kf, grey, depth)
+        timings["keyframe"] = _ms(t)
+        timings["total"] = sum(v for k, v in timings.items() if k != "total")
+        log.info("frame %d: lost %d frames in a row; new segment %d", index, frames, self.segment)
+        self.velocity = np.eye(4)
+        self.T_world_last = T_world_guess
+        self.lost, self.lost_run = False, 0
+        return TrackResult(
+            index,
+            T_world_guess.copy(),
+            TrackingState.WEAK,
+            len(kf.points),
+            0.0,
+            1.0,
+            kf.id,
+            True,
+            timings,
+            segment=self.segment,
+        )
+
+    def _merge_segment(
+        self, grey: GreyImage, depth: Float32Array, T_world_cur: FloatArray
+    ) -> tuple[int, FloatArray] | None:
+        """Look this frame (tracked in a segment at ``T_world_cur``) up in the map; found (and
+        confirmed by flow against a held map keyframe where there is one), the segment's
+        keyframes move into the map with it. Returns (segment, T_correction: segment world to
+        map world, 4x4) or None."""
+        query = self.relocaliser.describe(grey, depth)
+        place = self.relocaliser.find(query, T_world_cur, {0})
+        if place is None:
+            return None
+        kf = self._held_keyframe(place.keyframe_id, 0, place.T_world_camera)
+        found = (
+            None
+            if kf is None
+            else self._track_keyframe(kf, grey, depth, place.T_world_camera, chained=False)
+        )
+        if found is not None and self._judge(found.solution) is not TrackingState.LOST:
+            T_world_map = orthonormalize(found.kf.T_world_keyframe @ found.solution.T)
+        else:
+            place_pose = self._place_pose(place, depth)
+            if place_pose is None:
+                return None
+            T_world_map = place_pose
+        T_correction = orthonormalize(T_world_map @ invert(T_world_cur))
+        segment = self.segment
+        for held in {id(k): k for k in [self.keyframe, *self.recent] if k is not None}.values():
+            if held.segment == segment:
+                held.T_world_keyframe = orthonormalize(T_correction @ held.T_world_keyframe)
+                held.segment = 0
+        self.relocaliser.move_segment(segment, 0, T_correction)
+        self.relocaliser.restart_sweep()
+        self.segment = 0
+        log.info(
+            "segment %d merged into the map against keyframe %d (%.3f m, %.1f deg)",
+            segment,
+            place.keyframe_id,
+            float(np.linalg.norm(T_correction[:3, 3])),
+            rotation_angle_deg(T_correction),
+        )
+        return segment, T_correction
 
     def _refine(
         self, reg: _Registration, dense: DenseModel, depth: Float32Array, grey: GreyImage
@@ -693,14 +986,14 @@ class Tracker:
         kf = make_keyframe(self.keyframe_count, index, T_world_prior, grey, depth, self.K, self.cfg)
         if len(kf.points) < self.cfg.state.ok_inliers:
             return None
-        self._adopt_keyframe(kf, grey)
+        self._adopt_keyframe(kf, grey, depth)
         timings["keyframe"] = _ms(t)
         timings["total"] = sum(timings.values())
         if not self.lost:
             log.info("frame %d: no keyframe registers it; resumed from the device pose", index)
         self.velocity = np.eye(4)
         self.T_world_last = T_world_prior.copy()
-        self.lost = False
+        self.lost, self.lost_run = False, 0
         self.device_last = prior
         return TrackResult(
             index,
@@ -727,7 +1020,9 @@ class Tracker:
         """Hold the last good pose; keyframes and trajectory stay as they were."""
         if not self.lost:
             log.info("frame %d: tracking lost (%d inliers)", index, inliers)
+            self._velocity_before_loss = self.velocity
         self.lost = True
+        self.lost_run += 1
         self.velocity = np.eye(4)
         self.tracks = None
         timings["total"] = sum(timings.values())
@@ -742,6 +1037,7 @@ class Tracker:
             kf_id,
             False,
             timings,
+            segment=self.segment,
         )
 
     def _needs_keyframe(self, kf: Keyframe, T_kf_cur: FloatArray, tracked: int) -> bool:
@@ -759,9 +1055,13 @@ class Tracker:
         every new keyframe adds its own error to the chain, an old one adds none. Returns the
         keyframe switched to, or None."""
         c = self.cfg.keyframes
-        recent = list(self.recent)
-        candidates = recent + [k for k in self.map_keyframes if all(k is not r for r in recent)]
-        near = sorted(candidates, key=lambda k: _pose_distance(k.T_world_keyframe, T_world_cur))
+        recent = [k for k in self.recent if k.segment == self.segment]
+        candidates = recent + [
+            k
+            for k in self.map_keyframes
+            if k.segment == self.segment and all(k is not r for r in recent)
+        ]
+        near = sorted(candidates, key=lambda k: pose_distance(k.T_world_keyframe, T_world_cur))
         if c.switch_order == "oldest":
             near.sort(key=lambda k: k.id)
         for kf in near:
@@ -792,21 +1092,25 @@ class Tracker:
         kf = make_keyframe(
             self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg
         )
-        self._adopt_keyframe(kf, grey)
+        self._adopt_keyframe(kf, grey, depth)
         return kf
 
-    def _adopt_keyframe(self, kf: Keyframe, grey: GreyImage) -> None:
-        """Make kf the keyframe the next frames track against."""
+    def _adopt_keyframe(self, kf: Keyframe, grey: GreyImage, depth: Float32Array) -> None:
+        """Make kf the keyframe the next frames track against, in the current segment, and
+        describe it for place recognition (depth: cleaned, metres)."""
         self.keyframe_count += 1
+        kf.segment = self.segment
         self.keyframe = kf
         self.recent.append(kf)
         self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
+        if self.cfg.relocalise.enabled:
+            features = self.relocaliser.describe(grey, depth)
+            self.relocaliser.add(kf.id, self.segment, kf.T_world_keyframe, features)
 
 
-def _pose_distance(T_a: FloatArray, T_b: FloatArray) -> float:
-    """Translation between two poses in metres plus 0.1 m per 10 degrees of rotation."""
-    T = invert(T_a) @ T_b
-    return float(np.linalg.norm(T[:3, 3]) + 0.01 * rotation_angle_deg(T))
+def _quality(solution: SparseSolution) -> tuple[int, float, float]:
+    """(inliers, rmse, condition) of a sparse solution, as a TrackResult reports them."""
+    return int(solution.inliers.sum()), solution.rmse, solution.condition
 
 
 def _ms(t0: float) -> float:

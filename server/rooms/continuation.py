@@ -83,7 +83,7 @@ class RoomTracker:
             return None
         T_guess = self.database.entry(match.keyframe_id).T_world_keyframe @ match.T_keyframe_query
         keyframe = next(k for k in self.map_keyframes if k.id == match.keyframe_id)
-        self.tracker.resume_in_map(T_guess, keyframe, self.map_keyframes)
+        self.tracker.resume_in_map(T_guess, keyframe, self.map_keyframes, self.database)
         # The tracker refines the guess against the keyframe's own corners: a second check too.
         result = self.tracker.track(colour, depth, T_device_camera)
         ms = (time.perf_counter() - t0) * 1e3

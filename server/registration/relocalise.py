@@ -1,0 +1,141 @@
+"""Recovery after a loss: where a frame lies among every keyframe of the tracker's map.
+
+Optical flow needs a pose guess near the truth; after a gap in the frames or a fast sweep it has
+none. Place recognition does not: each keyframe is described once (ORB with depth,
+:mod:`server.registration.place`) and a lost frame is matched against them, the current
+keyframe first (the usual case: the camera moved on further than flow reaches), then the
+keyframes the database votes for, each verified geometrically
+(:mod:`server.registration.verify`). The caller refines the verified pose with flow.
+
+A map may have segments: after a loss that nothing recovered, the tracker starts a new one from
+the current frame (ORB-SLAM3's Atlas keeps such maps apart the same way). Look-ups can be limited
+to some segments, so that a segment finds its way back into the main map; merging moves a
+segment's keyframes here with it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+from server.geometry import Intrinsics, pose_distance
+from server.geometry.arrays import Float32Array, FloatArray, GreyImage
+from server.registration.config import RegistrationConfig
+from server.registration.place import KeyframeDatabase, PlaceFeatures, describe_place
+from server.registration.verify import PlaceMatch, verify_place
+
+
+@dataclass
+class Relocalisation:
+    """A frame found in the map: against keyframe ``keyframe_id``, at ``T_world_camera`` (4x4,
+    metres, from the descriptor matches alone: the tracker refines it)."""
+
+    keyframe_id: int
+    T_world_camera: FloatArray
+    match: PlaceMatch
+    tried: int  # keyframes verified
+    ms: float  # the look-up's time, describing the frame included
+
+
+class Relocaliser:
+    """The place database of a tracker's keyframes, and the look-up of a lost frame in it."""
+
+    def __init__(self, K: Intrinsics, cfg: RegistrationConfig) -> None:
+        self.K = K
+        self.cfg = cfg
+        r = cfg.relocalise
+        self.place = replace(
+            cfg.place,
+            orb_features=r.orb_features,
+            vote_features=r.vote_features,
+            candidates=r.candidates,
+        )
+        self.database = KeyframeDatabase()
+        self.segment_of: dict[int, int] = {}  # keyframe id -> map segment
+        self._sweep = 0  # where the next vote starts in the keyframes ordered by distance
+
+    def __len__(self) -> int:
+        return len(self.database)
+
+    def describe(self, grey: GreyImage, depth: Float32Array) -> PlaceFeatures:
+        """Place features of a frame: grey (H, W) uint8, depth (H, W) metres, cleaned."""
+        return describe_place(grey, depth, self.K, self.place, self.cfg.depth)
+
+    def add(
+        self, keyframe_id: int, segment: int, T_world_keyframe: FloatArray, features: PlaceFeatures
+    ) -> None:
+        """A keyframe of ``segment`` at T_world_keyframe (4x4, metres) with its features."""
+        self.database.add(keyframe_id, T_world_keyframe, features)
+        self.segment_of[keyframe_id] = segment
+
+    def move_segment(self, segment: int, into: int, T_correction: FloatArray) -> None:
+        """Merge ``segment`` into ``into``: its keyframes move by ``T_correction`` (4x4, old
+        world to new world, T_new = T_correction @ T_old) and belong to ``into`` from now on."""
+        for e in self.database.entries:
+            if self.segment_of.get(e.keyframe_id) == segment:
+                e.T_world_keyframe = T_correction @ e.T_world_keyframe
+                self.segment_of[e.keyframe_id] = into
+
+    def set_pose(self, keyframe_id: int, T_world_keyframe: FloatArray) -> None:
+        """A keyframe moved (loop closure): T_world_keyframe (4x4, metres)."""
+        if keyframe_id in self.segment_of:
+            self.database.set_pose(keyframe_id, T_world_keyframe)
+
+    def restart_sweep(self) -> None:
+        """The next look-up votes from the keyframes nearest its pose again (after a recovery)."""
+        self._sweep = 0
+
+    def find(
+        self,
+        query: PlaceFeatures,
+        T_world_near: FloatArray,
+        segments: set[int],
+        first: int | None = None,
+        t0: float | None = None,
+    ) -> Relocalisation | None:
+        """The best verified keyframe of ``segments`` for ``query``, or None.
+
+        ``first``: a keyframe id verified before the vote (the current keyframe). The vote covers
+        ``relocalise.vote_keyframes`` keyframes, nearest ``T_world_near`` (4x4, metres: the last
+        good pose) first; each call that finds nothing moves on to the next ones.
+        """
+        t0 = time.perf_counter() if t0 is None else t0
+        allowed = [
+            e for e in self.database.entries if self.segment_of.get(e.keyframe_id) in segments
+        ]
+        if not allowed or len(query) == 0:
+            return None
+        tried: list[int] = []
+        best: PlaceMatch | None = None
+        if first is not None and any(e.keyframe_id == first for e in allowed):
+            tried.append(first)
+            best = self._verify(first, query)
+        if best is None:
+            allowed.sort(key=lambda e: pose_distance(e.T_world_keyframe, T_world_near))
+            n = self.cfg.relocalise.vote_keyframes
+            start = self._sweep if self._sweep < len(allowed) else 0
+            window = {e.keyframe_id for e in allowed[start : start + n]}
+            self._sweep = start + n
+            for kf_id, votes in self.database.candidates(query, self.place, window):
+                if kf_id in tried:
+                    continue
+                tried.append(kf_id)
+                found = self._verify(kf_id, query)
+                if found is not None and (best is None or found.inliers > best.inliers):
+                    found.votes = votes
+                    best = found
+        if best is None:
+            return None
+        T_world_kf = self.database.entry(best.keyframe_id).T_world_keyframe
+        return Relocalisation(
+            best.keyframe_id,
+            T_world_kf @ best.T_keyframe_query,
+            best,
+            len(tried),
+            (time.perf_counter() - t0) * 1e3,
+        )
+
+    def _verify(self, keyframe_id: int, query: PlaceFeatures) -> PlaceMatch | None:
+        features = self.database.entry(keyframe_id).features
+        c = self.cfg
+        return verify_place(features, query, self.K, self.place, c.solver, c.depth, keyframe_id)

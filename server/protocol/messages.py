@@ -169,9 +169,12 @@ def make_pose(
     dropped: int,
     keyframe: bool | None = None,
     failures: Mapping[str, int] | None = None,
+    recovery: str | None = None,
 ) -> dict:
     """T_world_camera: 4x4 (metres), sent row-major; state: ok / weak / lost (or TrackingState);
-    failures: the session's failure counts so far, by name (left out when None or empty)."""
+    failures: the session's failure counts so far, by name (left out when None or empty);
+    recovery: relocalised / segment / merged while tracking recovers from a loss (else None,
+    left out)."""
     return _message(
         "pose",
         seq=int(seq),
@@ -183,6 +186,7 @@ def make_pose(
         dropped=int(dropped),
         keyframe=None if keyframe is None else bool(keyframe),
         failures={str(k): int(v) for k, v in failures.items()} if failures else None,
+        recovery=recovery,
     )
 
 

@@ -92,6 +92,19 @@ class TrackResult:
     relocalised: bool = False  # found again by place recognition after flow failed
 
     @property
+    def recovery(self) -> str | None:
+        """How this frame recovers from a loss, as the wire says it: "relocalised" (found again
+        by place recognition), "merged" (its segment merged into the map here), "segment" (in a
+        segment not merged yet), or None (tracked as usual, or lost)."""
+        if self.merged is not None:
+            return "merged"
+        if self.relocalised:
+            return "relocalised"
+        if self.segment != 0 and self.state is not TrackingState.LOST:
+            return "segment"
+        return None
+
+    @property
     def fusable(self) -> bool:
         """Its images and its pose belong together, so it may go into a map: tracked (not lost),
         not a held repeat (whose colour and depth are of two moments), and in the map (not in a

@@ -150,6 +150,7 @@ class Session:
         self.received = self.processed = self.dropped = 0
         # Frames that carried the device's own pose, and those whose guess started from it.
         self._device_pose = {"frames": 0, "guesses": 0}
+        self._recovery = {"relocalised": 0, "segments": 0, "merged": 0, "in_segment": 0}
         self.failures = Failures()  # guarded by _lock; flight_errors is the drone's own count
         self.failure: str | None = None  # why the session could not go on (see fail)
         self._last_seq = -1
@@ -462,6 +463,14 @@ class Session:
         except SnapshotError as exc:
             self.log.error("%s; the previous one stays whole and the map stays in memory", exc)
 
+    def _count_recovery(self, result: TrackResult) -> None:
+        """The status's ``recovery`` counts (call holding the lock)."""
+        r = self._recovery
+        r["relocalised"] += result.relocalised
+        r["merged"] += result.merged is not None
+        r["in_segment"] += result.recovery == "segment"
+        r["segments"] = max(r["segments"], result.segment)  # numbered from 1 as they start
+
     def _process(self, frame: FrameData) -> None:
         """Track the frame and publish its pose at once; then the keyframe work the tracker
         deferred (a new keyframe, or a switch to an earlier one), and the frame's fusion job:
@@ -498,6 +507,7 @@ class Session:
             self.repeated += result.repeated is not None
             self._device_pose["frames"] += frame.T_device_camera is not None
             self._device_pose["guesses"] += result.prior_used
+            self._count_recovery(result)
             dropped, processed = self.dropped, self.processed
             self._dirty = True
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
@@ -513,6 +523,7 @@ class Session:
                 dropped,
                 processed,
                 self.failure_counts(),
+                result.recovery,
             )
         )
         new_keyframe = result.new_keyframe
@@ -943,6 +954,7 @@ class Session:
                 "frames_repeated": self.repeated,
                 "tracking_states": dict(self._states),
                 "device_pose": dict(self._device_pose),
+                "recovery": dict(self._recovery),
                 "trajectory_poses": len(self._trajectory),
                 "map": map_stats,
                 "fusion_failed": failures["fusions_failed"],  # the name before failures existed

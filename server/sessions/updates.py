@@ -40,6 +40,7 @@ class PoseUpdate:
     dropped: int  # frames dropped so far in this session
     processed: int
     failures: dict[str, int] = field(default_factory=dict)  # Failures, counted so far
+    recovery: str | None = None  # TrackResult.recovery: relocalised, segment, merged or None
 
 
 @dataclass

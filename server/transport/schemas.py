@@ -277,6 +277,19 @@ class DevicePoseUse(_Body):
     )
 
 
+class TrackingRecovery(_Body):
+    """How tracking recovered from losses (registration.relocalise, PROTOCOL.md's pose
+    ``recovery``)."""
+
+    relocalised: int = Field(description="frames found again by place recognition")
+    segments: int = Field(
+        description="map segments started after a loss nothing recovered (tracked apart, weak, "
+        "not fused, until they merge)"
+    )
+    merged: int = Field(description="segments merged into the map")
+    in_segment: int = Field(description="frames tracked in a segment not merged yet")
+
+
 class SessionStatus(_Body):
     """``GET /api/sessions/{id}``: a live session's figures now, or a closed session's as its
     final snapshot saved them."""
@@ -314,6 +327,11 @@ class SessionStatus(_Body):
     fusion_failed: int = Field(description="frames whose fusion into the map failed (logged)")
     tracking_states: dict[str, int] = Field(
         description="processed frames by tracking state: ok, weak, lost"
+    )
+    recovery: TrackingRecovery | None = Field(
+        None,
+        description="recovery from lost tracking (absent in the snapshots of sessions saved "
+        "before it was counted)",
     )
     trajectory_poses: int = Field(description="lines of trajectory.tum: one per processed frame")
     device_pose: DevicePoseUse | None = Field(

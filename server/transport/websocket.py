@@ -303,6 +303,7 @@ def _pose(p: PoseUpdate) -> dict:
         p.dropped,
         p.keyframe,
         p.failures,
+        p.recovery,
     )
 
 

@@ -66,6 +66,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from benchmarks.provenance import git_commit  # noqa: E402
+from benchmarks.published import PAPERS, published  # noqa: E402
 from server.datasets import RGBDFrame, open_dataset  # noqa: E402
 from server.errors import DroneSimError  # noqa: E402
 from server.evaluation.device_poses import (  # noqa: E402
@@ -80,7 +81,7 @@ from server.evaluation.trajectory import (  # noqa: E402
     write_tum,  # noqa: E402
 )
 from server.geometry import Intrinsics, invert, rotation_angle_deg  # noqa: E402
-from server.pipeline import ground_truth_pose_at  # noqa: E402
+from server.pipeline import ground_truth_pose_at, run_odometry  # noqa: E402
 from server.registration.calibration import ColourToDepth  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.tracker import Tracker, TrackingState  # noqa: E402
@@ -262,9 +263,33 @@ def run_o3d_tensor(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
 
 
 # key -> (label, runner)
+def run_ours_track(ds, first: int, n: int, bar) -> MethodRun:
+    """``python -m server track`` on frames first..first+n-1: the tracker, then loop closure
+    over its keyframes (registration.loops, on by default offline), every frame moved with its
+    keyframe; no map. Times: the whole run per frame (loop closure included), one value per
+    frame, as wall time over the frames."""
+    run_started = time.perf_counter()
+    cpu0 = time.process_time()
+    odometry = run_odometry(
+        ds, BASE_CONFIG, max_frames=n, progress=False, start=first, keep_room=False
+    )
+    bar.update(n)
+    wall_ms = (time.perf_counter() - run_started) * 1e3
+    states = [r.state for r in odometry.results]
+    return MethodRun(
+        poses=odometry.trajectory.poses,
+        times_ms=[wall_ms / n] * n,
+        cpu_s=time.process_time() - cpu0,
+        lost=sum(s is TrackingState.LOST for s in states[1:]),
+        weak=sum(s is TrackingState.WEAK for s in states[1:]),
+    )
+
+
 METHODS: dict[str, tuple[str, Callable[..., MethodRun]]] = {
     "ours_sparse": ("ours sparse", lambda *a: run_ours(*a, dense=False)),
     "ours_dense": ("ours sparse+dense", lambda *a: run_ours(*a, dense=True)),
+    # Needs the dataset, not frames in memory: run by benchmark_sequence itself.
+    "ours_track": ("ours track (+loops)", lambda *a: None),
     "o3d_legacy": ("Open3D legacy", run_o3d_legacy),
     "o3d_tensor": ("Open3D tensor", run_o3d_tensor),
 }
@@ -438,8 +463,15 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
     results, estimates = {}, {}
     for key in args.methods:
         label, runner = METHODS[key]
+        if key == "ours_track" and args.stride != 1:
+            console.print(f"{run_name}: ours_track skipped (it reads every frame; --stride 1)")
+            continue
         with tqdm(total=len(frames), desc=f"{run_name} {label}", unit="frame") as bar:
-            run = runner(frames, ds.intrinsics, gt_poses[0], bar)
+            if key == "ours_track":
+                first = int(np.argmin(np.abs(np.asarray(ds.timestamps) - frames[0].timestamp)))
+                run = run_ours_track(ds, first, len(frames), bar)
+            else:
+                run = runner(frames, ds.intrinsics, gt_poses[0], bar)
         est = Trajectory(stamps, run.poses)
         write_tum(args.out / "trajectories" / run_name / f"{key}.tum", est)
         metrics = evaluate(ds.ground_truth, est)
@@ -456,16 +488,35 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
     console.print(rich_table(f"{run_name} — {speed}", rows))
     targets = "; ".join(label for _, label, _ in TARGETS)
     console.print(f"targets for our rows: {targets}")
+    others = published(name)
+    cited = (
+        "Published ATE RMSE on this sequence (the papers' own figures, whole sequence, not "
+        "measured here): "
+        + ", ".join(
+            f"{paper} {ate * 100:.1f} cm ({PAPERS[paper]})" for paper, ate in others.items()
+        )
+        + "."
+        if others
+        else ""
+    )
+    if cited:
+        console.print(cited)
 
     png = args.out / f"{run_name}_trajectories.png"
     plot_topview(png, run_name, gt_poses, estimates)
     with open(args.out / "registration.md", "a") as md:
         md.write(
             f"\n### {run_name}\n\n{speed}. Targets for our rows: {targets}.\n\n"
-            f"{markdown_table(rows)}\n\nTrajectories: `trajectories/{run_name}/`, "
-            f"plot: `{png.name}`.\n"
+            f"{markdown_table(rows)}\n\n{cited + chr(10) + chr(10) if cited else ''}"
+            f"Trajectories: `trajectories/{run_name}/`, plot: `{png.name}`.\n"
         )
-    return {"header": header, "sequence": str(path), "motion": motion, "methods": results}
+    return {
+        "header": header,
+        "sequence": str(path),
+        "motion": motion,
+        "methods": results,
+        "published_ate_m": others,
+    }
 
 
 # ---------------------------------------------------------------------------------- device prior
@@ -559,7 +610,7 @@ def benchmark_prior(name: str, path: Path, args, header: dict) -> dict:
         "drifting": drifting_device_poses(gt, stamps, drift),
     }
     drifted = prior_drift(gt, priors["drifting"])
-    methods = [m for m in args.methods if m.startswith("ours")] or ["ours_dense"]
+    methods = [m for m in args.methods if m in ("ours_sparse", "ours_dense")] or ["ours_dense"]
     results: dict[str, dict] = {}
     for drop in args.drop:
         keep = kept_frames(len(frames), drop)

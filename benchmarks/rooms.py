@@ -46,7 +46,8 @@ from benchmarks.provenance import git_commit, run_heading, utc_stamp  # noqa: E4
 from server.datasets import open_dataset  # noqa: E402
 from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
-from server.pipeline import run_odometry  # noqa: E402
+from server.geometry import invert, rotation_angle_deg  # noqa: E402
+from server.pipeline import ground_truth_pose_at, run_odometry  # noqa: E402
 from server.registration.calibration import ColourToDepth  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.place import describe_place  # noqa: E402
@@ -144,6 +145,9 @@ def main() -> None:
     ate_both = evaluate(ds.ground_truth, both)["ate_rmse_m"]
     ate_whole = whole.metrics["ate_rmse_m"]
     placed = len(part2.trajectory.timestamps)  # return frames with a pose in the room's frame
+    # How far the return starts from where the room's part ended (ground truth): a return that
+    # starts where the room left off is the easy case.
+    start_off = start_offset(ds, a1 - 1, b0)
     seconds = (a1 - a0) / 30.0  # the sequences' nominal 30 Hz
     room_bytes = sum(sizes.values())
     rows = [
@@ -156,6 +160,8 @@ def main() -> None:
             placed > 0 and ate_both <= ATE_FACTOR * ate_whole,
         ),
         ("return frames placed", f"{placed} of {b1 - b0}", "", None),
+        ("return starts off the room's last frame", "unknown (no ground truth there)"
+         if start_off is None else f"{start_off[0]:.2f} m, {start_off[1]:.0f} deg", "", None),
         (
             "relocalised at frame",
             f"{found['frame']} (sequence frame {found.get('sequence_frame')})"
@@ -203,6 +209,7 @@ def main() -> None:
     result = {
         "sequence": str(ds.path),
         "return_frames_placed": placed,
+        "return_start_offset_m_deg": start_off,
         "room_frames": [a0, a1],
         "return_frames": [b0, b1],
         "ate_both_m": ate_both,
@@ -220,6 +227,16 @@ def main() -> None:
     results = json.loads(path.read_text()) if path.is_file() else {}
     results[case_key(ds.name, (a0, a1), (b0, b1))] = result
     path.write_text(json.dumps(results, indent=1))
+
+
+def start_offset(ds, last: int, first: int) -> tuple[float, float] | None:
+    """(metres, degrees) between the ground-truth poses of frames ``last`` and ``first``."""
+    T_a = ground_truth_pose_at(ds, float(ds.timestamps[last]))
+    T_b = ground_truth_pose_at(ds, float(ds.timestamps[first]))
+    if T_a is None or T_b is None:
+        return None
+    T = invert(T_a) @ T_b
+    return float(np.linalg.norm(T[:3, 3])), rotation_angle_deg(T)
 
 
 def case_key(sequence: str, room_frames, return_frames) -> str:

@@ -137,7 +137,9 @@ def run_odometry(
             if result is None:  # not yet found in the room
                 continue
             tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
-            if keep and result.new_keyframe:
+            # A segment's keyframes stay out of the room and the pose graph: their poses are in
+            # the segment's world, a guess of where it lies (Tracker: segments).
+            if keep and result.new_keyframe and result.segment == 0:
                 behind.submit(_add_keyframe, room, room_map, closer, result, colour, frame, i, cfg)
             results.append(result)
             stamps.append(frame.timestamp)

@@ -31,9 +31,7 @@ def settled_frames(server, sid, token, quiet_s: float = 1.5, timeout_s: float = 
     raise AssertionError("fusion did not settle")
 
 
-def test_a_phone_that_swings_away_and_back_recovers_in_the_same_session(
-    live_server, shared_data
-):
+def test_a_phone_that_swings_away_and_back_recovers_in_the_same_session(live_server, shared_data):
     server = live_server()
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()

@@ -18,10 +18,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from server.geometry import Intrinsics, pose_distance
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage
 from server.registration.config import RegistrationConfig
+from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.place import KeyframeDatabase, PlaceFeatures, describe_place
+from server.registration.sparse import NormalEquations
 from server.registration.verify import PlaceMatch, verify_place
 
 
@@ -35,6 +39,36 @@ class Relocalisation:
     match: PlaceMatch
     tried: int  # keyframes verified
     ms: float  # the look-up's time, describing the frame included
+
+
+def align_to_surface(
+    T_keyframe_camera: FloatArray,
+    surface: DenseModel,
+    depth: Float32Array,
+    K: Intrinsics,
+    cfg: RegistrationConfig,
+) -> tuple[FloatArray, float]:
+    """Point-to-plane ICP of a frame's depth (H, W, metres, cleaned) onto a keyframe's surface
+    from the guess T_keyframe_camera (4x4, metres): at twice the tracker's matching distance,
+    then at its own. A place's pose from descriptor matches is good to a few centimetres; the
+    surface takes it to the tracker's accuracy. Returns the refined T_keyframe_camera and the
+    share of the frame's sampled points that found the surface at the end (0 when none)."""
+    points, _ = sample_dense_points(depth, K, cfg.solver.dense_stride)
+    if len(points) == 0:
+        return T_keyframe_camera, 0.0
+
+    def no_sparse(_: FloatArray) -> NormalEquations:
+        return NormalEquations(np.zeros((6, 6)), np.zeros(6))
+
+    T, matches = T_keyframe_camera, 0
+    for reach in (2.0, 1.0):
+        solver = replace(
+            cfg.solver,
+            dense_max_distance_m=reach * cfg.solver.dense_max_distance_m,
+            dense_iterations=2 * cfg.solver.dense_iterations,
+        )
+        T, matches = refine_dense(T, surface, points, no_sparse, solver, cfg.depth)
+    return T, matches / len(points)
 
 
 class Relocaliser:

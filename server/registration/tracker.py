@@ -41,7 +41,7 @@ from server.registration.preprocess import (
     to_grey,
 )
 from server.registration.prior import DeviceAlignment, prior_motion
-from server.registration.relocalise import Relocalisation, Relocaliser
+from server.registration.relocalise import Relocalisation, Relocaliser, align_to_surface
 from server.registration.sparse import (
     NormalEquations,
     SparseSolution,
@@ -512,6 +512,7 @@ class Tracker:
             timings,
             prior_used=T_prior is not None,
             repeated=repeated,
+            segment=self.segment,
         )
 
     def _check_prior(self, T_device_camera: FloatArray | None) -> FloatArray | None:
@@ -825,25 +826,10 @@ class Tracker:
         kf = self._held_keyframe(place.keyframe_id, segment, place.T_world_camera)
         if kf is None or kf.dense is None:
             return place.T_world_camera
-        points, _ = sample_dense_points(depth, self.K, self.cfg.solver.dense_stride)
-        if len(points) == 0:
-            return None
-        T = invert(kf.T_world_keyframe) @ place.T_world_camera
-
-        def no_sparse(_: FloatArray) -> NormalEquations:
-            return NormalEquations(np.zeros((6, 6)), np.zeros(6))
-
-        solver = self.cfg.solver
-        matches = 0
-        for reach in (2.0, 1.0):
-            cfg = replace(
-                solver,
-                dense_max_distance_m=reach * solver.dense_max_distance_m,
-                dense_iterations=2 * solver.dense_iterations,
-            )
-            T, matches = refine_dense(T, kf.dense, points, no_sparse, cfg, self.cfg.depth)
-        if matches < self.cfg.relocalise.min_icp_overlap * len(points):
-            log.info("place of keyframe %d refused by ICP (%d/%d)", kf.id, matches, len(points))
+        T_kf_guess = invert(kf.T_world_keyframe) @ place.T_world_camera
+        T, overlap = align_to_surface(T_kf_guess, kf.dense, depth, self.K, self.cfg)
+        if overlap < self.cfg.relocalise.min_icp_overlap:
+            log.info("place of keyframe %d refused by ICP (overlap %.2f)", kf.id, overlap)
             return None
         return orthonormalize(kf.T_world_keyframe @ T)
 

@@ -143,10 +143,10 @@ def test_every_flat_name_leads_to_a_key():
 
 def test_defaults_ignore_the_environment(monkeypatch):
     monkeypatch.setenv("DRONESIM_PORT", "9100")
-    monkeypatch.setenv("DRONESIM_REGISTRATION__SOLVER__DENSE", "false")
+    monkeypatch.setenv("DRONESIM_REGISTRATION__SOLVER__DENSE", "true")
     assert Config.defaults().server.port == 8000
-    assert SessionConfig.from_config().registration.solver.dense is True
-    assert load_config().registration.solver.dense is False
+    assert SessionConfig.from_config().registration.solver.dense is False
+    assert load_config().registration.solver.dense is True
 
 
 def test_set_values_are_read_as_yaml():

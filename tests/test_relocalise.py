@@ -53,7 +53,7 @@ def tum_gap(shared_data):
     """tum_fr1_xyz (real Kinect frames, motion-capture truth) with 15 frames missing (0.5 s):
     what a busy phone or a blurred sweep leaves."""
     keep = list(range(0, 60)) + list(range(75, 100))
-    return (*load(shared_data, "tum_fr1_xyz", keep), keep)
+    return (*load(shared_data, "tum_fr1_xyz", range(100)), keep)
 
 
 def test_a_gap_in_the_frames_is_found_again_in_the_same_frame(tum_gap):
@@ -66,9 +66,19 @@ def test_a_gap_in_the_frames_is_found_again_in_the_same_frame(tum_gap):
     assert all(r.state is not TrackingState.LOST for r in results)
     assert results[after].relocalised and not results[after - 1].relocalised
     assert results[after].segment == 0 and results[after].fusable
-    # Across the gap the pose is as good as tracking's own from frame to frame.
+    # Across the gap the motion is as good as tracking's own over as many frames without one.
     dt, dr = error(gt[59], gt[75], results[after - 1].T_world_camera, results[after].T_world_camera)
-    assert dt < 0.02 and dr < 1.5, (dt, dr)
+    continuous, _ = run(ds, frames, gt, list(range(100)))
+    own = np.median(
+        [
+            error(
+                gt[a], gt[a + 16], continuous[a].T_world_camera, continuous[a + 16].T_world_camera
+            )
+            for a in range(100 - 16)
+        ],
+        axis=0,
+    )
+    assert dt < 2 * own[0] and dr < 2 * own[1] + 0.5, (dt, dr, own)
     assert results[after].timings_ms["relocalise"] > 0
     assert len(tracker.relocaliser) == tracker.keyframe_count
 

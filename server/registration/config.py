@@ -80,7 +80,17 @@ class SolverConfig:
     huber_k: float = 2.0  # Mahalanobis distance where Huber weighting starts
     outlier_chi: float = 4.0  # correspondences beyond this Mahalanobis distance are outliers
     # Dense refinement: projective point-to-plane ICP against the keyframe's smoothed depth.
-    dense: bool = True
+    # Off by default since TUM RGB-D's motion-capture truth (independent of any SLAM method)
+    # showed it pulling the pose off on real Kinect depth: tum_fr1_xyz tracker-only ATE 3.61 ->
+    # 1.61 cm, RPE/s 1.32 -> 0.93 deg, and the same at 2x-4x the motion (every 2nd-4th frame:
+    # 2.45-2.84 -> 1.54-2.10 cm); with loop closure (``track``) 1.59 -> 1.35 cm. A depth-only
+    # surface fit takes on the structured-light sensor's low-frequency depth distortion, which
+    # the sparse term, whose corners fix rotation through their image bearings, barely feels
+    # (a translation-only dense step still gave 3.01 cm). It helped where the depth is exact
+    # (synthetic_room0 0.16 against 0.20 cm without it, 0.19 with keyframes.window=2) and on
+    # 7scenes_a, whose truth is KinectFusion's own dense fit (``track`` 2.51 against 2.80 cm).
+    # The keyframes' surfaces are still built: relocalisation refines poses on them.
+    dense: bool = False
     dense_stride: int = 8  # sample every n-th pixel of the current depth
     dense_iterations: int = 6
     # Stop refining when |xi| falls below this (rad and m mixed): steps shrink about tenfold per
@@ -116,8 +126,10 @@ class KeyframeConfig:
     # current keyframe alone). One keyframe within 3x: synthetic_room0 ATE 0.264 -> 0.204 cm
     # (sparse), 0.243 -> 0.185 cm (sparse + dense); 7scenes_a 3.90 -> 3.82, 4.48 -> 4.45 cm;
     # two keyframes helped the synthetic room more but made 7scenes_a sparse + dense worse
-    # (benchmarks/README.md, "Drift").
-    window: int = 1
+    # (benchmarks/README.md, "Drift"). Two since dense refinement is off (sparse only,
+    # 2026-12-04): tum_fr1_xyz 1.61 -> 1.53 cm tracker-only (1.56 -> 1.44 / 2.10 -> 1.97 at
+    # every 3rd / 4th frame), synthetic_room0 0.20 -> 0.19 cm; 7scenes_a 2.74 -> 2.80 (track).
+    window: int = 2
     window_reach: float = 3.0
     # Switching back needs this many of the old keyframe's corners tracked, as a multiple of
     # min_tracked_ratio (and at least min_tracked), and the pose within this share of
@@ -236,6 +248,10 @@ class RelocaliseConfig:
     # In a segment, every n-th frame is looked up in the map (a look-up costs as much as
     # tracking a frame).
     merge_every: int = 2
+    # Keyframes older than the recent ones kept (image and corners, ~0.4 MB each at 640x480)
+    # so that a place found among them is refined by flow; the oldest go first. The place
+    # database itself keeps every keyframe.
+    archive_keyframes: int = 150
     # A place that flow cannot follow (too wide a baseline) is refined by ICP against the
     # keyframe's surface; it stands when this share of the frame's points find that surface.
     min_icp_overlap: float = 0.5

@@ -51,7 +51,9 @@ def make_keyframe(
     z = sample_stable_depth(depth, uv, cfg.depth)
     uv = uv[z > 0]
     points = backproject_pixels(uv.astype(np.float64), z[z > 0], K)
-    dense = build_dense_model(depth, K, grey) if cfg.solver.dense else None
+    # The surface also refines a relocalised pose flow cannot (relocalise.align_to_surface).
+    surface = cfg.solver.dense or cfg.relocalise.enabled
+    dense = build_dense_model(depth, K, grey) if surface else None
     return Keyframe(
         id=kf_id,
         frame_index=frame_index,

@@ -207,6 +207,7 @@ class Tracker:
         self._segment_start = 0
         self.lost_run = 0
         self._velocity_before_loss: FloatArray = np.eye(4)
+        self.archive: dict[int, Keyframe] = {}  # older keyframes by id, oldest first (_archive)
 
     @property
     def T_world_device(self) -> FloatArray | None:
@@ -233,6 +234,7 @@ class Tracker:
         for kf in self.map_keyframes:
             kf.segment = 0
         self.relocaliser = Relocaliser(self.K, self.cfg)
+        self.archive.clear()
         for entry in places.entries if places is not None else []:
             self.relocaliser.add(entry.keyframe_id, 0, entry.T_world_keyframe, entry.features)
         self.segment = 0
@@ -264,7 +266,7 @@ class Tracker:
         """
         T_correction = np.asarray(T_correction, dtype=np.float64)
         seen: set[int] = set()
-        held = [self.keyframe, *self.recent, *self.map_keyframes]
+        held = [self.keyframe, *self.recent, *self.map_keyframes, *self.archive.values()]
         for kf in held:
             if kf is None or id(kf) in seen:
                 continue
@@ -749,7 +751,7 @@ class Tracker:
             # span less than a keyframe's corners would.
             found = self._track_keyframe(self.keyframe, grey, depth, place.T_world_camera, True)
         if found is None or self._judge(found.solution) is TrackingState.LOST:
-            kf = self._held_keyframe(place.keyframe_id, segment, place.T_world_camera)
+            kf = self._held_keyframe(place.keyframe_id)
             found = (
                 None
                 if kf is None
@@ -822,8 +824,7 @@ class Tracker:
         (coarse, then at the tracker's own distance) against the matched keyframe's surface, or
         the nearest held keyframe's of its segment when it is no longer held; None when fewer
         than ``relocalise.min_icp_overlap`` of the frame's points find the surface at the end."""
-        segment = self.relocaliser.segment_of[place.keyframe_id]
-        kf = self._held_keyframe(place.keyframe_id, segment, place.T_world_camera)
+        kf = self._held_keyframe(place.keyframe_id)
         if kf is None or kf.dense is None:
             return place.T_world_camera
         T_kf_guess = invert(kf.T_world_keyframe) @ place.T_world_camera
@@ -833,19 +834,13 @@ class Tracker:
             return None
         return orthonormalize(kf.T_world_keyframe @ T)
 
-    def _held_keyframe(
-        self, keyframe_id: int, segment: int, T_world_camera: FloatArray
-    ) -> Keyframe | None:
-        """The keyframe object with this id, if still held; else the held keyframe of
-        ``segment`` nearest ``T_world_camera`` (4x4, metres); None when it holds none."""
-        held = [k for k in [self.keyframe, *self.recent, *self.map_keyframes] if k is not None]
-        for kf in held:
-            if kf.id == keyframe_id:
+    def _held_keyframe(self, keyframe_id: int) -> Keyframe | None:
+        """The keyframe with this id: a recent one, a saved map's, or one of the archive (the
+        older keyframes, kept without their surface); None when it is no longer held."""
+        for kf in [self.keyframe, *self.recent, *self.map_keyframes]:
+            if kf is not None and kf.id == keyframe_id:
                 return kf
-        same = [k for k in held if k.segment == segment]
-        if not same:
-            return None
-        return min(same, key=lambda k: pose_distance(k.T_world_keyframe, T_world_camera))
+        return self.archive.get(keyframe_id)
 
     def _start_segment(
         self, index: int, grey: GreyImage, depth: Float32Array, timings: dict[str, float]
@@ -896,7 +891,7 @@ class Tracker:
         place = self.relocaliser.find(query, T_world_cur, {0})
         if place is None:
             return None
-        kf = self._held_keyframe(place.keyframe_id, 0, place.T_world_camera)
+        kf = self._held_keyframe(place.keyframe_id)
         found = (
             None
             if kf is None
@@ -911,7 +906,8 @@ class Tracker:
             T_world_map = place_pose
         T_correction = orthonormalize(T_world_map @ invert(T_world_cur))
         segment = self.segment
-        for held in {id(k): k for k in [self.keyframe, *self.recent] if k is not None}.values():
+        held_now = [self.keyframe, *self.recent, *self.archive.values()]
+        for held in {id(k): k for k in held_now if k is not None}.values():
             if held.segment == segment:
                 held.T_world_keyframe = orthonormalize(T_correction @ held.T_world_keyframe)
                 held.segment = 0
@@ -926,6 +922,14 @@ class Tracker:
             rotation_angle_deg(T_correction),
         )
         return segment, T_correction
+
+    def _archive(self, kf: Keyframe) -> None:
+        """Keep a keyframe that leaves the recent ones for relocalisation: its image and corners
+        (~0.4 MB at 640x480), not its surface (several MB); the oldest go past
+        ``relocalise.archive_keyframes``."""
+        self.archive[kf.id] = replace(kf, dense=None)
+        while len(self.archive) > self.cfg.relocalise.archive_keyframes:
+            del self.archive[next(iter(self.archive))]
 
     def _refine(
         self, reg: _Registration, dense: DenseModel, depth: Float32Array, grey: GreyImage
@@ -1100,6 +1104,8 @@ class Tracker:
         self.keyframe_count += 1
         kf.segment = self.segment
         self.keyframe = kf
+        if len(self.recent) == self.recent.maxlen and self.cfg.relocalise.enabled:
+            self._archive(self.recent[0])
         self.recent.append(kf)
         self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
         if self.cfg.relocalise.enabled:

@@ -363,10 +363,6 @@ class Tracker:
                 found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred, True)
         timings["sparse"] = _ms(t)
         state = None if found is None else self._judge(found.solution)
-        if state in (None, TrackingState.LOST) and prior is not None and T_world_prior is not None:
-            resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
-            if resumed is not None:
-                return resumed
         relocalised = False
         if state in (None, TrackingState.LOST):
             # 3b. Flow found nothing: look the frame up among every keyframe, in this frame.
@@ -379,6 +375,12 @@ class Tracker:
                     return restarted
             elif recovered is not None:
                 found, state, relocalised = recovered, self._judge(recovered.solution), True
+        if state in (None, TrackingState.LOST) and prior is not None and T_world_prior is not None:
+            # 3c. Not found in the map either: the device's pose carries tracking on (its drift
+            # over the gap enters the map, so it comes after place recognition).
+            resumed = self._resume_from_prior(index, grey, depth, timings, prior, T_world_prior)
+            if resumed is not None:
+                return resumed
         if found is None or state is None or state is TrackingState.LOST:
             n, rmse, cond = (0, np.inf, 0.0) if found is None else _quality(found.solution)
             lost = self._lose(index, grey, timings, n, rmse, cond)

@@ -110,6 +110,9 @@ def run_odometry(
     # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
     to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
     results, stamps = [], []
+    # The current map segment's keyframes (Tracker: segments), fused once it merges, at the
+    # poses it then takes: (segment, [(colour, depth, T_world_camera in the segment, kf id)]).
+    segment_frames: tuple[int, list[tuple[np.ndarray, np.ndarray, FloatArray, int]]] = (0, [])
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     keep = keep_room or closer is not None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
@@ -152,6 +155,15 @@ def run_odometry(
                     result.T_world_camera,
                     result.keyframe_id,
                 )
+            if result.recovery == "segment" and result.new_keyframe:
+                kept = segment_frames[1] if segment_frames[0] == result.segment else []
+                kept.append((colour, frame.depth, result.T_world_camera, result.keyframe_id))
+                segment_frames = (result.segment, kept[-cfg.relocalise.segment_keyframes_kept :])
+            elif result.merged is not None:
+                segment, T_correction = result.merged
+                for c, d, T, kf_id in segment_frames[1] if segment_frames[0] == segment else []:
+                    behind.submit(world_map.fuse, c, d, dataset.intrinsics, T_correction @ T, kf_id)
+                segment_frames = (0, [])
             bar.set_postfix(
                 state=result.state.value,
                 inliers=result.inliers,

@@ -72,10 +72,14 @@ def test_a_phone_that_swings_away_and_back_recovers_in_the_same_session(live_ser
     assert back > away
 
     status = session_status(server.url, sid, token)
+    fused_later = status["recovery"].pop("segment_frames_fused")
     assert status["recovery"] == {
         "relocalised": recovery.count("relocalised"),
         "segments": 1,
         "merged": 1,
         "in_segment": merged - first,
     }
+    # The segment's keyframes went into the map once it merged, at their corrected poses.
+    keyframes_in_segment = sum(p.get("keyframe", False) for p in poses[first:merged])
+    assert 0 < fused_later <= keyframes_in_segment
     assert status["tracking_states"]["lost"] == states.count("lost")

@@ -252,6 +252,10 @@ class RelocaliseConfig:
     # so that a place found among them is refined by flow; the oldest go first. The place
     # database itself keeps every keyframe.
     archive_keyframes: int = 150
+    # A segment's keyframes (images and segment poses, ~2 MB each at 640x480) kept by whoever
+    # fuses (the live session, ``track``) to go into the map at their corrected poses once the
+    # segment merges; the oldest beyond this are left out.
+    segment_keyframes_kept: int = 30
     # A place that flow cannot follow (too wide a baseline) is refined by ICP against the
     # keyframe's surface; it stands when this share of the frame's points find that surface.
     min_icp_overlap: float = 0.5

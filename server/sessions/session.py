@@ -11,6 +11,7 @@ import os
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,7 +151,17 @@ class Session:
         self.received = self.processed = self.dropped = 0
         # Frames that carried the device's own pose, and those whose guess started from it.
         self._device_pose = {"frames": 0, "guesses": 0}
-        self._recovery = {"relocalised": 0, "segments": 0, "merged": 0, "in_segment": 0}
+        self._recovery = {
+            "relocalised": 0,
+            "segments": 0,
+            "merged": 0,
+            "in_segment": 0,
+            "segment_frames_fused": 0,
+        }
+        # The current segment's keyframes (tracking thread), and those of merged segments that
+        # wait for the mapping thread (under the lock).
+        self._segment_jobs: tuple[int, list[_FuseJob]] = (0, [])
+        self._merged_jobs: deque[_FuseJob] = deque()
         self.failures = Failures()  # guarded by _lock; flight_errors is the drone's own count
         self.failure: str | None = None  # why the session could not go on (see fail)
         self._last_seq = -1
@@ -529,6 +540,12 @@ class Session:
         new_keyframe = result.new_keyframe
         if result.keyframe_due:
             new_keyframe = tracker.update_keyframe()
+        if result.recovery == "segment" and new_keyframe:
+            self._keep_segment_keyframe(
+                result.segment, _FuseJob(frame.seq, colour, depth, result.T_world_camera, False)
+            )
+        elif result.merged is not None:
+            self._fuse_merged_segment(*result.merged)
         # The first frame placed in a room is always fused: with it the drone's map is fed the
         # room's map (a fresh session's first frame is its first keyframe anyway).
         first_placed = tracked and not self._placed
@@ -549,6 +566,33 @@ class Session:
             )
 
     # ------------------------------------------------------------------ mapping worker
+    def _keep_segment_keyframe(self, segment: int, job: _FuseJob) -> None:
+        """A keyframe of a segment not merged yet: kept for the map, at its segment pose
+        (tracking thread); a new segment drops what an abandoned one kept."""
+        kept_for, jobs = self._segment_jobs
+        if kept_for != segment:
+            jobs = []
+        jobs.append(job)
+        kept = self.config.registration.relocalise.segment_keyframes_kept
+        self._segment_jobs = (segment, jobs[-kept:])
+
+    def _fuse_merged_segment(self, segment: int, T_correction: np.ndarray) -> None:
+        """A segment merged into the map: its kept keyframes move with it and go to the mapping
+        thread, which fuses them (and feeds the drone's map) between the live frames."""
+        kept_for, jobs = self._segment_jobs
+        self._segment_jobs = (0, [])
+        if kept_for != segment:
+            return
+        for job in jobs:
+            job.T_world_camera = T_correction @ job.T_world_camera
+            job.world = self._world
+        with self._lock:
+            self._merged_jobs.extend(jobs)
+
+    def _next_merged_job(self) -> _FuseJob | None:
+        with self._lock:
+            return self._merged_jobs.popleft() if self._merged_jobs else None
+
     def _queue_fusion(self, job: _FuseJob) -> None:
         """Keyframes wait for room (no keyframe is lost from the map), up to _KEYFRAME_WAIT_S;
         other frames are skipped when the mapper is behind. Nothing waits for a mapping thread
@@ -589,9 +633,16 @@ class Session:
     def _fuse_until_stopped(self) -> None:
         while True:
             self._start_rebuild_if_wanted()
+            merged = self._next_merged_job()
+            if merged is not None:  # a merged segment's keyframes, one between live frames
+                if self._fuse(merged):
+                    with self._lock:
+                        self._recovery["segment_frames_fused"] += 1
             try:
-                # A rebuild goes on in steps between fusions: no wait for a job then.
-                job = self._fuse_jobs.get(timeout=0.02 if self._rebuilding else 1.0)
+                # A rebuild, or a merged segment's keyframes, go on between fusions: no long
+                # wait for a job then.
+                busy = self._rebuilding is not None or merged is not None
+                job = self._fuse_jobs.get(timeout=0.02 if busy else 1.0)
             except queue.Empty:
                 if self._rebuilding is not None:
                     self._rebuild_step()
@@ -606,8 +657,9 @@ class Session:
             if self._rebuilding is not None:
                 self._rebuild_step()
 
-    def _fuse(self, job: _FuseJob) -> None:
-        """Fuse one job (and, during a rebuild, a keyframe into the new map too)."""
+    def _fuse(self, job: _FuseJob) -> bool:
+        """Fuse one job (and, during a rebuild, a keyframe into the new map too); False when
+        the fusion failed (counted)."""
         self._snapshot_if_due()
         K, _ = self._configured()  # a job comes from a tracked frame: after the hello
         occupancy = self._occupancy_request()
@@ -628,7 +680,7 @@ class Session:
             self.log.exception("fusing frame %d failed", job.seq)
             with self._lock:
                 self.failures.fusions_failed += 1
-            return
+            return False
         self._fused += 1
         if job.keyframe and self.loops is not None:  # only corrections read it
             self._map_poses[job.keyframe_id] = job.T_world_camera
@@ -642,6 +694,7 @@ class Session:
             self._publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
         if occupancy is not None:
             self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
+        return True
 
     # ------------------------------------------------------------------ map rebuild
     def _start_rebuild_if_wanted(self) -> None:

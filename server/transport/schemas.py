@@ -288,6 +288,11 @@ class TrackingRecovery(_Body):
     )
     merged: int = Field(description="segments merged into the map")
     in_segment: int = Field(description="frames tracked in a segment not merged yet")
+    segment_frames_fused: int = Field(
+        0,
+        description="keyframes of merged segments fused into the map (and the drone's map) at "
+        "their corrected poses after the merge",
+    )
 
 
 class SessionStatus(_Body):

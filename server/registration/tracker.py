@@ -789,43 +789,25 @@ class Tracker:
         T_world_cur = self._place_pose(place, depth)
         if T_world_cur is None:
             return None
-        t = time.perf_counter()
-        kf = make_keyframe(self.keyframe_count, index, T_world_cur, grey, depth, self.K, self.cfg)
-        if len(kf.points) < self.cfg.state.ok_inliers:
+        previous, self.segment = self.segment, segment
+        result = self._anchor(index, grey, depth, T_world_cur, timings, relocalised=True)
+        if result is None:
+            self.segment = previous
             return None
-        self.segment = segment
-        self._adopt_keyframe(kf, grey, depth)
         self.relocaliser.restart_sweep()
-        timings["keyframe"] = _ms(t)
-        timings["total"] = sum(v for k, v in timings.items() if k != "total")
         log.info(
             "frame %d: relocalised against keyframe %d by place (%d inliers); new keyframe",
             index,
             place.keyframe_id,
             place.match.inliers,
         )
-        self.velocity = np.eye(4)
-        self.T_world_last = T_world_cur
-        self.lost, self.lost_run = False, 0
-        return TrackResult(
-            index,
-            T_world_cur.copy(),
-            TrackingState.WEAK,
-            len(kf.points),
-            place.match.rmse,
-            1.0,
-            kf.id,
-            True,
-            timings,
-            segment=self.segment,
-            relocalised=True,
-        )
+        return result
 
     def _place_pose(self, place: Relocalisation, depth: Float32Array) -> FloatArray | None:
         """T_world_camera (4x4, metres) of a verified place, refined by point-to-plane ICP
-        (coarse, then at the tracker's own distance) against the matched keyframe's surface, or
-        the nearest held keyframe's of its segment when it is no longer held; None when fewer
-        than ``relocalise.min_icp_overlap`` of the frame's points find the surface at the end."""
+        (coarse, then at the tracker's own distance) against the matched keyframe's surface
+        when that keyframe still holds one (the descriptor matches' pose as it is otherwise);
+        None when fewer than ``relocalise.min_icp_overlap`` of the frame's points find it."""
         kf = self._held_keyframe(place.keyframe_id)
         if kf is None or kf.dense is None:
             return place.T_world_camera
@@ -852,35 +834,19 @@ class Tracker:
         the last good pose to. Its frames are WEAK and not fused until it merges into the map
         (``_merge_segment``); the trajectory stays in one frame meanwhile. None when the frame
         cannot anchor tracking (too little texture or depth)."""
-        t = time.perf_counter()
         frames = self.lost_run  # this one included
         T_world_guess = orthonormalize(
             self.T_world_last @ np.linalg.matrix_power(self._velocity_before_loss, frames)
         )
-        kf = make_keyframe(self.keyframe_count, index, T_world_guess, grey, depth, self.K, self.cfg)
-        if len(kf.points) < self.cfg.state.ok_inliers:
+        previous = self.segment
+        self.segment = self.segments_started + 1
+        result = self._anchor(index, grey, depth, T_world_guess, timings)
+        if result is None:
+            self.segment = previous
             return None
-        self.segments_started += 1
-        self.segment, self._segment_start = self.segments_started, index
-        self._adopt_keyframe(kf, grey, depth)
-        timings["keyframe"] = _ms(t)
-        timings["total"] = sum(v for k, v in timings.items() if k != "total")
+        self.segments_started, self._segment_start = self.segment, index
         log.info("frame %d: lost %d frames in a row; new segment %d", index, frames, self.segment)
-        self.velocity = np.eye(4)
-        self.T_world_last = T_world_guess
-        self.lost, self.lost_run = False, 0
-        return TrackResult(
-            index,
-            T_world_guess.copy(),
-            TrackingState.WEAK,
-            len(kf.points),
-            0.0,
-            1.0,
-            kf.id,
-            True,
-            timings,
-            segment=self.segment,
-        )
+        return result
 
     def _merge_segment(
         self, grey: GreyImage, depth: Float32Array, T_world_cur: FloatArray
@@ -987,22 +953,42 @@ class Tracker:
         this frame cannot anchor tracking (too little texture or depth)."""
         if not self.cfg.prior.resume_after_loss:
             return None
+        if not self.lost:
+            log.info("frame %d: no keyframe registers it; resumed from the device pose", index)
+        result = self._anchor(index, grey, depth, T_world_prior, timings, prior_used=True)
+        if result is not None:
+            self.device_last = prior
+        return result
+
+    def _anchor(
+        self,
+        index: int,
+        grey: GreyImage,
+        depth: Float32Array,
+        T_world_camera: FloatArray,
+        timings: dict[str, float],
+        prior_used: bool = False,
+        relocalised: bool = False,
+    ) -> TrackResult | None:
+        """Make this frame a keyframe at ``T_world_camera`` (4x4, metres; a pose from outside
+        flow: the device, a place, the motion model) in the current segment, and go on from it:
+        the frame's result is WEAK. None when the frame cannot anchor tracking (too little
+        texture or depth)."""
         t = time.perf_counter()
-        kf = make_keyframe(self.keyframe_count, index, T_world_prior, grey, depth, self.K, self.cfg)
+        kf = make_keyframe(
+            self.keyframe_count, index, T_world_camera, grey, depth, self.K, self.cfg
+        )
         if len(kf.points) < self.cfg.state.ok_inliers:
             return None
         self._adopt_keyframe(kf, grey, depth)
         timings["keyframe"] = _ms(t)
-        timings["total"] = sum(timings.values())
-        if not self.lost:
-            log.info("frame %d: no keyframe registers it; resumed from the device pose", index)
+        timings["total"] = sum(v for k, v in timings.items() if k != "total")
         self.velocity = np.eye(4)
-        self.T_world_last = T_world_prior.copy()
+        self.T_world_last = T_world_camera.copy()
         self.lost, self.lost_run = False, 0
-        self.device_last = prior
         return TrackResult(
             index,
-            T_world_prior.copy(),
+            T_world_camera.copy(),
             TrackingState.WEAK,
             len(kf.points),
             0.0,
@@ -1010,7 +996,9 @@ class Tracker:
             kf.id,
             True,
             timings,
-            prior_used=True,
+            prior_used=prior_used,
+            segment=self.segment,
+            relocalised=relocalised,
         )
 
     def _lose(

@@ -83,6 +83,7 @@ class Relocaliser:
             orb_features=r.orb_features,
             vote_features=r.vote_features,
             candidates=r.candidates,
+            ransac_iterations=r.ransac_iterations,
         )
         self.database = KeyframeDatabase()
         self.segment_of: dict[int, int] = {}  # keyframe id -> map segment
@@ -131,7 +132,8 @@ class Relocaliser:
 
         ``first``: a keyframe id verified before the vote (the current keyframe). The vote covers
         ``relocalise.vote_keyframes`` keyframes, nearest ``T_world_near`` (4x4, metres: the last
-        good pose) first; each call that finds nothing moves on to the next ones.
+        good pose) first; each call that finds nothing moves on to the next ones. At most
+        ``relocalise.candidates`` keyframes are verified, ``first`` included.
         """
         t0 = time.perf_counter() if t0 is None else t0
         allowed = [
@@ -153,6 +155,8 @@ class Relocaliser:
             for kf_id, votes in self.database.candidates(query, self.place, window):
                 if kf_id in tried:
                     continue
+                if len(tried) >= self.place.candidates:
+                    break
                 tried.append(kf_id)
                 found = self._verify(kf_id, query)
                 if found is not None and (best is None or found.inliers > best.inliers):

@@ -940,3 +940,54 @@ def test_frames_a_source_cannot_give_are_counted_and_capture_goes_on(live_server
     assert s["running"], "capture stopped on a frame without depth"
     assert s["unavailable"].get("no depth", 0) >= 4, s["unavailable"]
     assert not [e for e in page.snapshot()["errors"] if e["fatal"]]
+
+
+def test_the_page_says_when_tracking_recovers_and_when_a_pose_is_only_a_guess(
+    live_server, open_page, shared_data, tmp_path
+):
+    """A recording that jumps to a view the map does not have and walks back (synthetic_room0,
+    as tests/test_recovery_server.py): while the server tracks a map segment, the AR view says
+    the pose is a rough guess and the HUD says so beside the state; once the segment merges, the
+    hint goes and the HUD says tracking is back in the map."""
+    source = shared_data / "synthetic_room0"
+    frames = [line.split() for line in (source / "associations.txt").read_text().splitlines()]
+    walk = list(range(0, 40, 2)) + list(range(74, 150, 2)) + list(range(147, 0, -3))
+    folder = tmp_path / "jump"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_rows, depth_rows = [], []
+    for k, i in enumerate(walk):
+        _, rgb, _, depth = frames[i]
+        t = f"{1700000000 + k / 30:.6f}"
+        (folder / "rgb" / f"{t}.jpg").write_bytes((source / rgb).read_bytes())
+        (folder / "depth" / f"{t}.png").write_bytes((source / depth).read_bytes())
+        rgb_rows.append(f"{t} rgb/{t}.jpg")
+        depth_rows.append(f"{t} depth/{t}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_rows) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_rows) + "\n")
+    (folder / "intrinsics.json").write_text((source / "intrinsics.json").read_text())
+
+    page = open_page(live_server(), **DESKTOP)
+    page.page.click("#btn-menu")
+    page.page.set_input_files("#folder-input", folder)
+    page.page.click("#btn-setup-start")
+    in_segment = """(() => {
+      const pose = window.dronesim.seen.lastPose;
+      const hint = document.querySelector('#ar-view .segment-hint');
+      const hud = document.querySelector('[data-field=tracking]').textContent;
+      return pose?.recovery === 'segment' && getComputedStyle(hint).display === 'block'
+        && hud.includes('placed roughly');
+    })()"""
+    page.wait(in_segment, 120, "the page to show a pose in a map segment")
+    page.screenshot("desktop-tracking-segment.png")
+    page.wait("(window.dronesim.seen.recovery.merged ?? 0) >= 1", 120, "the segment to merge")
+    page.wait(
+        "window.dronesim.seen.lastPose.recovery !== 'segment' && getComputedStyle("
+        "document.querySelector('#ar-view .segment-hint')).display === 'none'",
+        10,
+        "the hint to go once merged",
+    )
+    s = page.snapshot()
+    assert s["recovery"]["segment"] > 5 and s["recovery"]["merged"] == 1
+    assert not s["errors"], s["errors"]
+    assert not page.errors, page.errors

@@ -80,7 +80,7 @@ class App {
   }
 
   #emptySeen() {
-    return { poses: 0, states: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
+    return { poses: 0, states: {}, recovery: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
       chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [], mapResets: 0 };
   }
 
@@ -287,13 +287,15 @@ class App {
     const s = this.seen;
     s.poses += 1;
     s.states[pose.state] = (s.states[pose.state] ?? 0) + 1;
-    s.lastPose = { seq: pose.seq, timestamp: pose.timestamp, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera };
+    if (pose.recovery) s.recovery[pose.recovery] = (s.recovery[pose.recovery] ?? 0) + 1;
+    s.lastPose = { seq: pose.seq, timestamp: pose.timestamp, state: pose.state, inliers: pose.inliers, T_world_camera: pose.T_world_camera,
+      recovery: pose.recovery ?? null };
     s.serverDropped = pose.dropped;
     s.serverFailures = pose.failures ?? {};
     this.hud.pose(pose);
     this.map.addCameraPose(pose.T_world_camera);
     const bitmap = this.streamer?.takeImage(pose.seq) ?? null;
-    this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state);
+    this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state, pose.recovery);
     this.frameDepths.shown(pose.seq);
     bitmap?.close?.();
     s.shownSeq = pose.seq;

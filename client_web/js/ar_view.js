@@ -41,7 +41,12 @@ export class ARView {
     this.lostHint = document.createElement("div");
     this.lostHint.className = "lost-hint";
     this.lostHint.textContent = "Tracking lost: point the camera at a place it has seen";
-    this.stage.append(this.image, this.renderer.domElement, this.tapMarker, this.lostHint);
+    // In a map segment (PROTOCOL.md, "Tracking recovery") poses go on but where they lie in the
+    // map is a guess, and the map waits: the pilot should find a mapped place again.
+    this.segmentHint = document.createElement("div");
+    this.segmentHint.className = "segment-hint";
+    this.segmentHint.textContent = "Placed roughly: map paused until the camera sees a mapped place";
+    this.stage.append(this.image, this.renderer.domElement, this.tapMarker, this.lostHint, this.segmentHint);
     container.append(this.stage);
 
     this.scene = new THREE.Scene();
@@ -138,9 +143,11 @@ export class ARView {
   }
 
   /** Show a processed frame: its image (ImageBitmap or canvas source), camera pose and
-   * tracking state (when lost, the pose is the last good one: the overlay is dimmed). */
-  showFrame(bitmap, seq, T_world_camera, state = "ok") {
+   * tracking state (when lost, the pose is the last good one: the overlay is dimmed; in a map
+   * segment, `recovery` "segment", the pose is a guess: a hint says so). */
+  showFrame(bitmap, seq, T_world_camera, state = "ok", recovery = null) {
     this.container.classList.toggle("tracking-lost", state === "lost");
+    this.container.classList.toggle("tracking-segment", recovery === "segment");
     if (bitmap) {
       this.ctx.drawImage(bitmap, 0, 0, this.image.width, this.image.height);
       this.container.classList.add("has-image");

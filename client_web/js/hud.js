@@ -34,7 +34,9 @@ export class Hud {
     const now = performance.now();
     this.poseTimes.push(now);
     while (this.poseTimes.length && this.poseTimes[0] < now - FPS_WINDOW_MS) this.poseTimes.shift();
-    this.#set("tracking", `tracking ${pose.state}`, pose.state);
+    // While tracking recovers (PROTOCOL.md, "Tracking recovery"): say how, beside the state.
+    const how = { relocalised: "found again", segment: "placed roughly", merged: "back in the map" }[pose.recovery];
+    this.#set("tracking", how ? `tracking ${pose.state} · ${how}` : `tracking ${pose.state}`, pose.state);
     this.#failures(pose.failures ?? {});
   }
 

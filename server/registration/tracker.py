@@ -735,10 +735,11 @@ class Tracker:
     ) -> _Registration | Relocalisation | None:
         """Place recognition for a frame flow could not register (relocalise config): the
         current keyframe, then the keyframes of the map (and of this segment) the database votes
-        for; a verified place is the guess from which flow registers the frame against that
-        keyframe (or, when it is no longer held, the nearest held one). Returns that
-        registration; the place alone when flow cannot follow the keyframe's corners this far
-        (a wide baseline; ``_restart_at_place`` goes on from it); None when nothing verifies."""
+        for; a verified place is the guess from which flow registers the frame: with the corners
+        as last seen (just lost), else against that keyframe when it is held (recent, a saved
+        map's or archived). Returns that registration; the place alone when flow cannot follow
+        this far (a wide baseline, or a keyframe no longer held: ``_restart_at_place`` goes on
+        from it); None when nothing verifies."""
         if not self.cfg.relocalise.enabled or len(self.relocaliser) == 0:
             return None
         query = self.relocaliser.describe(grey, depth)

@@ -64,6 +64,12 @@ class ServerConfig(BaseModel):
     max_message_bytes: int = Field(default=4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
     # Largest iPhone recording the page may upload (POST /api/recordings), megabytes.
     max_upload_mb: float = Field(default=1000.0, gt=0)
+    # An upload is converted in a process of its own (server/transport/recordings.py): the
+    # memory it may take beyond what the process starts with (address space, megabytes), and
+    # how long it may run, seconds. A file that inflates past either is refused (422); the web
+    # process and its sessions never see the cost.
+    upload_memory_mb: float = Field(default=2000.0, ge=64)
+    upload_convert_s: float = Field(default=600.0, gt=0)
     session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
     snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
     # Every session keeps its keyframes (ORB features, JPEG + PNG, ~270 KB each, written by its

@@ -4,7 +4,9 @@ not a recording, or broken, and nothing left behind then."""
 
 from __future__ import annotations
 
+import asyncio
 import io
+import json
 import zipfile
 from pathlib import Path
 
@@ -12,7 +14,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from conftest import auth
+from conftest import Stream, auth
 from iphone_recordings import room_recording, write_r3d, write_stray, zip_folder
 
 from server.datasets import open_dataset
@@ -148,3 +150,103 @@ def test_bad_uploads_get_clear_errors_and_leave_nothing_behind(live_server, r3d,
     assert not [p for p in root.iterdir() if not p.name.startswith(".")]
     # The server still takes a good one.
     assert upload(server, r3d.read_bytes()).status_code == 201
+
+
+def r3d_with(r3d: Path, metadata: bytes | None = None, depth: bytes | None = None) -> bytes:
+    """The Record3D file with its metadata (and every depth member) replaced, compressed."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(r3d) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
+        for item in src.namelist():
+            data = src.read(item)
+            if item == "metadata" and metadata is not None:
+                data = metadata
+            elif item.endswith(".depth") and depth is not None:
+                data = depth
+            dst.writestr(item, data)
+    return out.getvalue()
+
+
+def metadata_of(r3d: Path) -> dict:
+    with zipfile.ZipFile(r3d) as z:
+        return json.loads(z.read("metadata"))
+
+
+def rss_mb() -> float:
+    """This process's resident memory (the live server runs in it), MB."""
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def test_a_file_that_inflates_far_costs_its_conversion_process_not_the_server(
+    live_server, r3d, shared_data
+):
+    """A 1 MB .r3d whose metadata inflates to 1 GB of JSON whitespace: converted in a process of
+    its own under server.upload_memory_mb, it is refused (422, naming the limit) while the web
+    process stays small, answers /healthz and keeps a live session streaming."""
+    server = live_server(upload_memory_mb=256)
+    spaces = b" " * (1 << 30)
+    bomb = r3d_with(r3d, metadata=b'{"w": 640' + spaces + b"}")
+    assert len(bomb) < 3 * 2**20, len(bomb)
+    del spaces
+    sid, token = server.create_session()
+    ds = open_dataset(shared_data / "synthetic_room0")
+    stream = Stream(server.ws_url, sid, token, ds)
+
+    async def streaming_while_uploading():
+        await stream.open()
+        answer = asyncio.create_task(asyncio.to_thread(upload, server, bomb))
+        seq = 0
+        while not answer.done():
+            await stream.send(seq)
+            seq += 1
+        await stream.send(seq)  # and after it
+        await stream.close()
+        return await answer
+
+    before = rss_mb()
+    r = asyncio.run(streaming_while_uploading())
+    grown = rss_mb() - before
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["code"] == "bad_recording"
+    assert "server.upload_memory_mb" in r.json()["error"]["message"]
+    assert grown < 100, f"the web process grew by {grown:.0f} MB"
+    assert len(stream.poses) >= 2 and all(p["state"] != "lost" for p in stream.poses)
+    assert httpx.get(f"{server.url}/healthz").status_code == 200
+    assert leftovers(server) == []
+    assert upload(server, r3d.read_bytes()).status_code == 201  # and a good one still converts
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"w": 1e999},  # int(inf)
+        {"dw": -256, "dh": -192},  # a positive product, then a reshape that cannot be
+        {"fps": 0},
+        {"fps": float("nan")},
+        {"poses": "not poses"},
+    ],
+    ids=["infinite width", "negative depth size", "zero fps", "nan fps", "poses not a list"],
+)
+def test_malformed_metadata_is_a_422_never_a_500(live_server, r3d, change):
+    server = live_server()
+    metadata = {**metadata_of(r3d), **change}
+    r = upload(server, r3d_with(r3d, metadata=json.dumps(metadata).encode()))
+    assert r.status_code in (201, 422), (change, r.status_code, r.text)
+    if r.status_code == 422:
+        assert r.json()["error"]["code"] == "bad_recording"
+        assert str(server.settings.data_dir) not in r.json()["error"]["message"]
+    else:  # accepted: then its index must be readable (no NaN stored)
+        index = httpx.get(
+            f"{server.url}{r.json()['index']}", headers=auth(r.json()["token"]), timeout=30
+        )
+        assert index.status_code == 200, (change, index.text)
+    assert leftovers(server) == []
+
+
+def test_a_corrupt_depth_member_is_a_422(live_server, r3d):
+    server = live_server()
+    r = upload(server, r3d_with(r3d, depth=b"not lzfse at all" * 10))
+    assert r.status_code == 422 and r.json()["error"]["code"] == "bad_recording", r.text
+    assert leftovers(server) == []

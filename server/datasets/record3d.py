@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import zipfile
 from pathlib import Path
@@ -38,18 +39,38 @@ R3D_SUFFIX = ".r3d"
 
 def parse_metadata(data: dict) -> tuple[Intrinsics, tuple[int, int], np.ndarray, np.ndarray]:
     """Record3D metadata -> (colour intrinsics, depth (width, height), timestamps (N,) s,
-    ARKit T_world_camera (N, 4, 4))."""
-    width, height = int(data["w"]), int(data["h"])
+    ARKit T_world_camera (N, 4, 4)). ValueError for values no recording has (sizes that are
+    not positive whole numbers, a frame rate or pose that is not finite, timestamps that do
+    not increase): such a file is refused, never stored."""
+    width, height = _size(data["w"], "w"), _size(data["h"], "h")
     # Column-major: K = [fx, 0, 0, 0, fy, 0, cx, cy, 1].
     K = np.asarray(data["K"], dtype=np.float64).reshape(3, 3).T
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("K must hold finite numbers with positive focal lengths")
     intrinsics = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
-    depth_size = (int(data["dw"]), int(data["dh"]))
+    depth_size = (_size(data["dw"], "dw"), _size(data["dh"], "dh"))
     poses = np.asarray(data["poses"], dtype=np.float64).reshape(-1, 7)
+    if not np.isfinite(poses).all():
+        raise ValueError("poses must be finite numbers")
     T = np.array([pose_from_quaternion(p[4:], p[:4]) for p in poses]).reshape(-1, 4, 4)
     stamps = data.get("frameTimestamps")
     if stamps is None or len(stamps) != len(poses):
-        stamps = np.arange(len(poses)) / float(data["fps"])
-    return intrinsics, depth_size, np.asarray(stamps, dtype=np.float64), T
+        fps = float(data["fps"])
+        if not math.isfinite(fps) or fps <= 0:
+            raise ValueError(f"fps must be a positive number, not {fps}")
+        stamps = np.arange(len(poses)) / fps
+    stamps = np.asarray(stamps, dtype=np.float64)
+    if not np.isfinite(stamps).all() or (np.diff(stamps) <= 0).any():
+        raise ValueError("frame timestamps must be finite and increasing")
+    return intrinsics, depth_size, stamps, T
+
+
+def _size(value: object, name: str, largest: int = 16384) -> int:
+    """A pixel count from the metadata: a whole number in 1..largest, else ValueError."""
+    number = float(value)  # type: ignore[arg-type]
+    if not (math.isfinite(number) and number == int(number) and 1 <= number <= largest):
+        raise ValueError(f"{name} must be a whole number of pixels in 1..{largest}, not {value}")
+    return int(number)
 
 
 class Record3DDataset(RGBDDataset):

@@ -406,6 +406,12 @@ def _context():
         return _CONTEXT
 
 
+def process_context() -> multiprocessing.context.ForkServerContext:
+    """The forkserver context the session workers come from (its server has the numerical
+    stack imported): for other work kept out of the web process, e.g. converting an upload."""
+    return _context()
+
+
 def _nothing() -> None:
     pass
 

@@ -115,7 +115,10 @@ def create_app(config: Config | None = None) -> FastAPI:
     app.state.demo = None
     app.state.create_limiter = RateLimiter(settings.create_rate_per_min, settings.create_burst)
     app.state.recordings = RecordingStore(
-        settings.data_dir / "recordings", int(settings.max_upload_mb * 1e6)
+        settings.data_dir / "recordings",
+        int(settings.max_upload_mb * 1e6),
+        memory_bytes=int(settings.upload_memory_mb * 2**20),
+        convert_s=settings.upload_convert_s,
     )
     for name in ("uvicorn.error", "uvicorn.access"):
         logger = logging.getLogger(name)

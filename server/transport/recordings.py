@@ -4,9 +4,12 @@
 An upload (a Record3D ``.r3d`` or a zipped Stray Scanner export) is received into
 ``.incoming/`` with its size checked as it arrives, converted (``server.datasets.archives`` and
 ``replay_export``) into ``.staging-<id>/``, and renamed to ``<id>/`` only when whole; any
-failure removes what it wrote, so an error leaves nothing behind. Each recording is read with the
-token its upload was answered with, as a session is: the store keeps only the token's SHA-256,
-and an unknown id and a wrong token get the same answer.
+failure removes what it wrote, so an error leaves nothing behind. Conversion runs in a process
+of its own (the sessions' forkserver) under a memory ceiling and a time limit: a small file
+that inflates to gigabytes, or claims a million frames, costs that process, never the web
+process, and is answered 422 like any other recording that cannot be read. Each recording is
+read with the token its upload was answered with, as a session is: the store keeps only the
+token's SHA-256, and an unknown id and a wrong token get the same answer.
 """
 
 from __future__ import annotations
@@ -14,15 +17,18 @@ from __future__ import annotations
 import hmac
 import json
 import logging
+import resource
 import secrets
 import shutil
 from collections.abc import AsyncIterator
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 from server.datasets.archives import UnknownRecording, open_recording_archive
 from server.datasets.replay_export import export_replay
 from server.errors import DatasetError, DroneSimError
 from server.sessions.store import hash_token
+from server.sessions.worker import process_context
 
 log = logging.getLogger(__name__)
 
@@ -51,11 +57,21 @@ def recording_name(filename: str | None) -> str:
 
 
 class RecordingStore:
-    """The recordings under ``root``; uploads of at most ``max_upload_bytes``."""
+    """The recordings under ``root``; uploads of at most ``max_upload_bytes``, each converted
+    in a process that may take ``memory_bytes`` more address space than it starts with and run
+    ``convert_s`` seconds (None: conversion in the caller, no limits)."""
 
-    def __init__(self, root: Path, max_upload_bytes: int) -> None:
+    def __init__(
+        self,
+        root: Path,
+        max_upload_bytes: int,
+        memory_bytes: int | None = None,
+        convert_s: float = 600.0,
+    ) -> None:
         self.root = root
         self.max_upload_bytes = max_upload_bytes
+        self.memory_bytes = memory_bytes
+        self.convert_s = convert_s
 
     def clean(self) -> None:
         """Remove what an interrupted upload or conversion left (at start-up)."""
@@ -105,24 +121,73 @@ class RecordingStore:
         staging = self.root / f".staging-{recording_id}"
         unpacked = self.root / ".incoming" / f"{recording_id}.unpacked"
         try:
-            dataset = open_recording_archive(
-                upload, unpacked, MAX_UNPACK_FACTOR * self.max_upload_bytes
-            )
-            index = export_replay(dataset, staging) | {"name": name}
+            max_unpacked = MAX_UNPACK_FACTOR * self.max_upload_bytes
+            if self.memory_bytes is None:
+                index = _export(upload, unpacked, staging, max_unpacked)
+            else:
+                index = self._export_apart(upload, unpacked, staging, max_unpacked)
+            index |= {"name": name}
             (staging / "index.json").write_text(json.dumps(index))
             meta = {"id": recording_id, "token_sha256": hash_token(token), "name": index["name"]}
             (staging / "meta.json").write_text(json.dumps(meta))
             staging.rename(self.root / recording_id)  # whole, or not there at all
         except UnknownRecording as exc:
-            raise RecordingError("unsupported_recording", str(exc), 415) from exc
+            raise RecordingError("unsupported_recording", self._plain(exc), 415) from exc
         except DatasetError as exc:
-            raise RecordingError("bad_recording", f"cannot read the recording: {exc}", 422) from exc
+            message = f"cannot read the recording: {self._plain(exc)}"
+            raise RecordingError("bad_recording", message, 422) from exc
         finally:
             upload.unlink(missing_ok=True)
             shutil.rmtree(unpacked, ignore_errors=True)
             shutil.rmtree(staging, ignore_errors=True)
         log.info("recording %s: %s, %d frames", recording_id, index["name"], len(index["frames"]))
         return recording_id, token, index
+
+    def _export_apart(self, upload: Path, unpacked: Path, staging: Path, max_unpacked: int) -> dict:
+        """``_export`` in a process of its own under the memory ceiling and time limit. Its
+        failures come back as they would in the caller; running out of memory or time, or
+        dying, is a DatasetError naming the limit."""
+        ctx = process_context()
+        receive, send = ctx.Pipe(duplex=False)
+        process = ctx.Process(
+            target=_export_in_child,
+            args=(upload, unpacked, staging, max_unpacked, self.memory_bytes, send),
+            name="convert-upload",
+            daemon=True,
+        )
+        process.start()
+        send.close()
+        try:
+            if not receive.poll(self.convert_s):
+                raise DatasetError(
+                    f"converting it took longer than {self.convert_s:.0f} s "
+                    "(server.upload_convert_s)"
+                )
+            try:
+                outcome, value = receive.recv()
+            except EOFError:
+                outcome, value = "died", ""
+        finally:
+            receive.close()
+            if process.is_alive():
+                process.kill()
+            process.join(10)
+        if outcome == "ok":
+            index: dict = value
+            return index
+        if outcome == "unknown":
+            raise UnknownRecording(value)
+        if outcome == "memory" or outcome == "died":
+            assert self.memory_bytes is not None
+            raise DatasetError(
+                f"converting it needs more than {self.memory_bytes / 2**20:.0f} MB of memory "
+                "(server.upload_memory_mb): a recording that inflates this far is refused"
+            )
+        raise DatasetError(value)
+
+    def _plain(self, exc: BaseException) -> str:
+        """An error's message without the server's own paths (a client has no use for them)."""
+        return str(exc).replace(str(self.root.resolve()), "").replace(str(self.root), "")
 
     def folder(self, recording_id: str, token: str | None) -> Path:
         """The folder of the recording ``token`` opens. No token: 401; an unknown id or a wrong
@@ -149,3 +214,48 @@ class RecordingStore:
 
     def delete(self, folder: Path) -> None:
         shutil.rmtree(folder)
+
+
+def _export(upload: Path, unpacked: Path, staging: Path, max_unpacked: int) -> dict:
+    """Read the upload (unpacking a Stray zip into ``unpacked``) and write its replay into
+    ``staging`` -> the replay's index."""
+    dataset = open_recording_archive(upload, unpacked, max_unpacked)
+    return export_replay(dataset, staging)
+
+
+def _export_in_child(
+    upload: Path,
+    unpacked: Path,
+    staging: Path,
+    max_unpacked: int,
+    memory_bytes: int,
+    send: Connection,
+) -> None:
+    """The conversion process: ``_export`` with at most ``memory_bytes`` more address space
+    than the process holds now; its outcome goes back over ``send`` as (kind, value). Any
+    failure of reading is the recording's fault here: a bad file must never be a 500."""
+    _limit_address_space(memory_bytes)
+    try:
+        outcome: tuple[str, object] = ("ok", _export(upload, unpacked, staging, max_unpacked))
+    except UnknownRecording as exc:
+        outcome = ("unknown", str(exc))
+    except MemoryError:
+        outcome = ("memory", "")
+    except DatasetError as exc:
+        outcome = ("bad", str(exc))
+    except Exception as exc:  # a reader that trips over a malformed file
+        outcome = ("bad", f"{type(exc).__name__}: {exc}")
+    send.send(outcome)
+    send.close()
+
+
+def _limit_address_space(extra_bytes: int) -> None:
+    """RLIMIT_AS at the process's present address space plus ``extra_bytes``: what the forked
+    process already maps (the numerical stack, imported once in the forkserver) stays usable."""
+    size_kb = 0
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmSize:"):
+                size_kb = int(line.split()[1])
+    limit = size_kb * 1024 + extra_bytes
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))

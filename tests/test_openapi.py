@@ -4,6 +4,7 @@ bodies a real server sends validate against those models, field for field."""
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 
 import httpx
@@ -167,3 +168,11 @@ def test_a_real_servers_answers_validate_against_their_models(live_server, share
     assert float(lines[0].split()[0]) == pytest.approx(ds[0].timestamp, abs=1e-6)
     r = http.get(f"{url}/course/best", headers=headers)  # no course flown: an empty list
     assert strictly(CourseBest, r.json()).results == []
+
+
+def test_validation_answers_are_documented_as_the_error_body_the_server_sends(openapi):
+    """FastAPI would document 422 as its own ``{"detail": [...]}``; the server answers
+    ``{"error": {code, message}}`` (app.py's handler), and the schema says so."""
+    assert "HTTPValidationError" not in json.dumps(openapi)
+    answer_422 = answer(openapi, "/api/sessions", "post", 422)
+    assert answer_422["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")

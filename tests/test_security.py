@@ -427,3 +427,32 @@ def test_tokens_never_reach_the_logs(tmp_path):
     finally:
         logger.removeHandler(handler)
     assert lines and "s3cr3t" not in lines[0] and "token=[redacted]&x=1" in lines[0]
+
+
+@pytest.mark.parametrize(
+    "method, path, kwargs, status, code",
+    [
+        ("post", "/api/sessions", {"content": b"{not json", "headers": {"content-type": "application/json"}}, 422, "bad_request"),  # noqa: E501
+        ("post", "/api/sessions", {"json": {"loop_closure": "maybe"}}, 422, "bad_request"),
+        ("post", "/api/sessions", {"json": {"room": "..%2F.."}}, 404, "not_found"),
+        ("post", "/api/sessions", {"json": {"room": "a" * 10_000}}, 404, "not_found"),
+        ("get", "/api/no/such/route", {}, 404, "not_found"),
+        ("get", "/api/recordings/" + "x" * 40, {"headers": {"Authorization": "Bearer t"}}, 404, "not_found"),  # noqa: E501
+    ],
+    ids=["malformed json", "wrong type", "room id with a path", "10 kB room id", "no route",
+         "malformed recording id"],
+)  # fmt: skip
+def test_every_request_error_has_the_documented_form(
+    live_server, method, path, kwargs, status, code
+):
+    """Malformed bodies, ids that cannot exist and unknown paths: the documented
+    ``{"error": {code, message}}`` with the documented status, not FastAPI's ``{"detail": ...}``;
+    nothing of the server's own paths in the message."""
+    server = live_server()
+    r = getattr(httpx, method)(f"{server.url}{path}", timeout=30, **kwargs)
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert set(body) == {"error"} and body["error"]["code"] == code, body
+    assert (
+        body["error"]["message"] and str(server.settings.data_dir) not in body["error"]["message"]
+    )

@@ -5,14 +5,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import re
 
 import uvicorn
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.config import Config
 from server.mapping.tsdf import MapError
@@ -160,6 +164,65 @@ def create_app(config: Config | None = None) -> FastAPI:
         return JSONResponse(
             {"error": {"code": "not_found", "message": "no session with this id for this token"}},
             status_code=404,
+        )
+
+    def openapi() -> dict:
+        """FastAPI's schema, with its validation answers (422) documented as what the server
+        sends: ErrorBody (``bad_request``), like every other error."""
+        if app.openapi_schema is None:
+            schema = get_openapi(
+                title=app.title, version=app.version, description=app.description, routes=app.routes
+            )
+            ref = {"$ref": "#/components/schemas/ErrorBody"}
+            for operation in (op for path in schema["paths"].values() for op in path.values()):
+                answer = operation.get("responses", {}).get("422")
+                if answer is not None and "HTTPValidationError" in json.dumps(answer):
+                    operation["responses"]["422"] = {
+                        "description": "`bad_request`: the body or query is malformed",
+                        "content": {"application/json": {"schema": ref}},
+                    }
+            components = schema.get("components", {}).get("schemas", {})
+            for unused in ("HTTPValidationError", "ValidationError"):
+                components.pop(unused, None)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+    @app.exception_handler(RequestValidationError)
+    async def request_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        """FastAPI's own validation, in the documented error form: an id that cannot be valid
+        (a path parameter, or the body's ``room``) names nothing that exists (404 not_found, as
+        an unknown id); any other malformed body or query is 422 bad_request, saying where."""
+        errors = exc.errors()
+        names_an_id = [
+            e for e in errors if e.get("loc", ("",))[0] == "path" or e.get("loc")[-1:] == ("room",)
+        ]
+        if names_an_id:
+            return JSONResponse(
+                {"error": {"code": "not_found", "message": "nothing with this id"}},
+                status_code=404,
+            )
+        where = "; ".join(
+            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}"
+            for e in errors[:5]
+        )
+        return JSONResponse(
+            {"error": {"code": "bad_request", "message": f"the request is malformed: {where}"}},
+            status_code=422,
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        """Starlette's and the routes' own HTTP errors (an unknown path, a file not there), in
+        the documented error form."""
+        code = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized"}.get(
+            exc.status_code, f"http_{exc.status_code}"
+        )
+        return JSONResponse(
+            {"error": {"code": code, "message": str(exc.detail)}},
+            status_code=exc.status_code,
+            headers=getattr(exc, "headers", None),
         )
 
     @app.exception_handler(MapError)

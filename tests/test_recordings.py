@@ -250,3 +250,24 @@ def test_a_corrupt_depth_member_is_a_422(live_server, r3d):
     r = upload(server, r3d_with(r3d, depth=b"not lzfse at all" * 10))
     assert r.status_code == 422 and r.json()["error"]["code"] == "bad_recording", r.text
     assert leftovers(server) == []
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf"])
+def test_a_stray_export_with_odometry_that_is_not_finite_is_refused(
+    live_server, room, tmp_path, bad
+):
+    """NaN or infinite odometry (a timestamp and a position) would be stored and break the
+    recording's index later: refused at upload, 422."""
+    folder = write_stray(room, tmp_path / "scan", video_size=(1280, 960))
+    lines = (folder / "odometry.csv").read_text().splitlines()
+    cells = lines[2].split(",")
+    cells[0], cells[2] = bad, bad
+    lines[2] = ",".join(cells)
+    (folder / "odometry.csv").write_text("\n".join(lines) + "\n")
+    archive = zip_folder(folder, tmp_path / "scan.zip", inside="scan")
+    server = live_server()
+    r = upload(server, archive.read_bytes(), name="scan.zip")
+    assert r.status_code == 422 and r.json()["error"]["code"] == "bad_recording", r.text
+    assert "not finite" in r.json()["error"]["message"]
+    assert str(server.settings.data_dir) not in r.json()["error"]["message"]
+    assert leftovers(server) == []

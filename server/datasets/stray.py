@@ -134,6 +134,8 @@ def read_odometry(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ) from exc
     if len(rows) == 0:
         raise DatasetError(f"{path}: no poses")
+    if not (np.isfinite(stamps).all() and np.isfinite(poses).all()):
+        raise DatasetError(f"{path}: odometry.csv holds timestamps or poses that are not finite")
     order = np.argsort(frames, kind="stable")
     return stamps[order], frames[order], poses[order]
 

@@ -30,6 +30,7 @@ from server.registration.calibration import ColourToDepth
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
+from server.registration.relocalise import SegmentFrames
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import Room, save_room
 
@@ -111,8 +112,10 @@ def run_odometry(
     to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
     results, stamps = [], []
     # The current map segment's keyframes (Tracker: segments), fused once it merges, at the
-    # poses it then takes: (segment, [(colour, depth, T_world_camera in the segment, kf id)]).
-    segment_frames: tuple[int, list[tuple[np.ndarray, np.ndarray, FloatArray, int]]] = (0, [])
+    # poses it then takes: (colour, depth, keyframe id) each.
+    segment_frames: SegmentFrames[tuple[np.ndarray, np.ndarray, int]] = SegmentFrames(
+        cfg.relocalise.segment_keyframes_kept
+    )
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     keep = keep_room or closer is not None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
@@ -156,14 +159,11 @@ def run_odometry(
                     result.keyframe_id,
                 )
             if result.recovery == "segment" and result.new_keyframe:
-                kept = segment_frames[1] if segment_frames[0] == result.segment else []
-                kept.append((colour, frame.depth, result.T_world_camera, result.keyframe_id))
-                segment_frames = (result.segment, kept[-cfg.relocalise.segment_keyframes_kept :])
+                item = (colour, frame.depth, result.keyframe_id)
+                segment_frames.keep(result.segment, item, result.T_world_camera)
             elif result.merged is not None:
-                segment, T_correction = result.merged
-                for c, d, T, kf_id in segment_frames[1] if segment_frames[0] == segment else []:
-                    behind.submit(world_map.fuse, c, d, dataset.intrinsics, T_correction @ T, kf_id)
-                segment_frames = (0, [])
+                for (c, d, kf_id), T in segment_frames.merged(*result.merged):
+                    behind.submit(world_map.fuse, c, d, dataset.intrinsics, T, kf_id)
             bar.set_postfix(
                 state=result.state.value,
                 inliers=result.inliers,

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.datasets import RGBDDataset, RGBDFrame, open_dataset
+from server.datasets import open_dataset
+from server.datasets.there_and_back import Reordered
 from server.errors import ConfigError
 from server.geometry import invert, rotation_angle_deg
 from server.mapping.pointcloud import PointCloudMap
@@ -157,28 +158,6 @@ def test_bad_recovery_settings_are_refused(values):
         RegistrationConfig().with_overrides(relocalise=values)
 
 
-class Picked(RGBDDataset):
-    """Some frames of a dataset, in the order given (a walk that jumps and comes back), with
-    timestamps at 30 Hz so that they keep increasing."""
-
-    def __init__(self, ds: RGBDDataset, indices: list[int]) -> None:
-        self.ds, self.indices = ds, indices
-        self.name, self.path, self.intrinsics = ds.name, ds.path, ds.intrinsics
-        self.depth_scale, self.depth_registered = ds.depth_scale, ds.depth_registered
-
-    def __len__(self) -> int:
-        return len(self.indices)
-
-    def __getitem__(self, index: int) -> RGBDFrame:
-        i = self._frame_index(index)
-        f = self.ds[self.indices[i]]
-        return RGBDFrame(i, float(self.timestamps[i]), f.colour, f.depth)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return np.arange(len(self.indices)) / 30.0
-
-
 def test_track_fuses_a_merged_segments_keyframes_where_they_belong(shared_data):
     """Offline (``track``): a segment's keyframes stay out of the map until it merges, then go
     in at their corrected poses: their points lie on the same surfaces as those frames fused at
@@ -186,7 +165,8 @@ def test_track_fuses_a_merged_segments_keyframes_where_they_belong(shared_data):
     keep = list(range(0, 40, 2)) + list(range(74, 150, 2)) + list(range(147, 0, -3))
     ds = open_dataset(shared_data / "synthetic_room0")
     cfg = RegistrationConfig().with_overrides(loops={"enabled": False})
-    run = run_odometry(Picked(ds, keep), cfg, progress=False, keep_room=False, overlap=False)
+    walk = Reordered(ds, keep)
+    run = run_odometry(walk, cfg, progress=False, keep_room=False, overlap=False)
     in_segment = [
         (k, r) for k, r in enumerate(run.results) if r.recovery == "segment" and r.new_keyframe
     ]
@@ -196,9 +176,7 @@ def test_track_fuses_a_merged_segments_keyframes_where_they_belong(shared_data):
         assert fused is not None and len(fused.points) > 1000, f"keyframe {r.keyframe_id}"
         truth = PointCloudMap()
         f = ds[keep[k]]
-        # The run's world starts at the first frame (Picked has no ground truth to start from).
-        G0 = ground_truth_pose_at(ds, ds[keep[0]].timestamp)
-        T_true = invert(G0) @ ground_truth_pose_at(ds, f.timestamp)
+        T_true = ground_truth_pose_at(walk, walk[k].timestamp)  # the run starts at the truth
         truth.fuse(f.colour, f.depth, ds.intrinsics, T_true)
         off = np.asarray(fused.compute_point_cloud_distance(truth.cloud))
         assert np.median(off) < 0.02, (r.keyframe_id, np.median(off))

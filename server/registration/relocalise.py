@@ -17,16 +17,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from typing import Generic, TypeVar
 
 import numpy as np
 
-from server.geometry import Intrinsics, pose_distance
+from server.geometry import Intrinsics, orthonormalize, pose_distance
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage
 from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.place import KeyframeDatabase, PlaceFeatures, describe_place
 from server.registration.sparse import NormalEquations
 from server.registration.verify import PlaceMatch, verify_place
+
+Item = TypeVar("Item")
 
 
 @dataclass
@@ -37,8 +40,7 @@ class Relocalisation:
     keyframe_id: int
     T_world_camera: FloatArray
     match: PlaceMatch
-    tried: int  # keyframes verified
-    ms: float  # the look-up's time, describing the frame included
+    ms: float  # the look-up's time: the vote and the verifications
 
 
 def align_to_surface(
@@ -69,6 +71,38 @@ def align_to_surface(
         )
         T, matches = refine_dense(T, surface, points, no_sparse, solver, cfg.depth)
     return T, matches / len(points)
+
+
+def corrected(
+    T_world_keyframe: FloatArray, T_known: FloatArray | None, T_correction: FloatArray
+) -> FloatArray:
+    """A keyframe's pose after a correction: the pose graph's own (``T_known``) where it has
+    one, else the old pose moved by T_correction (4x4, metres)."""
+    T = T_correction @ T_world_keyframe if T_known is None else np.asarray(T_known, np.float64)
+    return orthonormalize(T)
+
+
+class SegmentFrames(Generic[Item]):
+    """What a caller that fuses (a live session, ``track``) keeps of a map segment's keyframes
+    until the segment merges: an item (images, ...) and its pose in the segment's world each;
+    the newest ``limit`` of one segment. A new segment drops what an abandoned one kept."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.segment = 0
+        self.kept: list[tuple[Item, FloatArray]] = []
+
+    def keep(self, segment: int, item: Item, T_world_camera: FloatArray) -> None:
+        if segment != self.segment:
+            self.segment, self.kept = segment, []
+        self.kept = [*self.kept, (item, T_world_camera)][-self.limit :]
+
+    def merged(self, segment: int, T_correction: FloatArray) -> list[tuple[Item, FloatArray]]:
+        """The items of ``segment``, which merged into the map, with their poses moved by
+        T_correction (segment world to map world, 4x4); [] when another segment was kept."""
+        kept = self.kept if segment == self.segment else []
+        self.segment, self.kept = 0, []
+        return [(item, T_correction @ T) for item, T in kept]
 
 
 class Relocaliser:
@@ -111,10 +145,13 @@ class Relocaliser:
                 e.T_world_keyframe = T_correction @ e.T_world_keyframe
                 self.segment_of[e.keyframe_id] = into
 
-    def set_pose(self, keyframe_id: int, T_world_keyframe: FloatArray) -> None:
-        """A keyframe moved (loop closure): T_world_keyframe (4x4, metres)."""
-        if keyframe_id in self.segment_of:
-            self.database.set_pose(keyframe_id, T_world_keyframe)
+    def correct(self, keyframe_poses: dict[int, FloatArray], T_correction: FloatArray) -> None:
+        """Keyframes moved (loop closure): those in ``keyframe_poses`` to their corrected
+        T_world_keyframe, every other one by ``T_correction`` (4x4, metres, T_new = T @ T_old)."""
+        for e in self.database.entries:
+            e.T_world_keyframe = corrected(
+                e.T_world_keyframe, keyframe_poses.get(e.keyframe_id), T_correction
+            )
 
     def restart_sweep(self) -> None:
         """The next look-up votes from the keyframes nearest its pose again (after a recovery)."""
@@ -126,7 +163,6 @@ class Relocaliser:
         T_world_near: FloatArray,
         segments: set[int],
         first: int | None = None,
-        t0: float | None = None,
     ) -> Relocalisation | None:
         """The best verified keyframe of ``segments`` for ``query``, or None.
 
@@ -135,7 +171,7 @@ class Relocaliser:
         good pose) first; each call that finds nothing moves on to the next ones. At most
         ``relocalise.candidates`` keyframes are verified, ``first`` included.
         """
-        t0 = time.perf_counter() if t0 is None else t0
+        t0 = time.perf_counter()
         allowed = [
             e for e in self.database.entries if self.segment_of.get(e.keyframe_id) in segments
         ]
@@ -169,7 +205,6 @@ class Relocaliser:
             best.keyframe_id,
             T_world_kf @ best.T_keyframe_query,
             best,
-            len(tried),
             (time.perf_counter() - t0) * 1e3,
         )
 

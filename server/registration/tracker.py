@@ -41,7 +41,12 @@ from server.registration.preprocess import (
     to_grey,
 )
 from server.registration.prior import DeviceAlignment, prior_motion
-from server.registration.relocalise import Relocalisation, Relocaliser, align_to_surface
+from server.registration.relocalise import (
+    Relocalisation,
+    Relocaliser,
+    align_to_surface,
+    corrected,
+)
 from server.registration.sparse import (
     NormalEquations,
     SparseSolution,
@@ -271,20 +276,10 @@ class Tracker:
             if kf is None or id(kf) in seen:
                 continue
             seen.add(id(kf))
-            T = keyframe_poses.get(kf.id)
-            kf.T_world_keyframe = orthonormalize(
-                T_correction @ kf.T_world_keyframe if T is None else np.asarray(T, np.float64)
+            kf.T_world_keyframe = corrected(
+                kf.T_world_keyframe, keyframe_poses.get(kf.id), T_correction
             )
-        for entry in self.relocaliser.database.entries:
-            T = keyframe_poses.get(entry.keyframe_id)
-            self.relocaliser.set_pose(
-                entry.keyframe_id,
-                orthonormalize(
-                    T_correction @ entry.T_world_keyframe
-                    if T is None
-                    else np.asarray(T, np.float64)
-                ),
-            )
+        self.relocaliser.correct(keyframe_poses, T_correction)
         self.T_world_last = orthonormalize(T_correction @ self.T_world_last)
         self.T_world_first = orthonormalize(T_correction @ self.T_world_first)
         if self.pending is not None:  # a keyframe change found due and not yet made
@@ -754,12 +749,7 @@ class Tracker:
             # span less than a keyframe's corners would.
             found = self._track_keyframe(self.keyframe, grey, depth, place.T_world_camera, True)
         if found is None or self._judge(found.solution) is TrackingState.LOST:
-            kf = self._held_keyframe(place.keyframe_id)
-            found = (
-                None
-                if kf is None
-                else self._track_keyframe(kf, grey, depth, place.T_world_camera, chained=False)
-            )
+            found = self._track_place(place, grey, depth)
         if found is None or self._judge(found.solution) is TrackingState.LOST:
             log.debug("place found (keyframe %d), flow does not follow", place.keyframe_id)
             return place
@@ -819,6 +809,15 @@ class Tracker:
             return None
         return orthonormalize(kf.T_world_keyframe @ T)
 
+    def _track_place(
+        self, place: Relocalisation, grey: GreyImage, depth: Float32Array
+    ) -> _Registration | None:
+        """Flow from the place's keyframe, when still held, from the place's pose."""
+        kf = self._held_keyframe(place.keyframe_id)
+        if kf is None:
+            return None
+        return self._track_keyframe(kf, grey, depth, place.T_world_camera, chained=False)
+
     def _held_keyframe(self, keyframe_id: int) -> Keyframe | None:
         """The keyframe with this id: a recent one, a saved map's, or one of the archive (the
         older keyframes, kept without their surface); None when it is no longer held."""
@@ -860,12 +859,7 @@ class Tracker:
         place = self.relocaliser.find(query, T_world_cur, {0})
         if place is None:
             return None
-        kf = self._held_keyframe(place.keyframe_id)
-        found = (
-            None
-            if kf is None
-            else self._track_keyframe(kf, grey, depth, place.T_world_camera, chained=False)
-        )
+        found = self._track_place(place, grey, depth)
         if found is not None and self._judge(found.solution) is not TrackingState.LOST:
             T_world_map = orthonormalize(found.kf.T_world_keyframe @ found.solution.T)
         else:

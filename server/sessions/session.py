@@ -25,6 +25,7 @@ from server.mapping.tsdf import MapError
 from server.registration import Tracker, TrackingState, TrackResult
 from server.registration.calibration import ColourToDepth
 from server.registration.preprocess import clean_depth, resample_depth
+from server.registration.relocalise import SegmentFrames
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import (
     MAP_FILE,
@@ -158,9 +159,11 @@ class Session:
             "in_segment": 0,
             "segment_frames_fused": 0,
         }
-        # The current segment's keyframes (tracking thread), and those of merged segments that
-        # wait for the mapping thread (under the lock).
-        self._segment_jobs: tuple[int, list[_FuseJob]] = (0, [])
+        # The current segment's keyframes kept for the map (tracking thread), and those of
+        # merged segments that wait for the mapping thread (under the lock).
+        self._segment_jobs: SegmentFrames[_FuseJob] = SegmentFrames(
+            self.config.registration.relocalise.segment_keyframes_kept
+        )
         self._merged_jobs: deque[_FuseJob] = deque()
         self.failures = Failures()  # guarded by _lock; flight_errors is the drone's own count
         self.failure: str | None = None  # why the session could not go on (see fail)
@@ -541,9 +544,8 @@ class Session:
         if result.keyframe_due:
             new_keyframe = tracker.update_keyframe()
         if result.recovery == "segment" and new_keyframe:
-            self._keep_segment_keyframe(
-                result.segment, _FuseJob(frame.seq, colour, depth, result.T_world_camera, False)
-            )
+            job = _FuseJob(frame.seq, colour, depth, result.T_world_camera, False)
+            self._segment_jobs.keep(result.segment, job, result.T_world_camera)
         elif result.merged is not None:
             self._fuse_merged_segment(*result.merged)
         # The first frame placed in a room is always fused: with it the drone's map is fed the
@@ -566,26 +568,13 @@ class Session:
             )
 
     # ------------------------------------------------------------------ mapping worker
-    def _keep_segment_keyframe(self, segment: int, job: _FuseJob) -> None:
-        """A keyframe of a segment not merged yet: kept for the map, at its segment pose
-        (tracking thread); a new segment drops what an abandoned one kept."""
-        kept_for, jobs = self._segment_jobs
-        if kept_for != segment:
-            jobs = []
-        jobs.append(job)
-        kept = self.config.registration.relocalise.segment_keyframes_kept
-        self._segment_jobs = (segment, jobs[-kept:])
-
     def _fuse_merged_segment(self, segment: int, T_correction: np.ndarray) -> None:
         """A segment merged into the map: its kept keyframes move with it and go to the mapping
         thread, which fuses them (and feeds the drone's map) between the live frames."""
-        kept_for, jobs = self._segment_jobs
-        self._segment_jobs = (0, [])
-        if kept_for != segment:
-            return
-        for job in jobs:
-            job.T_world_camera = T_correction @ job.T_world_camera
-            job.world = self._world
+        jobs = []
+        for job, T_world_camera in self._segment_jobs.merged(segment, T_correction):
+            job.T_world_camera, job.world = T_world_camera, self._world
+            jobs.append(job)
         with self._lock:
             self._merged_jobs.extend(jobs)
 

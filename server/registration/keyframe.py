@@ -35,6 +35,15 @@ class Keyframe:
     # that nothing recovered, and merges into 0 when place recognition links them). Poses of
     # two segments are in two worlds until then.
     segment: int = 0
+    depth: Float32Array | None = None  # cleaned, metres: kept to build ``dense`` when needed
+
+    def surface(self, K: Intrinsics) -> DenseModel | None:
+        """The keyframe's surface (``dense``, or built from its kept depth, seen with ``K``,
+        once); None when it keeps neither."""
+        if self.dense is None and self.depth is not None:
+            self.dense = build_dense_model(self.depth, K)
+            self.depth = None
+        return self.dense
 
 
 def make_keyframe(
@@ -51,9 +60,11 @@ def make_keyframe(
     z = sample_stable_depth(depth, uv, cfg.depth)
     uv = uv[z > 0]
     points = backproject_pixels(uv.astype(np.float64), z[z > 0], K)
-    # The surface also refines a relocalised pose flow cannot (relocalise.align_to_surface).
-    surface = cfg.solver.dense or cfg.relocalise.enabled
-    dense = build_dense_model(depth, K, grey) if surface else None
+    dense = build_dense_model(depth, K, grey) if cfg.solver.dense else None
+    # Without dense refinement only a relocalisation that flow cannot follow needs the surface
+    # (relocalise.align_to_surface): its depth is kept and the surface built then (surface()),
+    # not for every keyframe (~15 ms each on 640x480).
+    keep_depth = dense is None and cfg.relocalise.enabled
     return Keyframe(
         id=kf_id,
         frame_index=frame_index,
@@ -63,4 +74,5 @@ def make_keyframe(
         points=points,
         covariances=point_information(points, K, cfg.depth),
         dense=dense,
+        depth=depth if keep_depth else None,
     )

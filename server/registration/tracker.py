@@ -800,10 +800,11 @@ class Tracker:
         when that keyframe still holds one (the descriptor matches' pose as it is otherwise);
         None when fewer than ``relocalise.min_icp_overlap`` of the frame's points find it."""
         kf = self._held_keyframe(place.keyframe_id)
-        if kf is None or kf.dense is None:
+        surface = None if kf is None else kf.surface(self.K)
+        if kf is None or surface is None:
             return place.T_world_camera
         T_kf_guess = invert(kf.T_world_keyframe) @ place.T_world_camera
-        T, overlap = align_to_surface(T_kf_guess, kf.dense, depth, self.K, self.cfg)
+        T, overlap = align_to_surface(T_kf_guess, surface, depth, self.K, self.cfg)
         if overlap < self.cfg.relocalise.min_icp_overlap:
             log.info("place of keyframe %d refused by ICP (overlap %.2f)", kf.id, overlap)
             return None
@@ -890,7 +891,7 @@ class Tracker:
         """Keep a keyframe that leaves the recent ones for relocalisation: its image and corners
         (~0.4 MB at 640x480), not its surface (several MB); the oldest go past
         ``relocalise.archive_keyframes``."""
-        self.archive[kf.id] = replace(kf, dense=None)
+        self.archive[kf.id] = replace(kf, dense=None, depth=None)
         while len(self.archive) > self.cfg.relocalise.archive_keyframes:
             del self.archive[next(iter(self.archive))]
 

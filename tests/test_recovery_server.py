@@ -18,8 +18,9 @@ AWAY = list(range(74, 150, 2))
 BACK = list(range(147, 0, -3))
 
 
-def settled_frames(server, sid, token, quiet_s: float = 1.5, timeout_s: float = 60.0) -> int:
-    """The map's frames_integrated once fusion has caught up (unchanged for ``quiet_s``)."""
+def settled_frames(server, sid, token, quiet_s: float = 4.0, timeout_s: float = 120.0) -> int:
+    """The map's frames_integrated once fusion has caught up (unchanged for ``quiet_s``: the
+    mapping thread runs at a lower priority and, on a loaded machine, stalls for seconds)."""
     last, since, deadline = -1, time.monotonic(), time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         now = session_status(server.url, sid, token)["map"]["frames_integrated"]

@@ -208,8 +208,9 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
     # A queue would drop none. How many are dropped depends on how much faster the sender is
     # than the tracker, and on a loaded machine both slow down (a quiet run dropped about 160, a
     # run beside another test suite 83, with dense refinement on; 50 beside the suite once the
-    # tracker ran sparse only, twice as fast): a tenth is far from none.
-    assert status["frames_dropped"] > 30, status
+    # tracker ran sparse only, twice as fast; 22 with both cores loaded by other processes):
+    # a few dozen are far from none.
+    assert status["frames_dropped"] > 10, status
     assert status["frames_processed"] + status["frames_dropped"] <= 300
     assert poses and poses[-1]["dropped"] > 0
     assert rss_end - rss_start < 300, f"server memory grew by {rss_end - rss_start:.0f} MB"

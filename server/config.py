@@ -70,6 +70,11 @@ class ServerConfig(BaseModel):
     # process and its sessions never see the cost.
     upload_memory_mb: float = Field(default=2000.0, ge=64)
     upload_convert_s: float = Field(default=600.0, gt=0)
+    # What an upload may declare, checked before anything is decoded (server/datasets/bounds.py):
+    # pixels in any one image or video frame (megapixels), frames, and metadata text (megabytes).
+    upload_max_megapixels: float = Field(default=16.8, gt=0, le=268)
+    upload_max_frames: int = Field(default=100_000, ge=1)
+    upload_max_metadata_mb: float = Field(default=64.0, gt=0)
     session_ttl_s: float = Field(default=300.0, gt=0)  # a disconnected session closes after this
     snapshot_interval_s: float = Field(default=10.0, gt=0)  # atomic snapshot of map + trajectory
     # Every session keeps its keyframes (ORB features, JPEG + PNG, ~270 KB each, written by its

@@ -7,17 +7,24 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
+import socket
+import struct
+import time
 import zipfile
+import zlib
 from pathlib import Path
 
 import cv2
 import httpx
+import lzfse
 import numpy as np
 import pytest
 from conftest import Stream, auth
 from iphone_recordings import room_recording, write_r3d, write_stray, zip_folder
 
 from server.datasets import open_dataset
+from server.datasets.bounds import lzfse_size
 
 REPO = Path(__file__).resolve().parents[1]
 ROOM = REPO.parent / "shared" / "data" / "synthetic_room0"
@@ -152,8 +159,11 @@ def test_bad_uploads_get_clear_errors_and_leave_nothing_behind(live_server, r3d,
     assert upload(server, r3d.read_bytes()).status_code == 201
 
 
-def r3d_with(r3d: Path, metadata: bytes | None = None, depth: bytes | None = None) -> bytes:
-    """The Record3D file with its metadata (and every depth member) replaced, compressed."""
+def r3d_with(
+    r3d: Path, metadata: bytes | None = None, depth: bytes | None = None, jpeg: bytes | None = None
+) -> bytes:
+    """The Record3D file with its metadata (and every depth, or colour, member) replaced,
+    compressed."""
     out = io.BytesIO()
     with zipfile.ZipFile(r3d) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
         for item in src.namelist():
@@ -162,6 +172,8 @@ def r3d_with(r3d: Path, metadata: bytes | None = None, depth: bytes | None = Non
                 data = metadata
             elif item.endswith(".depth") and depth is not None:
                 data = depth
+            elif item.endswith(".jpg") and jpeg is not None:
+                data = jpeg
             dst.writestr(item, data)
     return out.getvalue()
 
@@ -182,10 +194,12 @@ def rss_mb() -> float:
 def test_a_file_that_inflates_far_costs_its_conversion_process_not_the_server(
     live_server, r3d, shared_data
 ):
-    """A 1 MB .r3d whose metadata inflates to 1 GB of JSON whitespace: converted in a process of
-    its own under server.upload_memory_mb, it is refused (422, naming the limit) while the web
-    process stays small, answers /healthz and keeps a live session streaming."""
-    server = live_server(upload_memory_mb=256)
+    """A 1 MB .r3d whose metadata inflates to 1 GB of JSON whitespace, with the limit on what
+    metadata may declare raised past it (the memory ceiling is the defence behind the declared
+    sizes, for a stream that lies about them): converted in a process of its own under
+    server.upload_memory_mb, it is refused (422, naming the limit) while the web process stays
+    small, answers /healthz and keeps a live session streaming."""
+    server = live_server(upload_memory_mb=256, upload_max_metadata_mb=2000)
     spaces = b" " * (1 << 30)
     bomb = r3d_with(r3d, metadata=b'{"w": 640' + spaces + b"}")
     assert len(bomb) < 3 * 2**20, len(bomb)
@@ -216,6 +230,133 @@ def test_a_file_that_inflates_far_costs_its_conversion_process_not_the_server(
     assert httpx.get(f"{server.url}/healthz").status_code == 200
     assert leftovers(server) == []
     assert upload(server, r3d.read_bytes()).status_code == 201  # and a good one still converts
+
+
+def png_declaring(width: int, height: int) -> bytes:
+    """A 16-bit greyscale PNG whose header declares ``width`` x ``height`` and whose pixel data
+    is a little zlib stream of zeros (a decoder would allocate the header's size first)."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    header = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(bytes(1 << 20), 9))
+        + chunk(b"IEND", b"")
+    )
+
+
+def jpeg_declaring(jpeg: bytes, width: int, height: int) -> bytes:
+    """``jpeg`` with the size in its baseline frame header (SOF0) changed."""
+    at = jpeg.index(b"\xff\xc0")
+    return jpeg[: at + 5] + struct.pack(">HH", height, width) + jpeg[at + 9 :]
+
+
+def lzfse_declaring(raw_bytes: int) -> bytes:
+    """An LZFSE stream of ``raw_bytes`` zeros (a whole number of 8 MiB blocks), made from one
+    compressed block repeated: ~1 MB of stream per GB, never held decompressed here."""
+    block = lzfse.compress(bytes(8 << 20))
+    assert block.endswith(b"bvx$") and lzfse_size(block) == 8 << 20
+    return block[:-4] * (raw_bytes // (8 << 20)) + b"bvx$"
+
+
+def stray_with(room, tmp_path: Path, member: str, data: bytes) -> bytes:
+    """A Stray export of the room, zipped (deflated), with ``member`` written as ``data``."""
+    folder = write_stray(room, tmp_path / "scan", video_size=(1280, 960))
+    (folder / member).write_bytes(data)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
+        for item in sorted(folder.rglob("*")):
+            if item.is_file():
+                z.write(item, f"scan/{item.relative_to(folder).as_posix()}")
+    return out.getvalue()
+
+
+@pytest.mark.parametrize(
+    "bomb",
+    [
+        "metadata of 1 GB",
+        "depth of 2 GB",
+        "depth of 64 MB in a small stream",
+        "colour of 30000x20000",
+        "metadata of 16384x16384",
+        "more frames than allowed",
+        "depth png of 60000x45000",
+        "second depth png of 24000x18000",
+        "stray members declaring 40 MB",
+    ],
+)
+def test_what_an_upload_declares_is_refused_before_it_is_decoded(
+    live_server, r3d, room, tmp_path, bomb
+):
+    """Each small file that would expand to gigabytes is refused by the size it declares (a zip
+    member's, an LZFSE stream's block headers, a JPEG's frame header, a PNG's IHDR, the
+    metadata's), with a 422 that names the limit, before any of it is inflated: the memory
+    ceiling (server.upload_memory_mb, set low here) is never what stops it."""
+    frames = FRAMES - 1 if bomb == "more frames than allowed" else FRAMES
+    server = live_server(upload_memory_mb=256, upload_max_frames=frames, max_upload_mb=5)
+    meta = metadata_of(r3d)
+    with zipfile.ZipFile(r3d) as z:
+        first_jpeg = z.read("rgbd/0.jpg")
+    data, name, says = {
+        "metadata of 1 GB": lambda: (
+            r3d_with(r3d, metadata=b'{"w": 640' + b" " * (1 << 30) + b"}"),
+            "upload.r3d",
+            "server.upload_max_metadata_mb",
+        ),
+        "depth of 2 GB": lambda: (
+            r3d_with(r3d, depth=lzfse_declaring(2 << 30)),
+            "upload.r3d",
+            "rgbd/0.depth unpacks to 1.3 MB, more than the 0.3 MB allowed",
+        ),
+        "depth of 64 MB in a small stream": lambda: (
+            r3d_with(r3d, depth=lzfse_declaring(64 << 20)),
+            "upload.r3d",
+            "rgbd/0.depth holds 67108864 bytes, expected 196608",
+        ),
+        "colour of 30000x20000": lambda: (
+            r3d_with(r3d, jpeg=jpeg_declaring(first_jpeg, 30000, 20000)),
+            "upload.r3d",
+            "is 30000x20000 but the intrinsics say 640x480",
+        ),
+        "metadata of 16384x16384": lambda: (
+            r3d_with(r3d, metadata=json.dumps({**meta, "w": 16384, "h": 16384}).encode()),
+            "upload.r3d",
+            "server.upload_max_megapixels",
+        ),
+        "more frames than allowed": lambda: (
+            r3d.read_bytes(),
+            "upload.r3d",
+            "server.upload_max_frames",
+        ),
+        "depth png of 60000x45000": lambda: (
+            stray_with(room, tmp_path, "depth/000000.png", png_declaring(60000, 45000)),
+            "scan.zip",
+            "server.upload_max_megapixels",
+        ),
+        "second depth png of 24000x18000": lambda: (
+            stray_with(room, tmp_path, "depth/000001.png", png_declaring(24000, 18000)),
+            "scan.zip",
+            "not the recording's depth size",
+        ),
+        "stray members declaring 40 MB": lambda: (
+            stray_with(room, tmp_path, "depth/000099.png", bytes(40 << 20)),
+            "scan.zip",
+            "more than the 20 MB allowed (a multiple of server.max_upload_mb)",
+        ),
+    }[bomb]()
+    assert len(data) < 3 * 2**20, len(data)
+    r = upload(server, data, name=name)
+    assert r.status_code == 422 and r.json()["error"]["code"] == "bad_recording", r.text
+    message = r.json()["error"]["message"]
+    assert says in message, message
+    assert "server.upload_memory_mb" not in message
+    assert str(server.settings.data_dir) not in message and ".incoming" not in message, message
+    assert leftovers(server) == []
 
 
 @pytest.mark.parametrize(
@@ -271,3 +412,42 @@ def test_a_stray_export_with_odometry_that_is_not_finite_is_refused(
     assert "not finite" in r.json()["error"]["message"]
     assert str(server.settings.data_dir) not in r.json()["error"]["message"]
     assert leftovers(server) == []
+
+
+def test_an_upload_the_client_aborts_is_one_log_line_and_leaves_nothing(live_server, r3d):
+    """A client that hangs up mid-upload: the part received is removed, the server logs one
+    line (no traceback: nothing on the server failed) and takes the next upload."""
+    server = live_server()
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append  # type: ignore[method-assign]
+    watched = [logging.getLogger(n) for n in ("uvicorn.error", "server.transport")]
+    for logger in watched:
+        logger.addHandler(handler)
+    old_level = watched[1].level
+    watched[1].setLevel(logging.INFO)
+    try:
+        with socket.create_connection(("127.0.0.1", server.port)) as s:
+            s.sendall(
+                b"POST /api/recordings?name=cut.r3d HTTP/1.1\r\nHost: test\r\n"
+                b"Content-Type: application/octet-stream\r\nContent-Length: 5000000\r\n\r\n"
+                + r3d.read_bytes()[:200_000]
+            )
+            deadline = time.time() + 10
+            while not any((server.settings.data_dir / "recordings" / ".incoming").glob("*")):
+                assert time.time() < deadline, "the upload never arrived"
+                time.sleep(0.05)
+        deadline = time.time() + 10
+        while not any("aborted" in r.getMessage() for r in records) and time.time() < deadline:
+            time.sleep(0.05)
+    finally:
+        for logger in watched:
+            logger.removeHandler(handler)
+        watched[1].setLevel(old_level)
+    aborted = [r for r in records if "aborted" in r.getMessage()]
+    assert len(aborted) == 1 and aborted[0].levelno == logging.INFO, records
+    assert not [r for r in records if r.exc_info or r.levelno >= logging.ERROR], [
+        r.getMessage() for r in records
+    ]
+    assert leftovers(server) == []
+    assert upload(server, r3d.read_bytes()).status_code == 201

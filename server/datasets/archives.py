@@ -14,6 +14,7 @@ import zipfile
 from pathlib import Path, PurePosixPath
 
 from server.datasets.base import RGBDDataset
+from server.datasets.bounds import DEFAULT_LIMITS, DecodeLimits
 from server.datasets.record3d import Record3DDataset
 from server.datasets.stray import StrayDataset
 from server.errors import DatasetError
@@ -38,9 +39,11 @@ def _stray_root(names: list[str]) -> str | None:
     return None
 
 
-def open_recording_archive(path: Path, unpack_to: Path, max_unpacked_bytes: int) -> RGBDDataset:
+def open_recording_archive(
+    path: Path, unpack_to: Path, max_unpacked_bytes: int, limits: DecodeLimits = DEFAULT_LIMITS
+) -> RGBDDataset:
     """The recording in the file ``path``: a Record3DDataset on it, or a StrayDataset on its
-    contents unpacked into the (new) folder ``unpack_to``.
+    contents unpacked into the (new) folder ``unpack_to``; either reads within ``limits``.
 
     Raises UnknownRecording for a file that is neither, DatasetError for one that is but cannot
     be read (then ``unpack_to`` may hold part of it: the caller removes it)."""
@@ -49,7 +52,7 @@ def open_recording_archive(path: Path, unpack_to: Path, max_unpacked_bytes: int)
             infos = archive.infolist()
             names = [i.filename for i in infos]
             if "metadata" in names and any(n.startswith("rgbd/") for n in names):
-                return Record3DDataset(path)
+                return Record3DDataset(path, limits=limits)
             root = _stray_root(names)
             if root is None:
                 raise UnknownRecording(
@@ -61,7 +64,8 @@ def open_recording_archive(path: Path, unpack_to: Path, max_unpacked_bytes: int)
             if total > max_unpacked_bytes:
                 raise DatasetError(
                     f"the Stray export unpacks to {total / 1e6:.0f} MB, more than the "
-                    f"{max_unpacked_bytes / 1e6:.0f} MB allowed"
+                    f"{max_unpacked_bytes / 1e6:.0f} MB allowed "
+                    "(a multiple of server.max_upload_mb)"
                 )
             unpack_to.mkdir(parents=True)
             for folder in STRAY_FOLDERS:
@@ -75,7 +79,7 @@ def open_recording_archive(path: Path, unpack_to: Path, max_unpacked_bytes: int)
         raise UnknownRecording(f"not a zip file (a .r3d or a zipped Stray export): {exc}") from exc
     except (OSError, RuntimeError, NotImplementedError) as exc:  # encrypted, odd compression
         raise DatasetError(f"cannot unpack the zip: {exc}") from exc
-    return StrayDataset(unpack_to)
+    return StrayDataset(unpack_to, limits=limits)
 
 
 def _stray_member(name: str, root: str) -> str | None:

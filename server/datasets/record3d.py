@@ -28,6 +28,7 @@ import numpy as np
 
 from server.datasets.arkit import DEFAULT_MIN_CONFIDENCE, camera_poses_from_arkit, lidar_depth
 from server.datasets.base import RGBDDataset, RGBDFrame
+from server.datasets.bounds import DEFAULT_LIMITS, DecodeLimits, jpeg_size, lzfse_size
 from server.errors import DatasetError, DroneSimError
 from server.evaluation.trajectory import Trajectory
 from server.geometry import Intrinsics, pose_from_quaternion
@@ -77,8 +78,10 @@ class Record3DDataset(RGBDDataset):
     """A Record3D ``.r3d`` file.
 
     path: the .r3d file. intrinsics: overrides the metadata's K. min_confidence: ARKit confidence
-    (0 low, 1 medium, 2 high) a depth pixel needs. ``device_poses``: the phone's odometry,
-    T_world_camera in this project's camera axes and ARKit's world frame, one per frame.
+    (0 low, 1 medium, 2 high) a depth pixel needs. limits: what the file may expand to, checked
+    before each member is decoded (an upload's are the server's). ``device_poses``: the phone's
+    odometry, T_world_camera in this project's camera axes and ARKit's world frame, one per
+    frame.
     """
 
     depth_registered = True  # the phone registers its depth to its camera
@@ -91,9 +94,11 @@ class Record3DDataset(RGBDDataset):
         intrinsics: Intrinsics | None = None,
         depth_scale: float | None = None,
         min_confidence: int = DEFAULT_MIN_CONFIDENCE,
+        limits: DecodeLimits = DEFAULT_LIMITS,
     ):
         self.path = Path(path)
         self.name = self.path.stem
+        self.limits = limits
         if depth_scale is not None:
             raise DatasetError(
                 f"{self.path}: Record3D depth is float metres; no depth scale applies"
@@ -104,13 +109,20 @@ class Record3DDataset(RGBDDataset):
         self._lock = threading.Lock()
         self._zip: zipfile.ZipFile | None = None
         try:
-            metadata = json.loads(self._read("metadata"))
+            metadata = json.loads(
+                self._read("metadata", limits.max_metadata_bytes, "server.upload_max_metadata_mb")
+            )
             K, self._depth_size, stamps, arkit_poses = parse_metadata(metadata)
+        except DatasetError:
+            raise
         except (ValueError, TypeError, KeyError, DroneSimError) as exc:
             raise DatasetError(
                 f"{self.path}: bad metadata (expected JSON with w, h, K, dw, dh, fps, poses): "
                 f"{exc!r}"
             ) from exc
+        limits.check_pixels(f"{self.path}: the colour image", K.width, K.height)
+        limits.check_pixels(f"{self.path}: the depth image", *self._depth_size)
+        limits.check_frames(f"{self.path}: the metadata", len(stamps))
         self.intrinsics = intrinsics or K
         self._timestamps = stamps
         names = set(self._archive().namelist())
@@ -132,23 +144,41 @@ class Record3DDataset(RGBDDataset):
                 raise DatasetError(f"{self.path}: not a readable .r3d (zip) file: {exc}") from exc
         return self._zip
 
-    def _read(self, name: str) -> bytes:
+    def _read(self, name: str, max_bytes: int, why: str) -> bytes:
+        """Member ``name``, refused before it is inflated when it declares more than
+        ``max_bytes`` (``why`` says what sets that bound); zipfile stops at the declared size,
+        so the read is bounded."""
         with self._lock:
+            archive = self._archive()
             try:
-                return self._archive().read(name)
+                declared = archive.getinfo(name).file_size
             except KeyError as exc:
                 raise DatasetError(f"{self.path}: has no {name}") from exc
+            if declared > max_bytes:
+                raise DatasetError(
+                    f"{self.path}: {name} unpacks to {declared / 1e6:.1f} MB, more than the "
+                    f"{max_bytes / 1e6:.1f} MB allowed ({why})"
+                )
+            return archive.read(name)
 
     def _decompress(self, name: str, dtype: type, expected_items: int) -> np.ndarray:
+        expected_bytes = expected_items * np.dtype(dtype).itemsize
+        # LZFSE grows data it cannot compress by a few bytes per block, never by half.
+        stream = self._read(name, expected_bytes + expected_bytes // 2 + 4096, "its depth size")
+        declared = lzfse_size(stream) if stream[:3] == b"bvx" else -1
+        if declared != expected_bytes:
+            raise DatasetError(
+                f"{self.path}: {name} "
+                + (f"holds {declared} bytes" if declared >= 0 else "is not LZFSE-compressed")
+                + f", expected {expected_bytes} "
+                f"({self._depth_size[0]}x{self._depth_size[1]} {np.dtype(dtype).name})"
+            )
         try:
-            values: np.ndarray = np.frombuffer(lzfse.decompress(self._read(name)), dtype=dtype)
+            values: np.ndarray = np.frombuffer(lzfse.decompress(stream), dtype=dtype)
         except lzfse.error as exc:
             raise DatasetError(f"{self.path}: {name} is not LZFSE-compressed: {exc}") from exc
-        if values.size != expected_items:
-            raise DatasetError(
-                f"{self.path}: {name} holds {values.size} values, expected {expected_items} "
-                f"({self._depth_size[0]}x{self._depth_size[1]})"
-            )
+        if values.size != expected_items:  # the blocks lied about their sizes
+            raise DatasetError(f"{self.path}: {name} holds {values.size} values")
         dw, dh = self._depth_size
         return values.reshape(dh, dw)
 
@@ -157,16 +187,21 @@ class Record3DDataset(RGBDDataset):
 
     def __getitem__(self, index: int) -> RGBDFrame:
         index = self._frame_index(index)
-        jpeg = np.frombuffer(self._read(f"rgbd/{index}.jpg"), dtype=np.uint8)
-        image = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
-        if image is None:
-            raise DatasetError(f"{self.path}: rgbd/{index}.jpg is not an image")
         K = self.intrinsics
-        if image.shape[:2] != (K.height, K.width):
+        # A JPEG larger than its raw pixels is no camera's: refused before it is inflated.
+        data = self._read(f"rgbd/{index}.jpg", 3 * K.width * K.height + 2**20, "its colour size")
+        try:
+            size = jpeg_size(data)
+        except DatasetError as exc:
+            raise DatasetError(f"{self.path}: rgbd/{index}.jpg: {exc}") from exc
+        if size != (K.width, K.height):  # checked before OpenCV allocates its pixels
             raise DatasetError(
-                f"{self.path}: rgbd/{index}.jpg is {image.shape[1]}x{image.shape[0]} but the "
-                f"intrinsics say {K.width}x{K.height}"
+                f"{self.path}: rgbd/{index}.jpg is {size[0]}x{size[1]} but the intrinsics say "
+                f"{K.width}x{K.height}"
             )
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+        if image is None or image.shape[:2] != (K.height, K.width):
+            raise DatasetError(f"{self.path}: rgbd/{index}.jpg is not a readable image")
         n = self._depth_size[0] * self._depth_size[1]
         depth = self._decompress(f"rgbd/{index}.depth", np.float32, n)
         confidence = (

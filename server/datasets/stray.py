@@ -33,6 +33,7 @@ import numpy as np
 
 from server.datasets.arkit import DEFAULT_MIN_CONFIDENCE, camera_poses_from_arkit, lidar_depth
 from server.datasets.base import RGBDDataset, RGBDFrame
+from server.datasets.bounds import DEFAULT_LIMITS, DecodeLimits, png_size
 from server.errors import DatasetError
 from server.evaluation.trajectory import Trajectory
 from server.geometry import Intrinsics, pose_from_quaternion
@@ -97,17 +98,23 @@ def working_size(width: int, height: int, max_width: int) -> tuple[int, int]:
     return round(width / divisor), round(height / divisor)
 
 
-def depth_png_size(path: Path) -> tuple[int, int]:
-    """(width, height) of a depth PNG, px."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.ndim != 2:
-        raise DatasetError(f"{path}: expected a 1-channel uint16 PNG")
-    return raw.shape[1], raw.shape[0]
+def png_file_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a PNG file, px, from its header (no pixel is decoded)."""
+    try:
+        with path.open("rb") as f:
+            return png_size(f.read(24))
+    except (OSError, DatasetError) as exc:
+        raise DatasetError(f"{path}: expected a 1-channel uint16 PNG: {exc}") from exc
 
 
-def read_odometry(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_odometry(
+    path: Path, limits: DecodeLimits = DEFAULT_LIMITS
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read ``odometry.csv`` -> (timestamps (N,) s, video frame numbers (N,), T_world_camera
-    (N, 4, 4) in ARKit camera axes), sorted by frame number."""
+    (N, 4, 4) in ARKit camera axes), sorted by frame number; at most ``limits.max_frames``
+    rows and ``limits.max_metadata_bytes`` bytes, checked before it is parsed."""
+    if path.is_file():
+        limits.check_text(str(path), path.stat().st_size)
     try:
         with path.open(newline="") as f:
             reader = csv.reader(f, skipinitialspace=True)
@@ -134,6 +141,7 @@ def read_odometry(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ) from exc
     if len(rows) == 0:
         raise DatasetError(f"{path}: no poses")
+    limits.check_frames(str(path), len(rows))
     if not (np.isfinite(stamps).all() and np.isfinite(poses).all()):
         raise DatasetError(f"{path}: odometry.csv holds timestamps or poses that are not finite")
     order = np.argsort(frames, kind="stable")
@@ -144,7 +152,7 @@ class VideoReader:
     """Frames of a video by index, decoded through OpenCV (FFmpeg). Reading in order decodes each
     frame once; going back reopens the file, as seeking in an inter-coded stream is inexact."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, limits: DecodeLimits = DEFAULT_LIMITS):
         self.path = path
         self._lock = threading.Lock()
         self._capture: cv2.VideoCapture | None = None
@@ -153,6 +161,8 @@ class VideoReader:
         self.width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH))
         self.height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
         capture.release()
+        # The container's header says the frame size: refused before a frame is decoded.
+        limits.check_pixels(f"{path}: its frames", self.width, self.height)
 
     def _open(self) -> cv2.VideoCapture:
         capture = cv2.VideoCapture(str(self.path))
@@ -194,7 +204,9 @@ class StrayDataset(RGBDDataset):
     path: the folder. intrinsics: overrides camera_matrix.csv. depth_scale: depth PNG units per
     metre (1000). min_confidence: ARKit confidence (0 low, 1 medium, 2 high) a depth pixel needs.
     max_width: widest frame returned, px (the video is scaled down by a whole number to fit).
-    ``size``: (width, height) of the frames returned, px; ``intrinsics`` are for it.
+    limits: what the export may expand to, checked before each file is decoded (an upload's
+    are the server's). ``size``: (width, height) of the frames returned, px; ``intrinsics``
+    are for it.
     ``device_poses``: the phone's odometry, T_world_camera in this project's camera axes and
     ARKit's world frame, one per frame.
     """
@@ -208,6 +220,7 @@ class StrayDataset(RGBDDataset):
         depth_scale: float | None = None,
         min_confidence: int = DEFAULT_MIN_CONFIDENCE,
         max_width: int = DEFAULT_MAX_WIDTH,
+        limits: DecodeLimits = DEFAULT_LIMITS,
     ):
         self.path = Path(path)
         self.name = self.path.name
@@ -217,7 +230,7 @@ class StrayDataset(RGBDDataset):
             raise DatasetError(f"{self.path}: expected rgb.mp4, depth/ and odometry.csv")
         self.depth_scale = depth_scale or STRAY_DEPTH_SCALE
         self.min_confidence = min_confidence
-        self._video = VideoReader(self.path / "rgb.mp4")
+        self._video = VideoReader(self.path / "rgb.mp4", limits)
         video = (self._video.width, self._video.height)
         self.size = working_size(*video, max_width)
         if intrinsics is not None:
@@ -247,7 +260,7 @@ class StrayDataset(RGBDDataset):
                 *self.size,
             )
 
-        stamps, frames, arkit_poses = read_odometry(self.path / "odometry.csv")
+        stamps, frames, arkit_poses = read_odometry(self.path / "odometry.csv", limits)
         self._frames = frames
         self._timestamps = stamps
         self._depth_files = [self.path / "depth" / f"{i:06d}.png" for i in frames]
@@ -256,7 +269,9 @@ class StrayDataset(RGBDDataset):
             raise DatasetError(
                 f"{self.path}: odometry.csv lists frames without depth: {missing[:5]}"
             )
-        depth_size = depth_png_size(self._depth_files[0])
+        depth_size = png_file_size(self._depth_files[0])
+        limits.check_pixels(f"{self._depth_files[0]}", *depth_size)
+        self._depth_size = depth_size
         if abs(depth_size[0] / depth_size[1] / (video[0] / video[1]) - 1) > MAX_ASPECT_DIFFERENCE:
             raise DatasetError(
                 f"{self.path}: depth is {depth_size[0]}x{depth_size[1]} and rgb.mp4 "
@@ -280,12 +295,12 @@ class StrayDataset(RGBDDataset):
         colour = self._video.frame(int(self._frames[index]))
         if (colour.shape[1], colour.shape[0]) != self.size:
             colour = cv2.resize(colour, self.size, interpolation=cv2.INTER_AREA)
-        raw = cv2.imread(str(self._depth_files[index]), cv2.IMREAD_UNCHANGED)
+        raw = self._read_png(self._depth_files[index])
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise DatasetError(f"{self._depth_files[index]}: expected a 1-channel uint16 PNG")
         confidence = None
         if self._confidence_files is not None:
-            confidence = cv2.imread(str(self._confidence_files[index]), cv2.IMREAD_UNCHANGED)
+            confidence = self._read_png(self._confidence_files[index])
             if confidence is None:
                 raise DatasetError(f"cannot read confidence map {self._confidence_files[index]}")
         try:
@@ -301,6 +316,18 @@ class StrayDataset(RGBDDataset):
         return RGBDFrame(
             index=index, timestamp=float(self._timestamps[index]), colour=colour, depth=depth
         )
+
+    def _read_png(self, path: Path) -> np.ndarray | None:
+        """A depth or confidence PNG, decoded only when its header gives the first depth
+        image's size (so a file that declares gigapixels allocates nothing)."""
+        size = png_file_size(path)
+        if size != self._depth_size:
+            raise DatasetError(
+                f"{path}: is {size[0]}x{size[1]}, not the recording's depth size "
+                f"{self._depth_size[0]}x{self._depth_size[1]}"
+            )
+        image: np.ndarray | None = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        return image
 
     @property
     def timestamps(self) -> np.ndarray:

@@ -19,6 +19,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.config import Config
+from server.datasets.bounds import DecodeLimits
 from server.mapping.tsdf import MapError
 from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
@@ -123,6 +124,11 @@ def create_app(config: Config | None = None) -> FastAPI:
         int(settings.max_upload_mb * 1e6),
         memory_bytes=int(settings.upload_memory_mb * 2**20),
         convert_s=settings.upload_convert_s,
+        limits=DecodeLimits(
+            max_pixels=int(settings.upload_max_megapixels * 1e6),
+            max_frames=settings.upload_max_frames,
+            max_metadata_bytes=int(settings.upload_max_metadata_mb * 1e6),
+        ),
     )
     for name in ("uvicorn.error", "uvicorn.access"):
         logger = logging.getLogger(name)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hmac
 import json
 import logging
+import re
 import resource
 import secrets
 import shutil
@@ -25,6 +26,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 
 from server.datasets.archives import UnknownRecording, open_recording_archive
+from server.datasets.bounds import DEFAULT_LIMITS, DecodeLimits
 from server.datasets.replay_export import export_replay
 from server.errors import DatasetError, DroneSimError
 from server.sessions.store import hash_token
@@ -59,7 +61,8 @@ def recording_name(filename: str | None) -> str:
 class RecordingStore:
     """The recordings under ``root``; uploads of at most ``max_upload_bytes``, each converted
     in a process that may take ``memory_bytes`` more address space than it starts with and run
-    ``convert_s`` seconds (None: conversion in the caller, no limits)."""
+    ``convert_s`` seconds (None: conversion in the caller, no limits), and read within
+    ``limits`` (what any member, image and frame list may declare)."""
 
     def __init__(
         self,
@@ -67,11 +70,13 @@ class RecordingStore:
         max_upload_bytes: int,
         memory_bytes: int | None = None,
         convert_s: float = 600.0,
+        limits: DecodeLimits = DEFAULT_LIMITS,
     ) -> None:
         self.root = root
         self.max_upload_bytes = max_upload_bytes
         self.memory_bytes = memory_bytes
         self.convert_s = convert_s
+        self.limits = limits
 
     def clean(self) -> None:
         """Remove what an interrupted upload or conversion left (at start-up)."""
@@ -123,7 +128,7 @@ class RecordingStore:
         try:
             max_unpacked = MAX_UNPACK_FACTOR * self.max_upload_bytes
             if self.memory_bytes is None:
-                index = _export(upload, unpacked, staging, max_unpacked)
+                index = _export(upload, unpacked, staging, max_unpacked, self.limits)
             else:
                 index = self._export_apart(upload, unpacked, staging, max_unpacked)
             index |= {"name": name}
@@ -132,9 +137,9 @@ class RecordingStore:
             (staging / "meta.json").write_text(json.dumps(meta))
             staging.rename(self.root / recording_id)  # whole, or not there at all
         except UnknownRecording as exc:
-            raise RecordingError("unsupported_recording", self._plain(exc), 415) from exc
+            raise RecordingError("unsupported_recording", self._plain(exc, upload), 415) from exc
         except DatasetError as exc:
-            message = f"cannot read the recording: {self._plain(exc)}"
+            message = f"cannot read the recording: {self._plain(exc, upload)}"
             raise RecordingError("bad_recording", message, 422) from exc
         finally:
             upload.unlink(missing_ok=True)
@@ -151,7 +156,7 @@ class RecordingStore:
         receive, send = ctx.Pipe(duplex=False)
         process = ctx.Process(
             target=_export_in_child,
-            args=(upload, unpacked, staging, max_unpacked, self.memory_bytes, send),
+            args=(upload, unpacked, staging, max_unpacked, self.limits, self.memory_bytes, send),
             name="convert-upload",
             daemon=True,
         )
@@ -185,9 +190,17 @@ class RecordingStore:
             )
         raise DatasetError(value)
 
-    def _plain(self, exc: BaseException) -> str:
-        """An error's message without the server's own paths (a client has no use for them)."""
-        return str(exc).replace(str(self.root.resolve()), "").replace(str(self.root), "")
+    def _plain(self, exc: BaseException, upload: Path) -> str:
+        """An error's message without the server's own paths (a client has no use for them):
+        the upload's file becomes "the upload", its unpacked folder's files their own names."""
+        message = str(exc)
+        for prefix in (upload.resolve(), upload):
+            message = message.replace(f"{prefix}: ", "").replace(str(prefix), "the upload")
+        unpacked = self.root / ".incoming"
+        for prefix in (unpacked.resolve(), unpacked, self.root.resolve(), self.root):
+            message = re.sub(re.escape(str(prefix)) + r"/[0-9a-f]+\.unpacked/?", "", message)
+            message = message.replace(str(prefix), "")
+        return message
 
     def folder(self, recording_id: str, token: str | None) -> Path:
         """The folder of the recording ``token`` opens. No token: 401; an unknown id or a wrong
@@ -216,10 +229,12 @@ class RecordingStore:
         shutil.rmtree(folder)
 
 
-def _export(upload: Path, unpacked: Path, staging: Path, max_unpacked: int) -> dict:
-    """Read the upload (unpacking a Stray zip into ``unpacked``) and write its replay into
-    ``staging`` -> the replay's index."""
-    dataset = open_recording_archive(upload, unpacked, max_unpacked)
+def _export(
+    upload: Path, unpacked: Path, staging: Path, max_unpacked: int, limits: DecodeLimits
+) -> dict:
+    """Read the upload (unpacking a Stray zip into ``unpacked``) within ``limits`` and write its
+    replay into ``staging`` -> the replay's index."""
+    dataset = open_recording_archive(upload, unpacked, max_unpacked, limits)
     return export_replay(dataset, staging)
 
 
@@ -228,6 +243,7 @@ def _export_in_child(
     unpacked: Path,
     staging: Path,
     max_unpacked: int,
+    limits: DecodeLimits,
     memory_bytes: int,
     send: Connection,
 ) -> None:
@@ -236,7 +252,8 @@ def _export_in_child(
     failure of reading is the recording's fault here: a bad file must never be a 500."""
     _limit_address_space(memory_bytes)
     try:
-        outcome: tuple[str, object] = ("ok", _export(upload, unpacked, staging, max_unpacked))
+        index = _export(upload, unpacked, staging, max_unpacked, limits)
+        outcome: tuple[str, object] = ("ok", index)
     except UnknownRecording as exc:
         outcome = ("unknown", str(exc))
     except MemoryError:

@@ -9,15 +9,18 @@ file here, and the page replays it like the demo, sending the phone's own pose w
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
+from starlette.requests import ClientDisconnect
 
 from server.transport.deps import bearer_token, creation_allowed
 from server.transport.recordings import RecordingError, RecordingStore, recording_name
 from server.transport.schemas import RecordingCreated, RecordingIndex, error_response
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/recordings", tags=["recordings"])
 TokenDep = Annotated[str | None, Depends(bearer_token)]
 
@@ -88,7 +91,14 @@ async def upload_recording(request: Request, name: str | None = None) -> JSONRes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > store.max_upload_bytes:
         raise store.too_large(int(declared))
-    upload = await store.receive(request.stream())
+    try:
+        upload = await store.receive(request.stream())
+    except ClientDisconnect:
+        # The client went away mid-upload: receive() removed the part written. One line, no
+        # traceback: nothing on the server went wrong, and no one is left to answer.
+        client = request.client.host if request.client else "?"
+        log.info("upload from %s aborted by the client; nothing kept", client)
+        return JSONResponse({}, status_code=status.HTTP_400_BAD_REQUEST)
     recording_id, token, index = await asyncio.to_thread(
         store.convert, upload, recording_name(name)
     )

@@ -386,10 +386,29 @@ def test_malformed_metadata_is_a_422_never_a_500(live_server, r3d, change):
     assert leftovers(server) == []
 
 
-def test_a_corrupt_depth_member_is_a_422(live_server, r3d):
+def deflate_corrupted(r3d: Path, member: str) -> bytes:
+    """The Record3D file deflated, with bytes in the middle of ``member``'s compressed data
+    overwritten (its zlib stream, or its CRC, then fails)."""
+    data = bytearray(r3d_with(r3d))
+    with zipfile.ZipFile(io.BytesIO(bytes(data))) as z:
+        info = z.getinfo(member)
+    name_len, extra_len = struct.unpack_from("<HH", data, info.header_offset + 26)
+    start = info.header_offset + 30 + name_len + extra_len
+    middle = start + info.compress_size // 2
+    data[middle : middle + 16] = bytes(range(200, 216))
+    return bytes(data)
+
+
+@pytest.mark.parametrize("how", ["not lzfse", "corrupt deflate"])
+def test_a_corrupt_depth_member_is_a_422(live_server, r3d, how):
     server = live_server()
-    r = upload(server, r3d_with(r3d, depth=b"not lzfse at all" * 10))
+    if how == "not lzfse":
+        data = r3d_with(r3d, depth=b"not lzfse at all" * 10)
+    else:
+        data = deflate_corrupted(r3d, "rgbd/3.depth")
+    r = upload(server, data)
     assert r.status_code == 422 and r.json()["error"]["code"] == "bad_recording", r.text
+    assert "rgbd/" in r.json()["error"]["message"] or "Error" in r.json()["error"]["message"]
     assert leftovers(server) == []
 
 

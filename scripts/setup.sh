@@ -1,5 +1,9 @@
 #!/usr/bin/env bash
-# Installs everything the project needs on a fresh Debian machine (run as root or with sudo).
+# Installs everything the project needs on a fresh Debian machine (run as root or with sudo):
+# Debian packages with apt, the Python package and its dependencies into .venv/ in the checkout
+# (never into the system's Python: Debian 12 and Ubuntu 23.04+ mark theirs externally managed,
+# PEP 668, and pip refuses it), the page's modules with npm. Afterwards run .venv/bin/python, or
+# `. .venv/bin/activate` first.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -15,12 +19,20 @@ ldconfig -p | grep -q libusb-1.0.so.0 || PACKAGES+=(libusb-1.0-0)
 ldconfig -p | grep -q libjemalloc.so.2 || PACKAGES+=(libjemalloc2)
 [ -x /usr/bin/chromium ] || PACKAGES+=(chromium chromium-driver)
 command -v npm >/dev/null || PACKAGES+=(nodejs npm)
+# Debian's python3 makes virtual environments only with python3-venv (it brings ensurepip).
+python3 -c "import ensurepip, venv" 2>/dev/null || PACKAGES+=(python3-venv)
 if [ ${#PACKAGES[@]} -gt 0 ]; then
   $SUDO apt-get update -qq
   $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${PACKAGES[@]}" >/dev/null
 fi
 
-python3 -m pip install -q --disable-pip-version-check -e ".[dev]"
+# --system-site-packages: what the machine's Python already has at a version that fits (a
+# distribution's numpy, an image's preinstalled stack) is used, not downloaded again; pip inside
+# the environment installs the rest, and a newer version where one is needed, into .venv/.
+if [ ! -x .venv/bin/python ]; then
+  python3 -m venv --system-site-packages .venv
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]"
 
 # The page's JavaScript modules (three, @msgpack/msgpack) at the locked versions; the server
 # serves them from client_web/node_modules, so the page needs no internet.

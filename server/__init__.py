@@ -9,4 +9,9 @@ Layout (one folder per stage; the numerical core imports nothing from the transp
 - ``transport``     web server and wire protocol (filled in by the server issue)
 """
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError, version
+
+try:  # pyproject.toml is the one place the version is written
+    __version__ = version("dronesim-ar")
+except PackageNotFoundError:  # a checkout on sys.path without an install
+    __version__ = "0+unknown"

@@ -11,6 +11,8 @@ virtual environment, never from the checkout.
 
 from __future__ import annotations
 
+import ast
+import email.parser
 import json
 import os
 import re
@@ -31,6 +33,11 @@ from urllib.parse import urljoin
 
 import pytest
 from conftest import missing
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("server", "shared", "client_web")
@@ -73,8 +80,8 @@ def _check_build_tools() -> None:
     except (PackageNotFoundError, ValueError):
         missing("setuptools is not installed (dev extras: pip install -e '.[dev]')")
         return
-    if (major, minor) < (70, 1):
-        missing(f"setuptools {major}.{minor} < 70.1 (dev extras: pip install -e '.[dev]')")
+    if (major, minor) < (77, 0):
+        missing(f"setuptools {major}.{minor} < 77 (dev extras: pip install -e '.[dev]')")
 
 
 def _copy_checkout(dst: Path) -> None:
@@ -219,6 +226,47 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_the_wheel_says_its_licence_version_and_dependencies(installed):
+    """The wheel's metadata: an SPDX licence with the licence texts (ours and the vendored
+    modules' notices), the README as its description, one version (pyproject's, which the
+    installed server and its OpenAPI report), and every package the server imports declared."""
+    with zipfile.ZipFile(installed.wheel) as wheel:
+        info = next(n.rsplit("/", 1)[0] for n in wheel.namelist() if n.endswith("/METADATA"))
+        metadata = email.parser.Parser().parsestr(wheel.read(f"{info}/METADATA").decode())
+        names = set(wheel.namelist())
+    assert metadata["License-Expression"] == "MIT"
+    assert {f"{info}/licenses/LICENSE", f"{info}/licenses/THIRD_PARTY_NOTICES.md"} <= names
+    assert metadata["Description-Content-Type"] == "text/markdown"
+    assert metadata.get_payload().startswith("# AR drone simulator")
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert metadata["Version"] == pyproject["version"]
+    probe = (
+        "import json, server; from server.transport.app import create_app;"
+        "from server.config import Config;"
+        "print(json.dumps([server.__version__, create_app(Config()).version]))"
+    )
+    proc = installed.run(str(installed.python), "-c", probe)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.splitlines()[-1]) == [pyproject["version"]] * 2
+    # Every third-party top-level package imported anywhere in server/ is a declared dependency.
+    declared = {
+        re.split(r"[\[<>=; ]", d)[0].lower().replace("-", "_")
+        for d in metadata.get_all("Requires-Dist")
+        if "extra ==" not in d or 'extra == "ray"' in d
+    }
+    imported_as = {"cv2": "opencv_python_headless", "yaml": "pyyaml", "tomli": "tomli"}
+    imported = set()
+    for path in (REPO / "server").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported.add(node.module.split(".")[0])
+    third_party = imported - set(sys.stdlib_module_names) - {"server", "shared", "client_web"}
+    undeclared = {m for m in third_party if imported_as.get(m, m) not in declared}
+    assert not undeclared, f"imported by server/ but not declared in pyproject.toml: {undeclared}"
 
 
 def test_serve_from_the_wheel_serves_the_page_its_modules_and_the_protocol(installed, tmp_path):

@@ -18,6 +18,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from server import __version__
 from server.config import Config
 from server.datasets.bounds import DecodeLimits
 from server.mapping.tsdf import MapError
@@ -112,7 +113,7 @@ def create_app(config: Config | None = None) -> FastAPI:
                     ", ".join(unsaved),
                 )
 
-    app = FastAPI(title="AR drone simulator server", version="0.1.0", lifespan=lifespan)
+    app = FastAPI(title="AR drone simulator server", version=__version__, lifespan=lifespan)
     app.state.config = config
     app.state.settings = settings  # the server section, read by the routes and the socket
     app.state.manager = manager

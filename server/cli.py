@@ -1,4 +1,4 @@
-"""Command line: ``python -m server track|evaluate|serve|loadtest|config``."""
+"""Command line of the AR drone simulator: track, evaluate, serve, loadtest, config."""
 
 from __future__ import annotations
 
@@ -14,9 +14,29 @@ from rich.table import Table
 
 from server.errors import DroneSimError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+app = typer.Typer(no_args_is_help=True, help=__doc__, rich_markup_mode="markdown")
 console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from server import __version__
+
+        console.print(f"dronesim-ar {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="print the version and exit"
+        ),
+    ] = False,
+) -> None:
+    """Command line of the AR drone simulator: track, evaluate, serve, loadtest, config."""
 
 
 # Every command that runs the pipeline or the server takes the configuration the same way.
@@ -136,10 +156,13 @@ def track(
             "(same results; --no-overlap runs the stages in turn)",
         ),
     ] = True,
-    fx: float | None = None,
-    fy: float | None = None,
-    cx: float | None = None,
-    cy: float | None = None,
+    fx: Annotated[
+        float | None,
+        typer.Option(help="focal length x, px (with --fy --cx --cy: overrides the dataset's)"),
+    ] = None,
+    fy: Annotated[float | None, typer.Option(help="focal length y, px")] = None,
+    cx: Annotated[float | None, typer.Option(help="principal point x, px")] = None,
+    cy: Annotated[float | None, typer.Option(help="principal point y, px")] = None,
     depth_scale: Annotated[float | None, typer.Option(help="depth units per metre")] = None,
     config_file: ConfigFile = None,
     sets: ConfigSets = None,
@@ -259,7 +282,8 @@ def serve(
     sets: ConfigSets = None,
 ) -> None:
     """Run the server. Configuration: defaults < --config FILE < DRONESIM_* environment
-    variables < --set KEY=VALUE < the flags above (each the server.* key of its name)."""
+    variables < --set KEY=VALUE < the options --host, --port, --data-dir, --tls, --demo and --ray
+    (each the server.* key of its name)."""
     flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo, "ray": ray}
     given = {k: v for k, v in flags.items() if v is not None}
     config = _load_config(config_file, sets, {"server": given})

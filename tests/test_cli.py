@@ -150,3 +150,24 @@ def test_serve_prints_its_configuration_and_hands_it_to_the_sessions(tmp_path):
         server.stop()
     text = log.read_text()
     assert "max_rotation_deg: 12.0" in text and "voxel_m: 0.03" in text
+
+
+def test_version_and_every_option_is_explained():
+    """`--version` prints pyproject's version; every option of every command has help text, and
+    no help shows reST's double backticks (the help is rendered as Markdown)."""
+    import typer.main
+
+    from server import __version__
+    from server.cli import app
+
+    result = run_cli("--version")
+    assert result.returncode == 0 and result.stdout.strip() == f"dronesim-ar {__version__}"
+    group = typer.main.get_command(app)
+    unexplained = []
+    for name, command in group.commands.items():  # type: ignore[attr-defined]
+        assert command.help and "``" not in command.help, name
+        for param in command.params:
+            if param.param_type_name == "option" and param.name != "help":
+                if not (param.help or "").strip():
+                    unexplained.append(f"{name} {param.opts[0]}")
+    assert not unexplained, f"options without help: {unexplained}"

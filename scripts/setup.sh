@@ -32,7 +32,13 @@ fi
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv --system-site-packages .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]"
+# constraints.txt: the versions the suite passed with (scripts/lock.py writes it), for the
+# CPython it was written on; another Python resolves the newest versions that fit it.
+CONSTRAINTS=()
+if .venv/bin/python -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+  CONSTRAINTS=(-c constraints.txt)
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check "${CONSTRAINTS[@]}" -e ".[dev]"
 
 # The page's JavaScript modules (three, @msgpack/msgpack) at the locked versions; the server
 # serves them from client_web/node_modules, so the page needs no internet.

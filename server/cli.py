@@ -250,13 +250,67 @@ def evaluate_cmd(
     groundtruth: Annotated[Path, typer.Argument(help="ground truth, TUM format")],
     estimate: Annotated[Path, typer.Argument(help="estimate, TUM format")],
     max_diff: Annotated[float, typer.Option(help="timestamp tolerance, seconds")] = 0.02,
+    align: Annotated[
+        str,
+        typer.Option(
+            help="how the estimate is aligned to the ground truth before the ATE: se3 (rigid), "
+            "sim3 (with scale) or none"
+        ),
+    ] = "se3",
+    delta: Annotated[float, typer.Option(help="the second RPE's step, in --delta-unit")] = 1.0,
+    delta_unit: Annotated[
+        str, typer.Option(help="what --delta counts: seconds or frames")
+    ] = "seconds",
+    json_out: Annotated[
+        Path | None,
+        typer.Option("--json", metavar="FILE", help="also write the metrics as JSON (metres, deg)"),
+    ] = None,
+    plot: Annotated[
+        Path | None,
+        typer.Option(
+            metavar="FILE", help="also write a top view (PNG) of both, the estimate aligned"
+        ),
+    ] = None,
 ) -> None:
-    """Print ATE and RPE of an estimated trajectory against ground truth."""
-    from server.evaluation.metrics import evaluate, format_table
+    """Print ATE and RPE of an estimated trajectory against ground truth (RPE per frame and
+    over --delta); optionally write them as JSON and the two trajectories as a picture."""
+    import json
+
+    from server.evaluation.metrics import (
+        ALIGNMENTS,
+        DeltaUnit,
+        aligned,
+        associate_trajectories,
+        evaluate,
+        format_table,
+    )
     from server.evaluation.trajectory import read_tum
 
-    metrics = evaluate(read_tum(groundtruth), read_tum(estimate), max_diff=max_diff)
+    if align not in ALIGNMENTS:
+        raise DroneSimError(f"--align must be one of {', '.join(ALIGNMENTS)}, not {align!r}")
+    if delta_unit not in [u.value for u in DeltaUnit]:
+        raise DroneSimError(f"--delta-unit must be seconds or frames, not {delta_unit!r}")
+    gt, est = read_tum(groundtruth), read_tum(estimate)
+    metrics = evaluate(gt, est, max_diff=max_diff, align=align, delta=delta, delta_unit=delta_unit)
     console.print(format_table({estimate.name: metrics}))
+    if json_out is not None:
+        report = {
+            "groundtruth": str(groundtruth),
+            "estimate": str(estimate),
+            "align": align,
+            "rpe_delta": {"value": delta, "unit": delta_unit},
+            **metrics,
+        }
+        json_out.write_text(json.dumps(report, indent=2) + "\n")
+    if plot is not None:
+        from server.evaluation.plots import plot_top_view
+
+        gt_m, est_m = associate_trajectories(gt, est, max_diff)
+        curves = {
+            "ground truth": gt_m.poses,
+            f"{estimate.stem} ({align})": aligned(gt_m, est_m, align).poses,
+        }
+        plot_top_view(plot, curves, title=f"{estimate.name} against {groundtruth.name}")
 
 
 @app.command()

@@ -105,6 +105,20 @@ def test_ate_agrees_with_evo(evo):
         assert ours[key] == pytest.approx(stats[key], rel=1e-6)
 
 
+def test_sim3_ate_agrees_with_evo_correct_scale(evo):
+    """``ate(align="sim3")`` is evo's ``align(correct_scale=True)``, on an estimate at 0.8 scale."""
+    gt = fake_trajectory()
+    est = noisy_copy(gt)
+    est.poses[:, :3, 3] *= 0.8
+    ours = ate(gt, est, "sim3")
+    ref, est_evo = to_evo(evo, gt), to_evo(evo, est)
+    est_evo.align(ref, correct_scale=True)
+    ape = evo.metrics.APE(evo.metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est_evo))
+    assert ours["rmse"] == pytest.approx(ape.get_all_statistics()["rmse"], rel=1e-6)
+    assert ours["rmse"] < ate(gt, est, "se3")["rmse"]
+
+
 @pytest.mark.parametrize(
     ("delta", "unit", "evo_frames"), [(1, "frames", 1), (5, "frames", 5), (1.0, "seconds", 30)]
 )

@@ -92,16 +92,34 @@ def _stats(errors: np.ndarray) -> dict[str, float]:
     }
 
 
-def ate(gt: Trajectory, est: Trajectory, align: bool = True) -> dict[str, float]:
-    """Absolute trajectory error of associated trajectories: statistics (rmse, mean, median, max,
-    metres) of the position differences, after aligning ``est`` to ``gt`` (rigid Umeyama on
-    positions) when ``align`` is set."""
+ALIGNMENTS = ("se3", "sim3", "none")
+
+
+def aligned(gt: Trajectory, est: Trajectory, align: str = "se3") -> Trajectory:
+    """``est`` moved onto ``gt`` (associated trajectories): ``se3`` a rigid Umeyama fit of the
+    positions, ``sim3`` with a scale too (for monocular or mis-scaled depth), ``none`` as it is.
+    The poses' rotations turn with the fit; a Sim(3) fit scales their positions."""
+    if align not in ALIGNMENTS:
+        raise TrajectoryError(f"alignment {align!r} is not one of {', '.join(ALIGNMENTS)}")
     _check_paired(gt, est)
-    p_gt, p_est = gt.poses[:, :3, 3], est.poses[:, :3, 3]
-    if align:
-        T = align_umeyama(p_est, p_gt)
-        p_est = p_est @ T[:3, :3].T + T[:3, 3]
-    return _stats(np.linalg.norm(p_est - p_gt, axis=1))
+    if align == "none":
+        return est
+    T = align_umeyama(est.poses[:, :3, 3], gt.poses[:, :3, 3], with_scale=align == "sim3")
+    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    R = T[:3, :3] / scale
+    poses = est.poses.copy()
+    poses[:, :3, :3] = R @ est.poses[:, :3, :3]
+    poses[:, :3, 3] = est.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    return Trajectory(est.timestamps.copy(), poses)
+
+
+def ate(gt: Trajectory, est: Trajectory, align: bool | str = True) -> dict[str, float]:
+    """Absolute trajectory error of associated trajectories: statistics (rmse, mean, median, max,
+    metres) of the position differences, after aligning ``est`` to ``gt`` (``aligned``: True or
+    "se3" rigid, "sim3" with scale, False or "none" not at all)."""
+    mode = {True: "se3", False: "none"}.get(align, align) if isinstance(align, bool) else align
+    est = aligned(gt, est, str(mode))
+    return _stats(np.linalg.norm(est.poses[:, :3, 3] - gt.poses[:, :3, 3], axis=1))
 
 
 def _pairs(gt: Trajectory, delta: float, unit: DeltaUnit) -> tuple[np.ndarray, np.ndarray]:
@@ -195,25 +213,34 @@ def rotation_gain(gt: Trajectory, est: Trajectory, delta: int = 5) -> dict[str, 
     }
 
 
-def evaluate(gt: Trajectory, est: Trajectory, max_diff: float = 0.02) -> dict[str, float]:
-    """Associate ``est`` with ``gt`` and compute the headline metrics (metres, degrees).
+def evaluate(
+    gt: Trajectory,
+    est: Trajectory,
+    max_diff: float = 0.02,
+    align: str = "se3",
+    delta: float = 1.0,
+    delta_unit: DeltaUnit | str = DeltaUnit.seconds,
+) -> dict[str, float]:
+    """Associate ``est`` with ``gt`` and compute the headline metrics (metres, degrees): ATE
+    after ``align`` (se3, sim3 or none), RPE per frame, and RPE over ``delta`` ``delta_unit``
+    (1 second unless told; its keys keep the ``per_second`` names, ``rpe_delta`` says which).
 
-    Per-second RPE is NaN (with a warning) when the matched poses span less than one second.
+    The RPE over delta is NaN (with a warning) when the matched poses span less than delta.
     """
     gt_m, est_m = associate_trajectories(gt, est, max_diff)
     _check_paired(gt_m, est_m)
     per_frame = rpe(gt_m, est_m, 1, DeltaUnit.frames)
     try:
-        per_second = rpe(gt_m, est_m, 1.0, DeltaUnit.seconds)
+        per_delta = rpe(gt_m, est_m, delta, delta_unit)
     except TrajectoryError as exc:
-        logger.warning("per-second RPE skipped: %s", exc)
-        per_second = {"trans_rmse": float("nan"), "rot_rmse": float("nan")}
+        logger.warning("RPE over %s %s skipped: %s", delta, DeltaUnit(delta_unit).value, exc)
+        per_delta = {"trans_rmse": float("nan"), "rot_rmse": float("nan")}
     return {
-        "ate_rmse_m": ate(gt_m, est_m)["rmse"],
+        "ate_rmse_m": ate(gt_m, est_m, align)["rmse"],
         "rpe_trans_per_frame_m": per_frame["trans_rmse"],
         "rpe_rot_per_frame_deg": per_frame["rot_rmse"],
-        "rpe_trans_per_second_m": per_second["trans_rmse"],
-        "rpe_rot_per_second_deg": per_second["rot_rmse"],
+        "rpe_trans_per_second_m": per_delta["trans_rmse"],
+        "rpe_rot_per_second_deg": per_delta["rot_rmse"],
         "matched": len(gt_m),
     }
 

@@ -4,8 +4,8 @@
 //
 // Frames: the overlay's objects live in `root`, the three.js camera frame of the shown frame
 // (CV_TO_GL * camera frame). Replay: the three camera sits at the origin with the intrinsics'
-// projection. Live WebXR: root is anchored at the XR pose the frame was captured at, and
-// three's XR camera draws it over the live camera.
+// projection. Live WebXR: root is anchored at the XR pose the frame was captured at, and the
+// live source draws it over the live camera from each XR view's pose (sources/live.js).
 
 import * as THREE from "three";
 import { Line2 } from "three/addons/lines/Line2.js";
@@ -178,8 +178,9 @@ export class ARView {
     return this.frame.T_camera_world.clone().multiply(matrixFromRowMajor(s.T_world_drone));
   }
 
-  /** Update the overlay's objects and draw. dt: seconds since the last call (rotor spin). */
-  render(dt = 0) {
+  /** Update the overlay's objects and draw. dt: seconds since the last call (rotor spin);
+   * camera: the XR view's camera in live AR (sources/live.js), this view's own otherwise. */
+  render(dt = 0, camera = this.camera) {
     const s = this.droneState;
     const frame = this.frame;
     const Tcd = this.droneInCamera();
@@ -206,7 +207,7 @@ export class ARView {
       this.#placeRoute(s, frame);
     }
     this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null, this.drone.visible ? this.drone.matrix : null);
-    this.renderer.render(this.scene, this.camera);
+    this.renderer.render(this.scene, camera);
     this.dirty = false;
   }
 

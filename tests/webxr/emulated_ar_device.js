@@ -16,8 +16,22 @@
 //   re-initialising), and depth from motion is empty for the first second;
 // - viewer poses are the phone's visual-inertial odometry: the recording's ground truth with
 //   drift and noise, in a gravity-aligned "local" space (y up).
-// What is not modelled: tracking loss of the phone itself, hit tests, anchors, lighting,
-// gpu-optimized depth, the compositor's latency.
+// Options that model today's Chrome more closely (config, from tests/webxr_device.py):
+// - layersApi: Chrome 147+ has XRWebGLBinding.prototype.createProjectionLayer, so three.js's
+//   WebXRManager renders into a projection layer and leaves renderState.baseLayer null; on such
+//   a session getCameraImage crashes the tab on real phones (three.js issue #33404): here it
+//   throws and counts the crash (state.crashes). The projection layer itself is a plain fake
+//   (its textures are never shown), enough for three to take that path;
+// - depthEvery n: getDepthInformation gives depth only on the XR frames that bring a new
+//   ARCore depth image, here every n-th new camera frame, and null on the others (Chrome gives
+//   no depth for a frame without a new depth image; depth comes slower than the camera);
+// - depthAfterMoveM: null depth (not zeros) until the phone has moved this far from where the
+//   session started (depth from motion); depthNever: no depth at all;
+// - poseLost: recording frames on which ARCore is not tracking: the viewer pose is null (no
+//   views, no camera image, no depth); the poses after such a stretch may jump (relocalised),
+//   which tests/webxr_device.py writes into the poses.
+// What is not modelled: hit tests, anchors, lighting, gpu-optimized depth, the compositor's
+// latency, the reference space's reset event (not sent on a jump here).
 
 (() => {
   const config = window.__xrDeviceConfig;
@@ -180,6 +194,7 @@
     getViewerPose(space) {
       if (!this._active) throw domError("InvalidStateError", "getViewerPose outside its XR frame");
       if (space._type === "viewer") return { transform: new EmulatedRigidTransform(IDENTITY), views: [], emulatedPosition: false };
+      if (this.session._device.missing("pose", this._index)) return null; // ARCore is not tracking
       this._view ??= new EmulatedView(this._index, !this.session._device.missing("camera", this._index));
       return { transform: this._view.transform, views: [this._view], emulatedPosition: false };
     }
@@ -192,6 +207,12 @@
       const device = this.session._device;
       device.state.depthRequests += 1;
       if (device.missing("depth", view._index)) return null;
+      if (config.depthNever || (config.depthEvery > 0 && !this._newDepth)) return null;
+      if (config.depthAfterMoveM > 0 && !device.moved(view._index)) return null;
+      if (!this._depthCounted) {
+        this._depthCounted = true; // one depth image per frame, however often the page asks
+        device.state.depthFrames += 1;
+      }
       let buffer;
       if (this.predictedDisplayTime - device.t0 < config.emptyDepthS * 1000) {
         buffer = new ArrayBuffer(config.depthSize[0] * config.depthSize[1] * (config.depthFormat === "float32" ? 4 : 2));
@@ -214,7 +235,7 @@
       this.visibilityState = "visible";
       this.inputSources = [];
       this.domOverlayState = domOverlayRoot ? { type: "screen" } : null;
-      this.renderState = { baseLayer: null, depthNear: 0.1, depthFar: 1000, inlineVerticalFieldOfView: null };
+      this.renderState = { baseLayer: null, layers: [], depthNear: 0.1, depthFar: 1000, inlineVerticalFieldOfView: null };
       this._pending = null;
       this._callbacks = [];
       this._nextHandle = 1;
@@ -223,6 +244,11 @@
 
     updateRenderState(state = {}) {
       if (this._ended) throw domError("InvalidStateError", "the session has ended");
+      if (state.baseLayer && state.layers) throw domError("NotSupportedError", "baseLayer and layers set together");
+      if (state.layers && !config.layersApi) throw domError("NotSupportedError", "this device has no WebXR layers");
+      // A base layer and a layer list replace each other (WebXR Layers: one or the other).
+      if (state.layers) state = { ...state, baseLayer: null };
+      if (state.baseLayer) state = { ...state, layers: [] };
       this._pending = { ...(this._pending ?? {}), ...state }; // applied at the next frame
     }
 
@@ -254,7 +280,7 @@
       this.dispatchEvent(event);
     }
 
-    _frame(time, index) {
+    _frame(time, index, newDepth) {
       if (this._pending) {
         Object.assign(this.renderState, this._pending);
         this._pending = null;
@@ -262,6 +288,7 @@
       const callbacks = this._callbacks;
       this._callbacks = [];
       const frame = new EmulatedFrame(this, index, time);
+      frame._newDepth = newDepth;
       for (const { callback } of callbacks) {
         try {
           callback(time, frame);
@@ -279,15 +306,31 @@
       this.recording = new Recording();
       this.session = null;
       this.log = []; // [time ms, recording frame] of every XR frame
-      this.state = { frameIndex: 0, frames: 0, stalls: 0, depthRequests: 0, cameraUploads: 0, uploadMs: 0, callbackMs: 0, sessions: 0, held: false };
+      // cameraFrames: XR frames that brought a new camera image; depthFrames: XR frames that gave
+      // depth; poseLost: XR frames without a viewer pose; crashes: getCameraImage calls that
+      // would have crashed the tab (layersApi without a baseLayer).
+      this.state = { frameIndex: 0, frames: 0, stalls: 0, depthRequests: 0, cameraUploads: 0, uploadMs: 0, callbackMs: 0, sessions: 0, held: false,
+        cameraFrames: 0, depthFrames: 0, poseLost: 0, crashes: 0 };
       this.afterFrame = []; // one-shot callbacks right after the next frame's callbacks
       this.heldMs = 0;
       this.heldSince = null;
-      this.missingSets = { depth: new Set(config.missingDepth), camera: new Set(config.missingCamera) };
+      this.missingSets = { depth: new Set(config.missingDepth), camera: new Set(config.missingCamera), pose: new Set(config.poseLost ?? []) };
+      this.shownIndex = null; // the recording frame of the last XR frame
+      this.hasMoved = false;
     }
 
     missing(what, index) {
       return this.missingSets[what].has(index);
+    }
+
+    /** Whether the phone has moved depthAfterMoveM from its first pose by recording frame
+     * `index` (once it has, depth from motion keeps coming). */
+    moved(index) {
+      if (!this.hasMoved) {
+        const [a, b] = [config.poses[0], config.poses[index]];
+        this.hasMoved = Math.hypot(b[12] - a[12], b[13] - a[13], b[14] - a[14]) >= config.depthAfterMoveM;
+      }
+      return this.hasMoved;
     }
 
     start(session) {
@@ -308,10 +351,16 @@
         const index = this.recording.latest(due);
         if (index === null) return; // the camera has not started: no frame yet
         if (index < due) this.state.stalls += 1;
+        // A new camera image in this XR frame, and with every depthEvery-th one a new depth image.
+        // Held still, the phone's camera goes on giving (the same) images, and ARCore depth.
+        const newCamera = index !== this.shownIndex || this.heldSince !== null || this.state.held;
+        this.shownIndex = index;
+        if (newCamera) this.state.cameraFrames += 1;
+        if (this.missing("pose", index)) this.state.poseLost += 1;
         this.state.frameIndex = index;
         this.state.frames += 1;
         this.log.push([time, index]);
-        session._frame(time, index);
+        session._frame(time, index, newCamera && config.depthEvery > 0 && this.state.cameraFrames % config.depthEvery === 0);
         for (const callback of this.afterFrame.splice(0)) callback(index);
         this.state.callbackMs += performance.now() - time;
       };
@@ -461,11 +510,41 @@
 
     getCameraImage(camera) {
       if (!this.session.enabledFeatures.includes("camera-access")) throw domError("NotSupportedError", "camera-access is not enabled");
+      if (config.layersApi && !this.session.renderState.baseLayer) {
+        // Chrome 147+ on several phones: the tab crashes ("Aw, Snap!"), three.js issue #33404.
+        device.state.crashes += 1;
+        throw domError("OperationError", "emulated crash: getCameraImage without an XRWebGLLayer as baseLayer (Chrome 147+ on ARCore)");
+      }
       return device.cameraTexture(this.gl, camera._index);
     }
 
     getDepthInformation() {
       throw domError("InvalidStateError", "this session's depth usage is cpu-optimized");
+    }
+  }
+
+  /** The WebXR Layers API's part that three.js uses (createProjectionLayer, getViewSubImage),
+   * on the layersApi profile only: a projection layer whose textures are plain GL textures of
+   * the view's size. Never composited: the tests read what the page drew from the baseLayer. */
+  class EmulatedLayersBinding extends EmulatedWebGLBinding {
+    createProjectionLayer(init = {}) {
+      const gl = this.gl;
+      const [w, h] = config.viewSize.map((v) => Math.round(v * (init.scaleFactor ?? 1)));
+      const texture = (format) => {
+        const saved = gl.getParameter(gl.TEXTURE_BINDING_2D);
+        const t = gl.createTexture();
+        gl.bindTexture(gl.TEXTURE_2D, t);
+        gl.texStorage2D(gl.TEXTURE_2D, 1, format, w, h);
+        gl.bindTexture(gl.TEXTURE_2D, saved);
+        return t;
+      };
+      return { textureWidth: w, textureHeight: h, ignoreDepthValues: true, fixedFoveation: null, _colour: texture(gl.RGBA8),
+        _depth: init.depthFormat ? texture(init.depthFormat) : null };
+    }
+
+    getViewSubImage(layer) {
+      return { colorTexture: layer._colour, depthStencilTexture: layer._depth,
+        viewport: { x: 0, y: 0, width: layer.textureWidth, height: layer.textureHeight } };
     }
   }
 
@@ -499,11 +578,12 @@
 
   Object.defineProperty(Navigator.prototype, "xr", { get: () => xr, configurable: true });
   window.XRWebGLLayer = EmulatedWebGLLayer;
-  window.XRWebGLBinding = EmulatedWebGLBinding;
+  window.XRWebGLBinding = config.layersApi ? EmulatedLayersBinding : EmulatedWebGLBinding;
   window.XRRigidTransform = EmulatedRigidTransform;
   for (const proto of [WebGLRenderingContext.prototype, WebGL2RenderingContext.prototype]) {
     proto.makeXRCompatible = async function () {};
   }
   window.__xrDevice = { state: device.state, log: device.log, readLayer: () => device.readLayer(), hold: (on) => device.hold(on),
+    active: () => device.session !== null,
     afterNextFrame: (callback) => device.afterFrame.push(callback), recording: device.recording };
 })();

@@ -4,6 +4,30 @@
 // buffer resampled onto the view and packed as zlib uint16 millimetres, and the view's pose in
 // the XR space, which anchors the AR overlay of that frame. Intrinsics come from the view's
 // projection matrix and viewport; gravity from the gravity-aligned "local" reference space.
+//
+// The page owns the XR session's rendering: its own XRWebGLLayer as the session's baseLayer,
+// its own XRWebGLBinding, its own XR animation loop, and three.js drawing into that layer's
+// framebuffer. three's WebXRManager (renderer.xr) is not used: since Chrome 147 it takes the
+// WebXR Layers path whenever XRWebGLBinding.prototype.createProjectionLayer exists, leaving
+// renderState.baseLayer null, and getCameraImage on such a session crashes the tab on several
+// phones (three.js issue #33404); a page with its own XRWebGLLayer does not crash, on Chrome 146
+// and 147+ alike.
+//
+// Chrome's depth: getDepthInformation gives depth only on XR frames with a new ARCore depth
+// image (it comes slower than the camera) and none at all until the phone has moved. The
+// latest depth is kept, copied out of its frame, and a captured camera image goes with it if it
+// came at most DEPTH_MAX_AGE_MS before and has not gone out with another (else the capture waits
+// for the next depth image); occlusion uses it for as long. While there is none the user is told
+// on screen to move the phone; if none comes at all, AR stops and says why.
+//
+// Tracking loss: while ARCore is not tracking, XR frames have no viewer pose (nothing is drawn
+// or captured); when it tracks again, its local space may have jumped (it relocalised). The
+// phone's pose is sent as the tracker's prior (T_device_camera, "in the device's world"), so
+// after each loss the page starts a new device world: the XR space turned a half turn about its
+// vertical axis. The step from the old world to the new is then no motion the server's tracker
+// can take (it exceeds PriorConfig.max_motion_deg): it drops the prior for that frame and
+// re-estimates where the device's world lies in the map, instead of trusting a jump of ARCore's
+// as the camera's motion.
 
 import * as THREE from "three";
 import {
@@ -14,6 +38,25 @@ import {
 const COLOUR_LONG_SIDE = 640; // colour sent at 640 px on the long side (see PROTOCOL.md, bandwidth)
 const ANCHORS_KEPT = 64;
 const READ_POLL_MS = 2; // how often a camera read looks whether the GPU has written its pixels
+// A camera image is sent with the latest depth if that came at most this long before it, and
+// occlusion keeps using it as long. ARCore's depth comes at 10-15 Hz beside a 30 Hz camera (a new
+// depth image every 67-100 ms): 150 ms covers one late depth image; older depth would be paired
+// with a view that has moved on (at a brisk 30 degrees/s, 4.5 degrees: ~30 px at 640 px).
+export const DEPTH_MAX_AGE_MS = 150;
+// No depth for this long (none yet, or none within DEPTH_MAX_AGE_MS): the user is told to move
+// the phone (depth from motion needs it); not sooner, so that a late depth image or two do not
+// make the hint flicker.
+const DEPTH_HINT_AFTER_MS = 500;
+// No depth at all this long after ARCore's first tracked frame: AR stops with a message saying
+// why (ARCore's depth comes within a second or two of moving the phone where it can measure).
+export const FIRST_DEPTH_TIMEOUT_MS = 10000;
+export const HINTS = Object.freeze({
+  moveForDepth: "Move the phone slowly sideways: AR measures depth from the camera's motion, and has none yet.",
+  trackingLost: "AR lost tracking: hold the phone steady and point it at a lit, textured place it has seen.",
+  noDepth: `No depth from this phone in ${FIRST_DEPTH_TIMEOUT_MS / 1000} s of AR, so live AR stopped. ` +
+    "Start again and move the phone slowly sideways over a lit, textured scene; if depth still never comes, this " +
+    "phone's ARCore gives the web no depth: use replay instead.",
+});
 
 /** Whether this browser can run the live mode, and if not, why, in plain words. */
 export async function liveSupport() {
@@ -47,6 +90,15 @@ export class LiveSource {
     this.anchors = new Map(); // seq -> Matrix4 (XR pose of the frame's GL camera)
     this.request = null; // {resolve, reject} of the next capture
     this.onEnd = null;
+    this.depth = null; // the latest depth, copied out of its frame (#keepDepth)
+    this.occlusionDepth = null; // the depth the overlay's occlusion was last given
+    this.lostSince = null; // XR time since which ARCore has given no viewer pose
+    this.trackedSince = null; // XR time since which it has (again)
+    this.worlds = 0; // tracking losses so far: the device world is the XR space turned by worlds half turns
+    this.stats = { depthImages: 0, pairedOlder: 0, maxPairedAgeMs: 0, poseLostFrames: 0 };
+    this.said = []; // [XR time ms, text] of each line shown to the user (#say), the latest 50
+    this.hint = LiveSource.#hintElement(arView.container);
+    this.#say(null);
   }
 
   /** Start the XR session; resolves with the camera description for the hello. */
@@ -63,32 +115,59 @@ export class LiveSource {
       throw new Error(`AR could not start with depth sensing and camera access (${exc.name}: ${exc.message}). ` +
         "This device or browser gives the web no depth or no camera image; use replay instead.");
     }
+    const session = this.session;
     const renderer = this.arView.renderer;
-    renderer.xr.enabled = true;
-    renderer.xr.setReferenceSpaceType("local");
-    await renderer.xr.setSession(this.session);
-    this.gl = renderer.getContext();
-    this.binding = new XRWebGLBinding(this.session, this.gl);
-    this.space = renderer.xr.getReferenceSpace();
-    this.session.addEventListener("end", () => this.#ended());
+    const gl = renderer.getContext();
+    this.gl = gl;
+    if (gl.getContextAttributes().xrCompatible !== true) await gl.makeXRCompatible();
+    // The page's own layer (see the top of this file: not three's WebXRManager, whose layers path
+    // leaves baseLayer null on Chrome 147+, where getCameraImage then crashes).
+    const attributes = gl.getContextAttributes();
+    this.layer = new XRWebGLLayer(session, gl, { antialias: attributes.antialias, alpha: true, depth: true,
+      stencil: attributes.stencil, framebufferScaleFactor: 1.0 });
+    session.updateRenderState({ baseLayer: this.layer });
+    this.binding = new XRWebGLBinding(session, gl);
+    this.space = await session.requestReferenceSpace("local");
+    // three draws into the layer's framebuffer through a render target bound to it (what
+    // WebXRManager does for an XRWebGLLayer); isXRRenderTarget: its pixels are the screen's, so
+    // three converts colours to the output colour space as for the canvas.
+    this.target = new THREE.WebGLRenderTarget(this.layer.framebufferWidth, this.layer.framebufferHeight, {
+      format: THREE.RGBAFormat, type: THREE.UnsignedByteType, colorSpace: renderer.outputColorSpace,
+      stencilBuffer: attributes.stencil,
+    });
+    this.target.isXRRenderTarget = true;
+    renderer.setRenderTargetFramebuffer(this.target, this.layer.framebuffer);
+    this.xrCamera = new THREE.PerspectiveCamera();
+    this.xrCamera.matrixAutoUpdate = false;
+    session.addEventListener("end", () => this.#ended());
     // Taps on the page (sticks, buttons, the AR view) are the page's, not XR select input.
     this.overlayRoot.addEventListener("beforexrselect", (e) => e.preventDefault());
     this.arView.xrAnchor = (seq) => this.anchors.get(seq) ?? null;
     this.arView.container.classList.add("xr");
     this.info = await new Promise((resolve, reject) => {
       this.describe = { resolve, reject };
-      renderer.setAnimationLoop((time, frame) => this.#onFrame(time, frame));
+      session.requestAnimationFrame(this.#loop);
     });
     return this.info;
   }
 
+  #loop = (time, frame) => {
+    if (!this.session || frame.session !== this.session) return;
+    this.session.requestAnimationFrame(this.#loop); // first: a failing frame must not stop the loop
+    this.#onFrame(time, frame);
+  };
+
   #ended() {
-    this.arView.renderer.setAnimationLoop(null);
-    this.arView.renderer.xr.enabled = false;
+    const renderer = this.arView.renderer;
+    if (renderer.getRenderTarget() === this.target) renderer.setRenderTarget(null);
+    this.target?.dispose();
     this.arView.xrAnchor = null;
     this.arView.container.classList.remove("xr");
+    if (this.hint.textContent !== HINTS.noDepth) this.#say(null); // that one says why AR stopped
     this.request?.reject(new Error("AR session ended"));
     this.request = null;
+    this.describe?.reject(new Error("AR ended before it gave a camera image with depth"));
+    this.describe = null;
     this.session = null;
     this.onEnd?.();
   }
@@ -99,7 +178,7 @@ export class LiveSource {
 
   /** The next XR frame, read: resolves {packing, anchor} once its pixels are copied out of the
    * XR frame (packing: a promise of {fields, bitmap}, settled while the next frame may be read),
-   * or {skip: reason} when this frame has no depth or no camera image. */
+   * or {skip: reason} when this frame has no pose, no recent depth or no camera image. */
   capture(tick, timestamp) {
     if (!this.session) return Promise.resolve(null);
     return new Promise((resolve, reject) => (this.request = { resolve, reject }));
@@ -112,18 +191,39 @@ export class LiveSource {
   }
 
   #onFrame(time, frame) {
-    // three's loop also runs on the window's animation frames (no XR frame): nothing to do then.
-    if (!frame) return;
+    this.firstFrameAt ??= time;
+    this.trackedSince ??= time;
     const pose = frame.getViewerPose(this.space);
-    if (pose) this.#occlusionDepth(frame, pose.views[0]);
-    this.arView.render(1 / 60);
-    if (!pose) return;
+    if (!pose) {
+      this.#trackingLost(time);
+      return;
+    }
+    if (this.lostSince !== null) {
+      // Tracking again, perhaps relocalised: a new device world for the prior (top of the file).
+      this.lostSince = null;
+      this.trackedSince = time;
+      this.worlds += 1;
+    }
     const view = pose.views[0];
-    const layer = this.session.renderState.baseLayer;
+    const fresh = frame.getDepthInformation(view);
+    if (fresh) this.#keepDepth(fresh, time);
+    const depth = this.depth && time - this.depth.time <= DEPTH_MAX_AGE_MS ? this.depth : null;
+    this.#occlusionDepth(depth);
+    this.#draw(time, view);
+    // Depth missing since the last depth image, or since ARCore tracks (again): depth does not
+    // come while it is not tracking, so that time is not held against it.
+    const sinceDepth = time - Math.max(this.depth?.time ?? -Infinity, this.trackedSince);
+    this.#say(sinceDepth > DEPTH_HINT_AFTER_MS ? HINTS.moveForDepth : null, time);
     if (this.describe) {
-      const depth = frame.getDepthInformation(view);
+      if (!this.depth && time - this.firstFrameAt > FIRST_DEPTH_TIMEOUT_MS) {
+        this.#say(HINTS.noDepth, time);
+        this.describe.reject(new Error(HINTS.noDepth));
+        this.describe = null;
+        this.session.end();
+        return;
+      }
       if (!view.camera || !depth) return; // not ready yet
-      const viewport = layer.getViewport(view);
+      const viewport = this.layer.getViewport(view);
       const scale = COLOUR_LONG_SIDE / Math.max(view.camera.width, view.camera.height);
       const colourSize = [Math.round(view.camera.width * scale), Math.round(view.camera.height * scale)];
       const K = intrinsicsFromProjection(view.projectionMatrix, viewport.width, viewport.height);
@@ -138,23 +238,32 @@ export class LiveSource {
       this.describe = null;
     }
     if (!this.request) return;
+    // Each depth image goes out once: a frame sent with a depth image already sent would be
+    // held by the server's tracker as a repeat (not tracked, not fused), for the price of a
+    // frame. While depth flows (the latest within DEPTH_MAX_AGE_MS) and that one was sent, the
+    // capture waits for the next depth image.
+    if (depth && depth.sent) return;
     const request = this.request;
     this.request = null;
     try {
-      const depth = frame.getDepthInformation(view);
-      // Normal while ARCore (re)initialises: this frame has no depth or no camera image. It is
-      // skipped and counted, and capture goes on with the next one.
+      // Normal while ARCore (re)initialises or has no new depth image for a while: skipped and
+      // counted, and capture goes on with the next frame.
       if (!depth || !view.camera) {
         request.resolve({ skip: !depth ? "no depth" : "no camera image" });
         return;
       }
-      // Both copied out now: the camera texture and the depth buffer are only valid in this frame.
+      depth.sent = true;
+      // The camera texture is only valid in this frame: copied out now (the depth already was).
       const reading = this.#readCamera(view);
       const depthValues = this.#depthValues(depth);
+      const age = time - depth.time;
+      if (age > 0) this.stats.pairedOlder += 1;
+      this.stats.maxPairedAgeMs = Math.max(this.stats.maxPairedAgeMs, age);
       const anchor = new THREE.Matrix4().fromArray(view.transform.matrix);
       // Stamped with the XR frame's time (when its camera image was taken), not the request's;
-      // the phone's own pose of this image goes along as the tracker's prior.
-      const deviceCamera = deviceCameraFromView(view.transform.matrix);
+      // the phone's own pose of this image, in the current device world, goes along as the
+      // tracker's prior.
+      const deviceCamera = deviceCameraFromView(this.#inDeviceWorld(view.transform.matrix));
       const packing = reading.then((rgba) => this.#pack(rgba, depthValues, depth.rawValueToMeters))
         .then((packed) => ({ ...packed, fields: { ...packed.fields, timestamp: time / 1000, deviceCamera } }));
       request.resolve({ packing, anchor });
@@ -163,20 +272,102 @@ export class LiveSource {
     }
   }
 
-  /** The current XR frame's depth, in metres, for occlusion in the overlay drawn over this very
-   * view (occlusion.js; the buffer is only readable inside the frame, so it is copied here). */
-  #occlusionDepth(frame, view) {
+  /** No viewer pose in this frame (ARCore is not tracking): nothing to draw over the camera,
+   * nothing to capture; the user is told what to do. */
+  #trackingLost(time) {
+    this.lostSince ??= time;
+    this.stats.poseLostFrames += 1;
+    this.#say(HINTS.trackingLost, time);
+    const renderer = this.arView.renderer;
+    renderer.setRenderTarget(this.target);
+    renderer.clear(); // no overlay drawn at a pose ARCore no longer knows
+    renderer.setRenderTarget(null);
+    this.request?.resolve({ skip: "no pose" });
+    this.request = null;
+  }
+
+  /** A pose in the XR space (column-major 4x4) in the current device world: the XR space turned
+   * a half turn about its vertical (y) axis after an odd number of tracking losses. */
+  #inDeviceWorld(matrix) {
+    if (this.worlds % 2 === 0) return matrix;
+    const turned = Float32Array.from(matrix);
+    for (let c = 0; c < 4; c++) {
+      turned[c * 4] = -matrix[c * 4]; // x -> -x
+      turned[c * 4 + 2] = -matrix[c * 4 + 2]; // z -> -z
+    }
+    return turned;
+  }
+
+  /** Keep this frame's depth: the buffer is readable only inside its frame, so it is copied. */
+  #keepDepth(info, time) {
+    const data = info.data.slice(0);
+    this.depth = {
+      time, width: info.width, height: info.height, rawValueToMeters: info.rawValueToMeters,
+      values: this.session.depthDataFormat === "float32" ? new Float32Array(data) : new Uint16Array(data),
+      depthFromView: Float32Array.from(info.normDepthBufferFromNormView.matrix),
+    };
+    this.stats.depthImages += 1;
+  }
+
+  /** The depth for occlusion in the overlay drawn over this view, in metres (occlusion.js): the
+   * latest depth within DEPTH_MAX_AGE_MS, converted once per depth image; none: the mesh, or
+   * nothing, hides the drone. */
+  #occlusionDepth(depth) {
     const occlusion = this.arView.occlusion;
     if (!occlusion.enabled) return;
-    const depth = frame.getDepthInformation(view);
     if (!depth) {
       occlusion.clearDepth();
+      this.occlusionDepth = null;
       return;
     }
-    const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depth.data) : new Uint16Array(depth.data);
-    const metres = new Float32Array(raw.length);
-    for (let i = 0; i < raw.length; i++) metres[i] = raw[i] * depth.rawValueToMeters;
-    occlusion.setDepth(metres, depth.width, depth.height, null, depth.normDepthBufferFromNormView.matrix);
+    if (depth === this.occlusionDepth) return;
+    const metres = new Float32Array(depth.values.length);
+    for (let i = 0; i < metres.length; i++) metres[i] = depth.values[i] * depth.rawValueToMeters;
+    occlusion.setDepth(metres, depth.width, depth.height, null, depth.depthFromView);
+    this.occlusionDepth = depth;
+  }
+
+  /** Draw the overlay into the XR layer, from this view's pose and projection. */
+  #draw(time, view) {
+    const renderer = this.arView.renderer;
+    const viewport = this.layer.getViewport(view);
+    this.target.viewport.set(viewport.x, viewport.y, viewport.width, viewport.height);
+    const camera = this.xrCamera;
+    camera.matrix.fromArray(view.transform.matrix);
+    camera.matrixWorldNeedsUpdate = true;
+    camera.projectionMatrix.fromArray(view.projectionMatrix);
+    camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
+    const dt = this.lastDrawn === undefined ? 1 / 60 : Math.min(0.1, (time - this.lastDrawn) / 1000);
+    this.lastDrawn = time;
+    renderer.setRenderTarget(this.target);
+    this.arView.render(dt, camera);
+    // The page's window-frame loop may draw the AR view to its canvas before the first pose.
+    renderer.setRenderTarget(null);
+  }
+
+  /** Show a line to the user over the AR view, or hide it (null). */
+  #say(text, time = performance.now()) {
+    if (this.hint.textContent === (text ?? "") && this.hint.hidden === !text) return;
+    this.hint.textContent = text ?? "";
+    this.hint.hidden = !text;
+    if (text) this.said.push([time, text]);
+    if (this.said.length > 50) this.said.shift();
+  }
+
+  /** The AR view's line for the user (one per page, reused by each AR session). */
+  static #hintElement(container) {
+    let el = container.querySelector(".xr-hint");
+    if (!el) {
+      el = document.createElement("div");
+      el.className = "xr-hint";
+      el.setAttribute("role", "status");
+      // Styled here: above the tracking hints at the bottom of the view, wrapping on a phone.
+      Object.assign(el.style, { position: "absolute", left: "50%", bottom: "40px", transform: "translateX(-50%)",
+        maxWidth: "90%", padding: "6px 12px", borderRadius: "8px", background: "rgba(210, 153, 34, 0.95)",
+        color: "#fff", fontSize: "14px", textAlign: "center", zIndex: "3", pointerEvents: "none" });
+      container.append(el);
+    }
+    return el;
   }
 
   /** The camera image, downscaled to colourSize, as top-down RGBA ImageData (a promise). The
@@ -263,12 +454,12 @@ export class LiveSource {
     });
   }
 
-  /** The depth buffer resampled onto depthSize (raw values, times rawValueToMeters for metres):
-   * "luminance-alpha" and "unsigned-short" are uint16, "float32" float. */
-  #depthValues(depthInfo) {
+  /** A kept depth buffer (#keepDepth) resampled onto depthSize (raw values, times
+   * rawValueToMeters for metres): "luminance-alpha" and "unsigned-short" are uint16, "float32"
+   * float. */
+  #depthValues(depth) {
     const [dw, dh] = this.depthSize;
-    const raw = this.session.depthDataFormat === "float32" ? new Float32Array(depthInfo.data) : new Uint16Array(depthInfo.data);
-    return resampleDepth(raw, depthInfo.width, depthInfo.height, dw, dh, depthInfo.normDepthBufferFromNormView.matrix);
+    return resampleDepth(depth.values, depth.width, depth.height, dw, dh, depth.depthFromView);
   }
 
   async #pack(rgba, depthValues, rawValueToMeters) {

@@ -36,8 +36,6 @@ def tum_sequence(name: str) -> str | None:
     if m is None:
         return None
     seq = f"fr{m.group(1)}/{m.group(2)}"
-    if seq in ATE_M:
-        return seq
     # fr3/long_office_household is reported as fr3/office
     return "fr3/office" if seq.startswith("fr3/long") else seq
 

@@ -262,7 +262,6 @@ def run_o3d_tensor(frames: list[RGBDFrame], K: Intrinsics, T0: np.ndarray, bar) 
     return run
 
 
-# key -> (label, runner)
 def run_ours_track(ds, first: int, n: int, bar) -> MethodRun:
     """``python -m server track`` on frames first..first+n-1: the tracker, then loop closure
     over its keyframes (registration.loops, on by default offline), every frame moved with its
@@ -285,6 +284,7 @@ def run_ours_track(ds, first: int, n: int, bar) -> MethodRun:
     )
 
 
+# key -> (label, runner)
 METHODS: dict[str, tuple[str, Callable[..., MethodRun]]] = {
     "ours_sparse": ("ours sparse", lambda *a: run_ours(*a, dense=False)),
     "ours_dense": ("ours sparse+dense", lambda *a: run_ours(*a, dense=True)),
@@ -468,8 +468,7 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
             continue
         with tqdm(total=len(frames), desc=f"{run_name} {label}", unit="frame") as bar:
             if key == "ours_track":
-                first = int(np.argmin(np.abs(np.asarray(ds.timestamps) - frames[0].timestamp)))
-                run = run_ours_track(ds, first, len(frames), bar)
+                run = run_ours_track(ds, frames[0].index, len(frames), bar)
             else:
                 run = runner(frames, ds.intrinsics, gt_poses[0], bar)
         est = Trajectory(stamps, run.poses)
@@ -489,25 +488,21 @@ def benchmark_sequence(name: str, path: Path, args, header: dict) -> dict:
     targets = "; ".join(label for _, label, _ in TARGETS)
     console.print(f"targets for our rows: {targets}")
     others = published(name)
-    cited = (
-        "Published ATE RMSE on this sequence (the papers' own figures, whole sequence, not "
-        "measured here): "
-        + ", ".join(
-            f"{paper} {ate * 100:.1f} cm ({PAPERS[paper]})" for paper, ate in others.items()
+    cited = ""
+    if others:
+        papers = ", ".join(f"{p} {ate * 100:.1f} cm ({PAPERS[p]})" for p, ate in others.items())
+        cited = (
+            "Published ATE RMSE on this sequence (the papers' own figures, whole sequence, not "
+            f"measured here): {papers}.\n\n"
         )
-        + "."
-        if others
-        else ""
-    )
-    if cited:
-        console.print(cited)
+        console.print(cited.strip())
 
     png = args.out / f"{run_name}_trajectories.png"
     plot_topview(png, run_name, gt_poses, estimates)
     with open(args.out / "registration.md", "a") as md:
         md.write(
             f"\n### {run_name}\n\n{speed}. Targets for our rows: {targets}.\n\n"
-            f"{markdown_table(rows)}\n\n{cited + chr(10) + chr(10) if cited else ''}"
+            f"{markdown_table(rows)}\n\n{cited}"
             f"Trajectories: `trajectories/{run_name}/`, plot: `{png.name}`.\n"
         )
     return {

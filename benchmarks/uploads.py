@@ -37,6 +37,9 @@ import httpx  # noqa: E402
 import lzfse  # noqa: E402
 import numpy as np  # noqa: E402
 from capacity import scan_tree, snapshot_tree, tree_cpu_s  # noqa: E402  (this folder)
+
+sys.path.insert(0, str(REPO / "tests"))  # the bombs the upload tests build, built the same way
+from iphone_recordings import jpeg_declaring, lzfse_declaring, png_declaring  # noqa: E402
 from provenance import run_heading, utc_stamp  # noqa: E402
 
 from server.client.server_process import ServerProcess  # noqa: E402
@@ -81,26 +84,6 @@ def r3d(metadata: bytes | None = None, depth: bytes | None = None, jpeg: bytes |
     return out.getvalue()
 
 
-def lzfse_of_zeros(raw_bytes: int) -> bytes:
-    """An LZFSE stream of ``raw_bytes`` zeros, one compressed 8 MiB block repeated."""
-    block = lzfse.compress(bytes(8 << 20))
-    return block[:-4] * (raw_bytes // (8 << 20)) + b"bvx$"
-
-
-def png_declaring(width: int, height: int) -> bytes:
-    import struct
-    import zlib
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (
-            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-        )
-
-    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
-    idat = zlib.compress(bytes(1 << 20), 9)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
-
-
 def stray_zip(folder: Path, first_depth: bytes | None = None) -> bytes:
     """A little Stray Scanner export zipped, its first depth PNG replaced when given."""
     folder.mkdir(parents=True)
@@ -129,15 +112,13 @@ def stray_zip(folder: Path, first_depth: bytes | None = None) -> bytes:
 def cases(scratch: Path) -> list[tuple[str, bytes, str]]:
     """(what, the file's bytes, its name) for each upload, the genuine one first."""
     first_jpeg = cv2.imencode(".jpg", np.zeros((H, W, 3), np.uint8))[1].tobytes()
-    at = first_jpeg.index(b"\xff\xc0")
-    huge_jpeg = first_jpeg[: at + 5] + (20000).to_bytes(2, "big") + (30000).to_bytes(2, "big")
-    huge_jpeg += first_jpeg[at + 9 :]
+    huge_jpeg = jpeg_declaring(first_jpeg, 30000, 20000)
     meta = json.loads(zipfile.ZipFile(io.BytesIO(r3d())).read("metadata"))
     return [
         ("genuine .r3d, 8 frames (converted)", r3d(), "genuine.r3d"),
         ("metadata: 1 GB of JSON whitespace", r3d(b'{"w": 640' + b" " * (1 << 30) + b"}"), "a.r3d"),
-        ("depth: LZFSE streams of 2 GB each", r3d(depth=lzfse_of_zeros(2 << 30)), "b.r3d"),
-        ("depth: 64 MB in a 40 kB LZFSE stream", r3d(depth=lzfse_of_zeros(64 << 20)), "c.r3d"),
+        ("depth: LZFSE streams of 2 GB each", r3d(depth=lzfse_declaring(2 << 30)), "b.r3d"),
+        ("depth: 64 MB in a 40 kB LZFSE stream", r3d(depth=lzfse_declaring(64 << 20)), "c.r3d"),
         ("colour: JPEG declaring 30000x20000", r3d(jpeg=huge_jpeg), "d.r3d"),
         (
             "metadata: 16384x16384 colour",

@@ -10,18 +10,15 @@ holds); markers are evaluated for this machine, so the file is for Linux x86_64,
 
 from __future__ import annotations
 
-import re
+import sys
 from importlib.metadata import PackageNotFoundError, distribution
 from pathlib import Path
 
 from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name as canonical
 
 REPO = Path(__file__).resolve().parents[1]
 PROJECT, EXTRAS = "dronesim-ar", {"dev", "ray"}
-
-
-def canonical(name: str) -> str:
-    return re.sub(r"[-_.]+", "-", name).lower()
 
 
 def closure() -> dict[str, str]:
@@ -38,7 +35,9 @@ def closure() -> dict[str, str]:
         try:
             dist = distribution(name)
         except PackageNotFoundError:
-            continue  # a requirement whose marker excludes it here was filtered below
+            # Markers were evaluated before a requirement was queued: this one applies here
+            # but is not installed, and a lock without it would be incomplete.
+            sys.exit(f"{name} is required but not installed: install the project first")
         if canonical(name) != PROJECT:
             found[canonical(name)] = dist.version
         for line in dist.requires or []:

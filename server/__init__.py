@@ -6,7 +6,12 @@ Layout (one folder per stage; the numerical core imports nothing from the transp
 - ``mapping``       fusing registered frames into a map
 - ``evaluation``    trajectory files and metrics (ATE, RPE)
 - ``datasets``      one loader per RGB-D format behind one interface, plus the demo sequence
-- ``transport``     web server and wire protocol (filled in by the server issue)
+- ``simulation``    the drone: physics, collisions against the map, planned routes, courses
+- ``rooms``         maps kept between sessions, and relocalising a new session into one
+- ``sessions``      a live session's tracking, fusion and drone, and the processes they run in
+- ``protocol``      the wire messages (``shared/protocol.json``)
+- ``transport``     the FastAPI app: REST routes, WebSocket sessions, uploads
+- ``client``        the load tester and replay clients
 """
 
 from importlib.metadata import PackageNotFoundError, version

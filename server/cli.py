@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from server import __version__
 from server.errors import DroneSimError
 
 app = typer.Typer(no_args_is_help=True, help=__doc__, rich_markup_mode="markdown")
@@ -21,8 +22,6 @@ err_console = Console(stderr=True, soft_wrap=True)
 
 def _print_version(value: bool) -> None:
     if value:
-        from server import __version__
-
         console.print(f"dronesim-ar {__version__}")
         raise typer.Exit()
 
@@ -36,7 +35,8 @@ def _root(
         ),
     ] = False,
 ) -> None:
-    """Command line of the AR drone simulator: track, evaluate, serve, loadtest, config."""
+    # The group's help is the module's docstring (Typer(help=...)).
+    pass
 
 
 # Every command that runs the pipeline or the server takes the configuration the same way.
@@ -305,7 +305,7 @@ def evaluate_cmd(
     if plot is not None:
         from server.evaluation.plots import plot_top_view
 
-        gt_m, est_m = associate_trajectories(gt, est, max_diff)
+        gt_m, est_m = associate_trajectories(gt, est, max_diff)  # as evaluate() paired them
         curves = {
             "ground truth": gt_m.poses,
             f"{estimate.stem} ({align})": aligned(gt_m, est_m, align).poses,

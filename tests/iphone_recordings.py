@@ -9,7 +9,9 @@ same FFmpeg path. Everything is written into the caller's (temporary) folder.
 from __future__ import annotations
 
 import json
+import struct
 import zipfile
+import zlib
 from pathlib import Path
 
 import cv2
@@ -17,6 +19,7 @@ import lzfse
 import numpy as np
 
 from server.datasets import open_dataset
+from server.datasets.bounds import lzfse_size
 from server.geometry import Intrinsics, quaternion_from_pose
 from server.pipeline import ground_truth_pose_at
 from server.registration.preprocess import resample_depth
@@ -130,11 +133,48 @@ def write_r3d(room: dict, path: Path) -> Path:
     return path
 
 
-def zip_folder(folder: Path, path: Path, inside: str | None = None) -> Path:
+def zip_folder(
+    folder: Path, path: Path, inside: str | None = None, compression: int = zipfile.ZIP_STORED
+) -> Path:
     """``folder``'s files zipped into ``path``, under ``inside/`` (default: at the top)."""
-    with zipfile.ZipFile(path, "w") as z:
+    with zipfile.ZipFile(path, "w", compression) as z:
         for item in sorted(folder.rglob("*")):
             if item.is_file():
                 name = item.relative_to(folder).as_posix()
                 z.write(item, f"{inside}/{name}" if inside else name)
     return path
+
+
+# ---- files that declare more than they hold: upload bombs, built small (tests and benchmarks)
+
+
+def png_declaring(width: int, height: int) -> bytes:
+    """A 16-bit greyscale PNG whose header declares ``width`` x ``height`` and whose pixel data
+    is a little zlib stream of zeros (a decoder would allocate the header's size first)."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    header = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(bytes(1 << 20), 9))
+        + chunk(b"IEND", b"")
+    )
+
+
+def jpeg_declaring(jpeg: bytes, width: int, height: int) -> bytes:
+    """``jpeg`` with the size in its baseline frame header (SOF0) changed."""
+    at = jpeg.index(b"\xff\xc0")
+    return jpeg[: at + 5] + struct.pack(">HH", height, width) + jpeg[at + 9 :]
+
+
+def lzfse_declaring(raw_bytes: int) -> bytes:
+    """An LZFSE stream of ``raw_bytes`` zeros (a whole number of 8 MiB blocks), made from one
+    compressed block repeated: ~1 MB of stream per GB, never held decompressed here."""
+    block = lzfse.compress(bytes(8 << 20))
+    assert block.endswith(b"bvx$") and lzfse_size(block) == 8 << 20
+    return block[:-4] * (raw_bytes // (8 << 20)) + b"bvx$"

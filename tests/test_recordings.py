@@ -8,23 +8,30 @@ import asyncio
 import io
 import json
 import logging
+import os
 import socket
 import struct
 import time
 import zipfile
-import zlib
 from pathlib import Path
 
 import cv2
 import httpx
-import lzfse
 import numpy as np
 import pytest
 from conftest import Stream, auth
-from iphone_recordings import room_recording, write_r3d, write_stray, zip_folder
+from iphone_recordings import (
+    jpeg_declaring,
+    lzfse_declaring,
+    png_declaring,
+    room_recording,
+    write_r3d,
+    write_stray,
+    zip_folder,
+)
 
+from server.client import server_process
 from server.datasets import open_dataset
-from server.datasets.bounds import lzfse_size
 
 REPO = Path(__file__).resolve().parents[1]
 ROOM = REPO.parent / "shared" / "data" / "synthetic_room0"
@@ -114,11 +121,8 @@ def test_an_upload_is_converted_and_read_back_with_its_token(live_server, r3d, s
 
 def broken_r3d(r3d: Path) -> bytes:
     """The Record3D file with its metadata cut short."""
-    out = io.BytesIO()
-    with zipfile.ZipFile(r3d) as src, zipfile.ZipFile(out, "w") as dst:
-        for item in src.namelist():
-            dst.writestr(item, src.read(item)[:20] if item == "metadata" else src.read(item))
-    return out.getvalue()
+    with zipfile.ZipFile(r3d) as z:
+        return r3d_with(r3d, metadata=z.read("metadata")[:20])
 
 
 def other_zip() -> bytes:
@@ -185,10 +189,7 @@ def metadata_of(r3d: Path) -> dict:
 
 def rss_mb() -> float:
     """This process's resident memory (the live server runs in it), MB."""
-    for line in open("/proc/self/status"):
-        if line.startswith("VmRSS"):
-            return int(line.split()[1]) / 1024
-    return 0.0
+    return server_process.rss_mb(os.getpid())
 
 
 def test_a_file_that_inflates_far_costs_its_conversion_process_not_the_server(
@@ -232,48 +233,12 @@ def test_a_file_that_inflates_far_costs_its_conversion_process_not_the_server(
     assert upload(server, r3d.read_bytes()).status_code == 201  # and a good one still converts
 
 
-def png_declaring(width: int, height: int) -> bytes:
-    """A 16-bit greyscale PNG whose header declares ``width`` x ``height`` and whose pixel data
-    is a little zlib stream of zeros (a decoder would allocate the header's size first)."""
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (
-            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-        )
-
-    header = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
-    return (
-        b"\x89PNG\r\n\x1a\n"
-        + chunk(b"IHDR", header)
-        + chunk(b"IDAT", zlib.compress(bytes(1 << 20), 9))
-        + chunk(b"IEND", b"")
-    )
-
-
-def jpeg_declaring(jpeg: bytes, width: int, height: int) -> bytes:
-    """``jpeg`` with the size in its baseline frame header (SOF0) changed."""
-    at = jpeg.index(b"\xff\xc0")
-    return jpeg[: at + 5] + struct.pack(">HH", height, width) + jpeg[at + 9 :]
-
-
-def lzfse_declaring(raw_bytes: int) -> bytes:
-    """An LZFSE stream of ``raw_bytes`` zeros (a whole number of 8 MiB blocks), made from one
-    compressed block repeated: ~1 MB of stream per GB, never held decompressed here."""
-    block = lzfse.compress(bytes(8 << 20))
-    assert block.endswith(b"bvx$") and lzfse_size(block) == 8 << 20
-    return block[:-4] * (raw_bytes // (8 << 20)) + b"bvx$"
-
-
 def stray_with(room, tmp_path: Path, member: str, data: bytes) -> bytes:
     """A Stray export of the room, zipped (deflated), with ``member`` written as ``data``."""
     folder = write_stray(room, tmp_path / "scan", video_size=(1280, 960))
     (folder / member).write_bytes(data)
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
-        for item in sorted(folder.rglob("*")):
-            if item.is_file():
-                z.write(item, f"scan/{item.relative_to(folder).as_posix()}")
-    return out.getvalue()
+    archive = zip_folder(folder, tmp_path / "scan.zip", "scan", zipfile.ZIP_DEFLATED)
+    return archive.read_bytes()
 
 
 @pytest.mark.parametrize(

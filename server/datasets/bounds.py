@@ -47,7 +47,7 @@ class DecodeLimits:
         if size > self.max_metadata_bytes:
             raise DatasetError(
                 f"{what} is {size / 1e6:.0f} MB, more than the {self.max_metadata_bytes / 1e6:.0f}"
-                " MB a recording's metadata may take"
+                " MB a recording's metadata may take (server.upload_max_metadata_mb)"
             )
 
 

@@ -98,7 +98,6 @@ class Record3DDataset(RGBDDataset):
     ):
         self.path = Path(path)
         self.name = self.path.stem
-        self.limits = limits
         if depth_scale is not None:
             raise DatasetError(
                 f"{self.path}: Record3D depth is float metres; no depth scale applies"
@@ -108,13 +107,9 @@ class Record3DDataset(RGBDDataset):
         self.min_confidence = min_confidence
         self._lock = threading.Lock()
         self._zip: zipfile.ZipFile | None = None
+        text = self._read("metadata", limits.max_metadata_bytes, "server.upload_max_metadata_mb")
         try:
-            metadata = json.loads(
-                self._read("metadata", limits.max_metadata_bytes, "server.upload_max_metadata_mb")
-            )
-            K, self._depth_size, stamps, arkit_poses = parse_metadata(metadata)
-        except DatasetError:
-            raise
+            K, self._depth_size, stamps, arkit_poses = parse_metadata(json.loads(text))
         except (ValueError, TypeError, KeyError, DroneSimError) as exc:
             raise DatasetError(
                 f"{self.path}: bad metadata (expected JSON with w, h, K, dw, dh, fps, poses): "

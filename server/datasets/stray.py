@@ -104,7 +104,7 @@ def png_file_size(path: Path) -> tuple[int, int]:
         with path.open("rb") as f:
             return png_size(f.read(24))
     except (OSError, DatasetError) as exc:
-        raise DatasetError(f"{path}: expected a 1-channel uint16 PNG: {exc}") from exc
+        raise DatasetError(f"{path}: expected a PNG: {exc}") from exc
 
 
 def read_odometry(
@@ -269,9 +269,8 @@ class StrayDataset(RGBDDataset):
             raise DatasetError(
                 f"{self.path}: odometry.csv lists frames without depth: {missing[:5]}"
             )
-        depth_size = png_file_size(self._depth_files[0])
-        limits.check_pixels(f"{self._depth_files[0]}", *depth_size)
-        self._depth_size = depth_size
+        depth_size = self._depth_size = png_file_size(self._depth_files[0])
+        limits.check_pixels(str(self._depth_files[0]), *depth_size)
         if abs(depth_size[0] / depth_size[1] / (video[0] / video[1]) - 1) > MAX_ASPECT_DIFFERENCE:
             raise DatasetError(
                 f"{self.path}: depth is {depth_size[0]}x{depth_size[1]} and rgb.mp4 "
@@ -319,14 +318,21 @@ class StrayDataset(RGBDDataset):
 
     def _read_png(self, path: Path) -> np.ndarray | None:
         """A depth or confidence PNG, decoded only when its header gives the first depth
-        image's size (so a file that declares gigapixels allocates nothing)."""
-        size = png_file_size(path)
+        image's size (so a file that declares gigapixels allocates nothing); the file is read
+        once, its header checked, then its bytes decoded."""
+        try:
+            data = path.read_bytes()
+            size = png_size(data[:24])
+        except (OSError, DatasetError) as exc:
+            raise DatasetError(f"{path}: expected a PNG: {exc}") from exc
         if size != self._depth_size:
             raise DatasetError(
                 f"{path}: is {size[0]}x{size[1]}, not the recording's depth size "
                 f"{self._depth_size[0]}x{self._depth_size[1]}"
             )
-        image: np.ndarray | None = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image: np.ndarray | None = cv2.imdecode(
+            np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED
+        )
         return image
 
     @property

@@ -117,8 +117,8 @@ def ate(gt: Trajectory, est: Trajectory, align: bool | str = True) -> dict[str, 
     """Absolute trajectory error of associated trajectories: statistics (rmse, mean, median, max,
     metres) of the position differences, after aligning ``est`` to ``gt`` (``aligned``: True or
     "se3" rigid, "sim3" with scale, False or "none" not at all)."""
-    mode = {True: "se3", False: "none"}.get(align, align) if isinstance(align, bool) else align
-    est = aligned(gt, est, str(mode))
+    mode = "se3" if align is True else "none" if align is False else align
+    est = aligned(gt, est, mode)
     return _stats(np.linalg.norm(est.poses[:, :3, 3] - gt.poses[:, :3, 3], axis=1))
 
 

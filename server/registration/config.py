@@ -89,7 +89,8 @@ class SolverConfig:
     # (a translation-only dense step still gave 3.01 cm). It helped where the depth is exact
     # (synthetic_room0 0.16 against 0.20 cm without it, 0.19 with keyframes.window=2) and on
     # 7scenes_a, whose truth is KinectFusion's own dense fit (``track`` 2.51 against 2.80 cm).
-    # The keyframes' surfaces are still built: relocalisation refines poses on them.
+    # With it off, a keyframe keeps its cleaned depth and builds its surface only when
+    # relocalisation first refines a pose on it (Keyframe.surface).
     dense: bool = False
     dense_stride: int = 8  # sample every n-th pixel of the current depth
     dense_iterations: int = 6

@@ -137,13 +137,13 @@ class Relocaliser:
         self.database.add(keyframe_id, T_world_keyframe, features)
         self.segment_of[keyframe_id] = segment
 
-    def move_segment(self, segment: int, into: int, T_correction: FloatArray) -> None:
-        """Merge ``segment`` into ``into``: its keyframes move by ``T_correction`` (4x4, old
-        world to new world, T_new = T_correction @ T_old) and belong to ``into`` from now on."""
+    def merge_segment(self, segment: int, T_correction: FloatArray) -> None:
+        """Merge ``segment`` into the map: its keyframes move by ``T_correction`` (4x4, segment
+        world to map world, T_new = T_correction @ T_old) and belong to segment 0 from now on."""
         for e in self.database.entries:
-            if self.segment_of.get(e.keyframe_id) == segment:
+            if self.segment_of[e.keyframe_id] == segment:
                 e.T_world_keyframe = T_correction @ e.T_world_keyframe
-                self.segment_of[e.keyframe_id] = into
+                self.segment_of[e.keyframe_id] = 0
 
     def correct(self, keyframe_poses: dict[int, FloatArray], T_correction: FloatArray) -> None:
         """Keyframes moved (loop closure): those in ``keyframe_poses`` to their corrected

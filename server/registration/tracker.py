@@ -34,7 +34,7 @@ from server.registration.config import RegistrationConfig
 from server.registration.dense import DenseModel, refine_dense, sample_dense_points
 from server.registration.flow import track_points
 from server.registration.keyframe import Keyframe, make_keyframe
-from server.registration.place import KeyframeDatabase
+from server.registration.place import KeyframeDatabase, PlaceFeatures
 from server.registration.preprocess import (
     clean_depth,
     sample_stable_depth,
@@ -213,6 +213,10 @@ class Tracker:
         self.lost_run = 0
         self._velocity_before_loss: FloatArray = np.eye(4)
         self.archive: dict[int, Keyframe] = {}  # older keyframes by id, oldest first (_archive)
+        # The last frame's place features, with the grey image they describe (compared by
+        # identity: frame indices may start again): a lost frame is looked up and may then
+        # become a keyframe, which would describe it a second time (~8 ms of ORB).
+        self._described: tuple[GreyImage, PlaceFeatures] | None = None
 
     @property
     def T_world_device(self) -> FloatArray | None:
@@ -426,9 +430,7 @@ class Tracker:
             index,
             T_world_cur.copy(),
             state,
-            int(solution.inliers.sum()),
-            solution.rmse,
-            solution.condition,
+            *_quality(solution),
             kf.id,
             False,
             timings,
@@ -737,7 +739,7 @@ class Tracker:
         from it); None when nothing verifies."""
         if not self.cfg.relocalise.enabled or len(self.relocaliser) == 0:
             return None
-        query = self.relocaliser.describe(grey, depth)
+        query = self._describe(grey, depth)
         current = None if self.keyframe is None else self.keyframe.id
         place = self.relocaliser.find(query, self.T_world_last, {0, self.segment}, current)
         if place is None:
@@ -856,7 +858,7 @@ class Tracker:
         confirmed by flow against a held map keyframe where there is one), the segment's
         keyframes move into the map with it. Returns (segment, T_correction: segment world to
         map world, 4x4) or None."""
-        query = self.relocaliser.describe(grey, depth)
+        query = self._describe(grey, depth)
         place = self.relocaliser.find(query, T_world_cur, {0})
         if place is None:
             return None
@@ -875,7 +877,7 @@ class Tracker:
             if held.segment == segment:
                 held.T_world_keyframe = orthonormalize(T_correction @ held.T_world_keyframe)
                 held.segment = 0
-        self.relocaliser.move_segment(segment, 0, T_correction)
+        self.relocaliser.merge_segment(segment, T_correction)
         self.relocaliser.restart_sweep()
         self.segment = 0
         log.info(
@@ -1095,8 +1097,15 @@ class Tracker:
         self.recent.append(kf)
         self.tracks = _Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
         if self.cfg.relocalise.enabled:
-            features = self.relocaliser.describe(grey, depth)
+            features = self._describe(grey, depth)
             self.relocaliser.add(kf.id, self.segment, kf.T_world_keyframe, features)
+
+    def _describe(self, grey: GreyImage, depth: Float32Array) -> PlaceFeatures:
+        """A frame's place features (its grey image and cleaned depth, metres), described once
+        however many steps of recovery and keyframing ask for them."""
+        if self._described is None or self._described[0] is not grey:
+            self._described = (grey, self.relocaliser.describe(grey, depth))
+        return self._described[1]
 
 
 def _quality(solution: SparseSolution) -> tuple[int, float, float]:

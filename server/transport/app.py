@@ -9,6 +9,7 @@ import json
 import logging
 import math
 import re
+from collections.abc import Mapping
 
 import uvicorn
 from fastapi import FastAPI, Request
@@ -50,6 +51,15 @@ _STATUS = {
     "rate_limited": 429,
     "server_full": 503,
 }
+
+
+def _error(
+    code: str, message: str, status: int, headers: Mapping[str, str] | None = None
+) -> JSONResponse:
+    """The documented error answer (schemas.ErrorBody): ``{"error": {code, message}}``."""
+    return JSONResponse(
+        {"error": {"code": code, "message": message}}, status_code=status, headers=headers
+    )
 
 
 class RedactTokens(logging.Filter):
@@ -153,25 +163,17 @@ def create_app(config: Config | None = None) -> FastAPI:
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:
         retry = getattr(exc, "retry_after_s", None)
-        return JSONResponse(
-            {"error": {"code": exc.code, "message": str(exc)}},
-            status_code=_STATUS.get(exc.code, 400),
-            headers={"Retry-After": str(math.ceil(retry))} if retry else None,
-        )
+        headers = {"Retry-After": str(math.ceil(retry))} if retry else None
+        return _error(exc.code, str(exc), _STATUS.get(exc.code, 400), headers)
 
     @app.exception_handler(RecordingError)
     async def recording_error(request: Request, exc: RecordingError) -> JSONResponse:
-        return JSONResponse(
-            {"error": {"code": exc.code, "message": str(exc)}}, status_code=exc.status
-        )
+        return _error(exc.code, str(exc), exc.status)
 
     @app.exception_handler(StoreError)
     async def store_error(request: Request, exc: StoreError) -> JSONResponse:
         # A malformed id is indistinguishable from an unknown one.
-        return JSONResponse(
-            {"error": {"code": "not_found", "message": "no session with this id for this token"}},
-            status_code=404,
-        )
+        return _error("not_found", "no session with this id for this token", 404)
 
     def openapi() -> dict:
         """FastAPI's schema, with its validation answers (422) documented as what the server
@@ -206,18 +208,12 @@ def create_app(config: Config | None = None) -> FastAPI:
             e for e in errors if e.get("loc", ("",))[0] == "path" or e.get("loc")[-1:] == ("room",)
         ]
         if names_an_id:
-            return JSONResponse(
-                {"error": {"code": "not_found", "message": "nothing with this id"}},
-                status_code=404,
-            )
+            return _error("not_found", "nothing with this id", 404)
         where = "; ".join(
             f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}"
             for e in errors[:5]
         )
-        return JSONResponse(
-            {"error": {"code": "bad_request", "message": f"the request is malformed: {where}"}},
-            status_code=422,
-        )
+        return _error("bad_request", f"the request is malformed: {where}", 422)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -226,17 +222,11 @@ def create_app(config: Config | None = None) -> FastAPI:
         code = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized"}.get(
             exc.status_code, f"http_{exc.status_code}"
         )
-        return JSONResponse(
-            {"error": {"code": code, "message": str(exc.detail)}},
-            status_code=exc.status_code,
-            headers=getattr(exc, "headers", None),
-        )
+        return _error(code, str(exc.detail), exc.status_code, exc.headers)
 
     @app.exception_handler(MapError)
     async def map_error(request: Request, exc: MapError) -> JSONResponse:
-        return JSONResponse(
-            {"error": {"code": "map_unavailable", "message": str(exc)}}, status_code=409
-        )
+        return _error("map_unavailable", str(exc), 409)
 
     @app.get("/healthz", tags=["server"])
     def health() -> dict:

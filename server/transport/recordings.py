@@ -17,7 +17,6 @@ from __future__ import annotations
 import hmac
 import json
 import logging
-import re
 import resource
 import secrets
 import shutil
@@ -26,7 +25,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 
 from server.datasets.archives import UnknownRecording, open_recording_archive
-from server.datasets.bounds import DEFAULT_LIMITS, DecodeLimits
+from server.datasets.bounds import DecodeLimits
 from server.datasets.replay_export import export_replay
 from server.errors import DatasetError, DroneSimError
 from server.sessions.store import hash_token
@@ -61,16 +60,16 @@ def recording_name(filename: str | None) -> str:
 class RecordingStore:
     """The recordings under ``root``; uploads of at most ``max_upload_bytes``, each converted
     in a process that may take ``memory_bytes`` more address space than it starts with and run
-    ``convert_s`` seconds (None: conversion in the caller, no limits), and read within
-    ``limits`` (what any member, image and frame list may declare)."""
+    ``convert_s`` seconds, and read within ``limits`` (what any member, image and frame list
+    may declare)."""
 
     def __init__(
         self,
         root: Path,
         max_upload_bytes: int,
-        memory_bytes: int | None = None,
-        convert_s: float = 600.0,
-        limits: DecodeLimits = DEFAULT_LIMITS,
+        memory_bytes: int,
+        convert_s: float,
+        limits: DecodeLimits,
     ) -> None:
         self.root = root
         self.max_upload_bytes = max_upload_bytes
@@ -127,19 +126,17 @@ class RecordingStore:
         unpacked = self.root / ".incoming" / f"{recording_id}.unpacked"
         try:
             max_unpacked = MAX_UNPACK_FACTOR * self.max_upload_bytes
-            if self.memory_bytes is None:
-                index = _export(upload, unpacked, staging, max_unpacked, self.limits)
-            else:
-                index = self._export_apart(upload, unpacked, staging, max_unpacked)
+            index = self._export_apart(upload, unpacked, staging, max_unpacked)
             index |= {"name": name}
             (staging / "index.json").write_text(json.dumps(index))
             meta = {"id": recording_id, "token_sha256": hash_token(token), "name": index["name"]}
             (staging / "meta.json").write_text(json.dumps(meta))
             staging.rename(self.root / recording_id)  # whole, or not there at all
         except UnknownRecording as exc:
-            raise RecordingError("unsupported_recording", self._plain(exc, upload), 415) from exc
+            message = _plain(exc, upload, unpacked, self.root)
+            raise RecordingError("unsupported_recording", message, 415) from exc
         except DatasetError as exc:
-            message = f"cannot read the recording: {self._plain(exc, upload)}"
+            message = f"cannot read the recording: {_plain(exc, upload, unpacked, self.root)}"
             raise RecordingError("bad_recording", message, 422) from exc
         finally:
             upload.unlink(missing_ok=True)
@@ -183,24 +180,13 @@ class RecordingStore:
         if outcome == "unknown":
             raise UnknownRecording(value)
         if outcome == "memory" or outcome == "died":
-            assert self.memory_bytes is not None
+            # "died": under RLIMIT_AS a failed allocation in native code may abort the process
+            # instead of raising MemoryError.
             raise DatasetError(
                 f"converting it needs more than {self.memory_bytes / 2**20:.0f} MB of memory "
                 "(server.upload_memory_mb): a recording that inflates this far is refused"
             )
         raise DatasetError(value)
-
-    def _plain(self, exc: BaseException, upload: Path) -> str:
-        """An error's message without the server's own paths (a client has no use for them):
-        the upload's file becomes "the upload", its unpacked folder's files their own names."""
-        message = str(exc)
-        for prefix in (upload.resolve(), upload):
-            message = message.replace(f"{prefix}: ", "").replace(str(prefix), "the upload")
-        unpacked = self.root / ".incoming"
-        for prefix in (unpacked.resolve(), unpacked, self.root.resolve(), self.root):
-            message = re.sub(re.escape(str(prefix)) + r"/[0-9a-f]+\.unpacked/?", "", message)
-            message = message.replace(str(prefix), "")
-        return message
 
     def folder(self, recording_id: str, token: str | None) -> Path:
         """The folder of the recording ``token`` opens. No token: 401; an unknown id or a wrong
@@ -227,6 +213,18 @@ class RecordingStore:
 
     def delete(self, folder: Path) -> None:
         shutil.rmtree(folder)
+
+
+def _plain(exc: BaseException, upload: Path, unpacked: Path, root: Path) -> str:
+    """An error's message without the server's own paths (a client has no use for them): the
+    upload's file ("<path>: " prefixes dropped), its unpacked folder (its files keep their names
+    within it) and the recordings folder."""
+    message = str(exc)
+    for path in (upload, unpacked, root):
+        for form in (str(path.resolve()), str(path)):
+            message = message.replace(f"{form}: ", "").replace(f"{form}/", "")
+            message = message.replace(form, "the upload" if path == upload else "")
+    return message
 
 
 def _export(

@@ -74,7 +74,7 @@ def _urls(recording_id: str, index: dict) -> dict:
         }
     },
 )
-async def upload_recording(request: Request, name: str | None = None) -> JSONResponse:
+async def upload_recording(request: Request, name: str | None = None) -> Response:
     """Upload an iPhone recording and convert it for the page's replay: **201** with `{id,
     token, index, name, frames}`. The token is shown only here: `GET index` with
     `Authorization: Bearer <token>` gives the replay's index (camera, sizes, per-frame file
@@ -98,7 +98,7 @@ async def upload_recording(request: Request, name: str | None = None) -> JSONRes
         # traceback: nothing on the server went wrong, and no one is left to answer.
         client = request.client.host if request.client else "?"
         log.info("upload from %s aborted by the client; nothing kept", client)
-        return JSONResponse({}, status_code=status.HTTP_400_BAD_REQUEST)
+        return Response(status_code=status.HTTP_400_BAD_REQUEST)
     recording_id, token, index = await asyncio.to_thread(
         store.convert, upload, recording_name(name)
     )

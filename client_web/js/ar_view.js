@@ -47,7 +47,12 @@ export class ARView {
     this.segmentHint.className = "segment-hint";
     this.segmentHint.textContent = "Placed roughly: map paused until the camera sees a mapped place";
     this.stage.append(this.image, this.renderer.domElement, this.tapMarker, this.lostHint, this.segmentHint);
-    container.append(this.stage);
+    // Live AR's line for the user (move the phone, tracking lost, no depth): sources/live.js.
+    this.xrHint = document.createElement("div");
+    this.xrHint.className = "xr-hint";
+    this.xrHint.setAttribute("role", "status");
+    this.xrHint.hidden = true;
+    container.append(this.stage, this.xrHint);
 
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera();

@@ -5,6 +5,9 @@ const FPS_WINDOW_MS = 2000;
 const CLEARANCE_WARN_M = 0.3;
 const CLEARANCE_BAD_M = 0.15;
 
+// While tracking recovers (PROTOCOL.md, "Tracking recovery"): how, said beside the state.
+const RECOVERY = Object.freeze({ relocalised: "found again", segment: "placed roughly", merged: "back in the map" });
+
 export class Hud {
   constructor(root = document) {
     this.fields = Object.fromEntries([...root.querySelectorAll("[data-field]")].map((el) => [el.dataset.field, el]));
@@ -34,8 +37,7 @@ export class Hud {
     const now = performance.now();
     this.poseTimes.push(now);
     while (this.poseTimes.length && this.poseTimes[0] < now - FPS_WINDOW_MS) this.poseTimes.shift();
-    // While tracking recovers (PROTOCOL.md, "Tracking recovery"): say how, beside the state.
-    const how = { relocalised: "found again", segment: "placed roughly", merged: "back in the map" }[pose.recovery];
+    const how = RECOVERY[pose.recovery];
     this.#set("tracking", how ? `tracking ${pose.state} · ${how}` : `tracking ${pose.state}`, pose.state);
     this.#failures(pose.failures ?? {});
   }

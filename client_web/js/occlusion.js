@@ -86,25 +86,26 @@ const MESH_FRAGMENT = /* glsl */ `void main() { gl_FragColor = vec4(0.0); }`;
  * at grazing angles and on dark or shiny surfaces, which would let the drone show through a
  * surface in specks; the nearest depth errs on the side of hiding, by at most `radius` depth
  * pixels beside an edge. Done once per depth image, not per drawn pixel.
- * @param {Float32Array} metres width x height, row-major
- * @param {Float32Array} out the same size (may not be `metres`)
+ * @param {ArrayLike<number>} depth width x height, row-major, in units of `scale` metres
+ *   (1: metres; a phone's raw depth with its rawValueToMeters, read as it is)
+ * @param {Float32Array} out the same size (may not be `depth`), metres
  */
-export function fillDepthHoles(metres, width, height, out, radius = 2) {
+export function fillDepthHoles(depth, width, height, out, radius = 2, scale = 1) {
   for (let y = 0; y < height; y++) {
     for (let x = 0; x < width; x++) {
       const i = y * width + x;
-      let d = metres[i];
+      let d = depth[i];
       if (!(d > 0)) {
         d = Infinity;
         for (let v = Math.max(0, y - radius); v <= Math.min(height - 1, y + radius); v++) {
           for (let u = Math.max(0, x - radius); u <= Math.min(width - 1, x + radius); u++) {
-            const s = metres[v * width + u];
+            const s = depth[v * width + u];
             if (s > 0 && s < d) d = s;
           }
         }
         if (d === Infinity) d = 0;
       }
-      out[i] = d;
+      out[i] = d * scale;
     }
   }
   return out;
@@ -141,20 +142,21 @@ export class Occlusion {
   }
 
   /**
-   * Real depth for the overlay, in metres along the optical axis (0: no measurement).
-   * @param {Float32Array} metres row-major, width x height, top row first
+   * Real depth for the overlay, along the optical axis (0: no measurement).
+   * @param {ArrayLike<number>} depth row-major, width x height, top row first, in units of
+   *   `scale` metres (a phone's raw depth buffer with its rawValueToMeters, not copied first)
    * @param {number|null} seq the frame it belongs to (replay), or null for "the current XR frame"
    * @param {Float32Array|number[]|null} depthFromView 4x4 column-major (WebXR's
    *   normDepthBufferFromNormView.matrix); null: the depth image has the view's field of view
    */
-  setDepth(metres, width, height, seq = null, depthFromView = null) {
+  setDepth(depth, width, height, seq = null, depthFromView = null, scale = 1) {
     let texture = this.depth?.texture;
     if (!texture || this.depth.width !== width || this.depth.height !== height) {
       texture?.dispose();
       texture = new THREE.DataTexture(new Float32Array(width * height), width, height, THREE.RedFormat, THREE.FloatType);
       texture.minFilter = texture.magFilter = THREE.NearestFilter; // never blend a near edge with the far side
     }
-    fillDepthHoles(metres, width, height, texture.image.data);
+    fillDepthHoles(depth, width, height, texture.image.data, 2, scale);
     texture.needsUpdate = true;
     this.depth = { seq, texture, width, height };
     this.depthMissingSince = null;

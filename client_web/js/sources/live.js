@@ -47,7 +47,7 @@ export const DEPTH_MAX_AGE_MS = 150;
 // the phone (depth from motion needs it); not sooner, so that a late depth image or two do not
 // make the hint flicker.
 const DEPTH_HINT_AFTER_MS = 500;
-// No depth at all this long after ARCore's first tracked frame: AR stops with a message saying
+// No depth at all this long after the session's first XR frame: AR stops with a message saying
 // why (ARCore's depth comes within a second or two of moving the phone where it can measure).
 export const FIRST_DEPTH_TIMEOUT_MS = 10000;
 export const HINTS = Object.freeze({
@@ -92,12 +92,14 @@ export class LiveSource {
     this.onEnd = null;
     this.depth = null; // the latest depth, copied out of its frame (#keepDepth)
     this.occlusionDepth = null; // the depth the overlay's occlusion was last given
-    this.lostSince = null; // XR time since which ARCore has given no viewer pose
+    this.poseLost = false; // ARCore gives no viewer pose (not tracking)
     this.trackedSince = null; // XR time since which it has (again)
+    this.firstFrameAt = null; // XR time of the session's first frame (FIRST_DEPTH_TIMEOUT_MS)
+    this.lastDrawn = undefined; // XR time the overlay was last drawn
     this.worlds = 0; // tracking losses so far: the device world is the XR space turned by worlds half turns
     this.stats = { depthImages: 0, pairedOlder: 0, maxPairedAgeMs: 0, poseLostFrames: 0 };
     this.said = []; // [XR time ms, text] of each line shown to the user (#say), the latest 50
-    this.hint = LiveSource.#hintElement(arView.container);
+    this.hint = arView.xrHint;
     this.#say(null);
   }
 
@@ -160,7 +162,10 @@ export class LiveSource {
   #ended() {
     const renderer = this.arView.renderer;
     if (renderer.getRenderTarget() === this.target) renderer.setRenderTarget(null);
-    this.target?.dispose();
+    // Dropped, not disposed: its framebuffer is the XR layer's (setRenderTargetFramebuffer),
+    // which three would delete, an invalid operation on a layer's framebuffer (three's own
+    // WebXRManager drops its target the same way).
+    this.target = null;
     this.arView.xrAnchor = null;
     this.arView.container.classList.remove("xr");
     if (this.hint.textContent !== HINTS.noDepth) this.#say(null); // that one says why AR stopped
@@ -198,9 +203,9 @@ export class LiveSource {
       this.#trackingLost(time);
       return;
     }
-    if (this.lostSince !== null) {
+    if (this.poseLost) {
       // Tracking again, perhaps relocalised: a new device world for the prior (top of the file).
-      this.lostSince = null;
+      this.poseLost = false;
       this.trackedSince = time;
       this.worlds += 1;
     }
@@ -275,7 +280,7 @@ export class LiveSource {
   /** No viewer pose in this frame (ARCore is not tracking): nothing to draw over the camera,
    * nothing to capture; the user is told what to do. */
   #trackingLost(time) {
-    this.lostSince ??= time;
+    this.poseLost = true;
     this.stats.poseLostFrames += 1;
     this.#say(HINTS.trackingLost, time);
     const renderer = this.arView.renderer;
@@ -321,9 +326,8 @@ export class LiveSource {
       return;
     }
     if (depth === this.occlusionDepth) return;
-    const metres = new Float32Array(depth.values.length);
-    for (let i = 0; i < metres.length; i++) metres[i] = depth.values[i] * depth.rawValueToMeters;
-    occlusion.setDepth(metres, depth.width, depth.height, null, depth.depthFromView);
+    const { values, width, height, depthFromView, rawValueToMeters } = depth;
+    occlusion.setDepth(values, width, height, null, depthFromView, rawValueToMeters);
     this.occlusionDepth = depth;
   }
 
@@ -352,22 +356,6 @@ export class LiveSource {
     this.hint.hidden = !text;
     if (text) this.said.push([time, text]);
     if (this.said.length > 50) this.said.shift();
-  }
-
-  /** The AR view's line for the user (one per page, reused by each AR session). */
-  static #hintElement(container) {
-    let el = container.querySelector(".xr-hint");
-    if (!el) {
-      el = document.createElement("div");
-      el.className = "xr-hint";
-      el.setAttribute("role", "status");
-      // Styled here: above the tracking hints at the bottom of the view, wrapping on a phone.
-      Object.assign(el.style, { position: "absolute", left: "50%", bottom: "40px", transform: "translateX(-50%)",
-        maxWidth: "90%", padding: "6px 12px", borderRadius: "8px", background: "rgba(210, 153, 34, 0.95)",
-        color: "#fff", fontSize: "14px", textAlign: "center", zIndex: "3", pointerEvents: "none" });
-      container.append(el);
-    }
-    return el;
   }
 
   /** The camera image, downscaled to colourSize, as top-down RGBA ImageData (a promise). The

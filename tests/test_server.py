@@ -18,6 +18,7 @@ from server.client.connection import Connection, Socket
 from server.client.replay import replay
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
+from server.registration.config import RegistrationConfig
 
 FRAMES = 60
 
@@ -53,8 +54,20 @@ def test_streamed_poses_match_offline_tracking_and_the_map_downloads(
     assert np.abs(streamed[:, :3, 3] - offline[:, :3, 3]).max() < 1e-6
     assert {p["state"] for p in stats.poses} <= {"ok", "weak"}
 
+    # Every 3rd frame (mapping.fuse_every) and every keyframe is for the map. Fusion runs behind
+    # tracking on a niced thread: on loaded cores it fuses what it can and counts the frames it
+    # had no room for (fusion_skipped), still working seconds after the last pose went out; so
+    # each of those frames is either fused or counted, once the mapper has got through them.
+    def accounted(status: dict) -> int:
+        return status["map"]["frames_integrated"] + status["fusion_skipped"]
+
+    deadline = time.monotonic() + 60
     status = session_status(server.url, sid, token)
-    assert status["frames_processed"] == FRAMES and status["map"]["frames_integrated"] > 10
+    while accounted(status) < FRAMES // 3 and time.monotonic() < deadline:
+        time.sleep(0.5)
+        status = session_status(server.url, sid, token)
+    assert status["frames_processed"] == FRAMES and accounted(status) >= FRAMES // 3, status
+    assert status["map"]["frames_integrated"] >= 5, status  # the first frame and keyframes
 
     r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)
     assert r.status_code == 200
@@ -171,7 +184,10 @@ def test_a_restart_keeps_a_closed_sessions_map_downloadable(live_server, shared_
 def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
     """The client sends far faster than the server can track: the inbox keeps one frame, the
     rest are dropped and counted, and server memory stays bounded."""
-    server = live_server()
+    # Dense refinement on: a tracker ~3x slower than the default makes the flood outrun it even
+    # when the sender, too, is slowed by loaded cores (the sparse tracker kept up with all but 6
+    # of 300 frames with both cores busy).
+    server = live_server(registration=RegistrationConfig().with_overrides(solver={"dense": True}))
     ds = open_dataset(shared_data / "synthetic_room0")
     sid, token = server.create_session()
     images = [proto.make_frame(0, 0.0, ds[i].colour, ds[i].depth) for i in range(10)]
@@ -207,9 +223,8 @@ def test_a_flood_of_frames_is_dropped_not_queued(live_server, shared_data):
     assert status["frames_received"] == 300
     # A queue would drop none. How many are dropped depends on how much faster the sender is
     # than the tracker, and on a loaded machine both slow down (a quiet run dropped about 160, a
-    # run beside another test suite 83, with dense refinement on; 50 beside the suite once the
-    # tracker ran sparse only, twice as fast; 22 with both cores loaded by other processes):
-    # a few dozen are far from none.
+    # run beside another test suite 83; with the sparse tracker, 50 beside the suite and 6 with
+    # both cores loaded by other processes): a few dozen are far from none.
     assert status["frames_dropped"] > 10, status
     assert status["frames_processed"] + status["frames_dropped"] <= 300
     assert poses and poses[-1]["dropped"] > 0

@@ -165,6 +165,37 @@ def test_a_reset_of_the_device_world_is_survived_and_realigned(room):
     assert np.linalg.norm(E[:3, 3]) < 0.01 and rotation_angle_deg(E) < 0.5
 
 
+def test_a_new_device_world_number_is_a_reset_even_for_a_small_jump(room):
+    """A jump too small to tell from motion (8 cm, as ARCore's after relocalising) is taken as
+    the camera's motion unless the frame says its prior is in a new device world
+    (device_world): then that frame's prior is not used, the alignment starts again, and the
+    frames after use the prior in the new world."""
+    _, frames, _, gt = room
+    jump = exp_se3(np.array([0.05, 0.0, 0.06, 0.0, 0.0, 0.0]))
+    priors = exact_device_poses(gt)
+    priors[40:] = jump @ priors[40:]
+    keep = np.arange(0, 80, 2)
+    at = list(keep).index(40)
+
+    def track(worlds: bool):
+        ds = room[0]
+        tracker = Tracker(ds.intrinsics, T_world_first=gt[keep[0]])
+        results = []
+        for i in keep:
+            world = int(worlds and i >= 40)
+            results.append(tracker.track(frames[i].colour, frames[i].depth, priors[i], world))
+            tracker.update_keyframe()
+        return results, tracker
+
+    told, tracker = track(worlds=True)
+    assert not told[at].prior_used and all(r.prior_used for r in told[at + 1 :])
+    E = tracker.T_world_device @ jump @ device_world(0)
+    assert np.linalg.norm(E[:3, 3]) < 0.01 and rotation_angle_deg(E) < 0.5
+    untold, _ = track(worlds=False)
+    assert untold[at].prior_used  # taken as motion: only the number tells a reset here
+    assert lost(told) == 0
+
+
 def test_after_a_loss_the_prior_brings_tracking_back(room):
     """Blank frames while the camera moves on: with a prior the first real frame after them is
     found from the device's pose and tracked ok."""

@@ -1,15 +1,18 @@
 """Live AR mode on emulated phones: the page in chromium with the WebXR AR device of
 tests/webxr_device.py (Chrome on ARCore, played from 7scenes_a), streaming into a real server.
 
-For each device profile (20:9 phone in portrait and in landscape, 4:3 tablet; each with frames
-missing depth or the camera image, and depth empty for the first second), the whole sequence
+Live AR starts from a tap on Start (the device, as Chrome, refuses a session without one). For
+each device profile (20:9 phone in portrait and in landscape, 4:3 tablet whose camera is mounted
+at 270 degrees; each with Chrome's cropped camera image sizes, uint16 depth, frames missing depth
+or the camera image, and depth empty for the first second), the whole sequence
 streams at the page's 15 fps: the hello is accepted, poses come back for >= 90 % of the frames
 sent, the frames the device could not give are counted while capture goes on, early empty depth
 never closes the session, and the trajectory (in the map, against the true camera poses) is
 within 2x of tracking the same sequence offline. On every profile the page draws into its own
 XRWebGLLayer, the session's baseLayer.
 
-Two more profiles are today's Chrome (147+): the WebXR Layers API is there (three.js would take
+Two more profiles are today's Chrome (147+), the first a phone in reverse landscape: the WebXR
+Layers API is there (three.js would take
 it and leave baseLayer null, where getCameraImage crashes), and depth comes as Chrome gives it,
 null until the phone has moved and then only with every 2nd or 3rd camera frame. On those the
 page must send at least 75 % of the frames that depth allows (the depth images the device gave
@@ -50,7 +53,16 @@ import cv2
 import numpy as np
 import pytest
 from browser import ARTIFACTS, PHONE, drone_mask
-from webxr_device import NEVER_DEPTH, PROFILES, FileServer, PreparedDevice, install, prepare
+from webxr_device import (
+    CAMERA_DENIED,
+    NEVER_DEPTH,
+    NO_DEPTH_SUPPORT,
+    PROFILES,
+    FileServer,
+    PreparedDevice,
+    install,
+    prepare,
+)
 
 from server.datasets import open_dataset
 from server.evaluation.metrics import ate
@@ -148,6 +160,7 @@ def test_live_ar_streams_a_room_from_an_emulated_phone(
     page = open_page(
         server, "/?autostart=live", init=lambda c: install(c, device.config, files_url), **context
     )
+    tap_start(page)
 
     # The hello is accepted: colour at the view's aspect, depth at the colour's.
     page.wait("window.dronesim.seen.poses >= 1", 60, "the first pose")
@@ -218,7 +231,7 @@ def test_live_ar_streams_a_room_from_an_emulated_phone(
     if end_check is not None:
         drone_checks.append(end_check)
     print(f"{profile}: drone checks {[round(c, 1) for c in drone_checks]} px; at the end {tried}")
-    if profile == "tablet-4x3":
+    if profile == "tablet-4x3-sensor-270":
         assert drone_checks, f"the drone never showed wholly in the tablet's view: {tried}"
 
     error, n = _trajectory_error(page, device)
@@ -227,6 +240,20 @@ def test_live_ar_streams_a_room_from_an_emulated_phone(
     assert error <= 2 * offline_ate, f"ATE {error:.3f} m, offline {offline_ate:.3f} m"
 
     assert not page.errors, page.errors
+
+
+TAP_TO_START = "Tap Start to begin live AR (a browser starts AR only from a tap)."
+
+
+def tap_start(page, refused_before: int = 0) -> None:
+    """Live AR starts from the user's tap: opened with ?autostart=live the page asks for one
+    and makes no request the browser would refuse (the test's own requests aside); then Start
+    is tapped."""
+    page.wait(
+        f"document.querySelector('#banner').textContent === {TAP_TO_START!r}", 20, "tap to start"
+    )
+    assert len(page.page.evaluate("window.__xrDevice.state.refusals")) == refused_before
+    page.page.tap("#btn-stream")
 
 
 # What the page and the device counted so far: frames sent, captures skipped and why, depth
@@ -280,6 +307,8 @@ def _check_tracking_loss(page, at_end: dict) -> None:
     assert HINT_LOST in at_end["said"], at_end["said"]
     assert at_end["worlds"] == 1, at_end["worlds"]
     status = page.page.evaluate(SESSION_STATUS_JS)
+    # The server heard of the new device world once (the frames after the loss carry it).
+    assert status["device_pose"]["world_changes"] == 1, status["device_pose"]
     print(
         f"tracking loss: {lost} XR frames without a pose; skipped {at_end['unavailable']};"
         f" server: device pose {status['device_pose']}, recovery {status['recovery']},"
@@ -311,6 +340,7 @@ def test_live_ar_without_depth_says_why(live_server, open_page, sequence, tmp_pa
         page = open_page(
             server, "/?autostart=live", init=lambda c: install(c, device.config, files.url), **PHONE
         )
+        tap_start(page)
         page.wait(
             f"document.querySelector('.xr-hint')?.textContent === {HINT_MOVE!r}", 20, "the hint"
         )
@@ -346,16 +376,63 @@ def test_live_ar_without_depth_says_why(live_server, open_page, sequence, tmp_pa
     assert all("No depth from this phone" in e for e in page.errors), page.errors
 
 
-# live.js #inDeviceWorld: after a tracking loss the page sends the phone's pose in a new device
-# world, the XR space turned a half turn about its vertical (y) axis; here on T_device_camera.
-HALF_TURN = np.diag([-1.0, 1.0, -1.0, 1.0])
+REQUEST_AT_LOAD_JS = """window.addEventListener("load", () => navigator.xr
+  .requestSession("immersive-ar", { requiredFeatures: ["local"] })
+  .then((s) => { s.end(); return "started"; }, (e) => e.name)
+  .then((r) => { window.__atLoad = r; }));"""
+
+
+@pytest.mark.parametrize(
+    ("profile", "says"),
+    [
+        (CAMERA_DENIED, "the camera permission was refused for this site: allow the camera"),
+        (NO_DEPTH_SUPPORT, "This phone gives AR pages no depth"),
+    ],
+    ids=lambda v: getattr(v, "name", ""),
+)
+def test_live_ar_refused_says_what_to_do(profile, says, live_server, open_page, sequence, tmp_path):
+    """AR cannot stream on this phone: the camera permission was refused, or its ARCore has
+    no depth. The page starts AR only from the user's tap (the device refuses a request
+    without one, as Chrome does), and when the session lacks what live AR needs it ends it and
+    says why and what to do, on screen and in Setup; no session is opened on the server."""
+    device = prepare(sequence, profile, tmp_path / profile.name, max_frames=30)
+    files = FileServer(device.folder)
+    try:
+
+        def init(context) -> None:
+            install(context, device.config, files.url)
+            # Without a tap the browser refuses an immersive session (asked here as the page
+            # loads: Playwright's evaluate runs as a user gesture).
+            context.add_init_script(script=REQUEST_AT_LOAD_JS)
+
+        page = open_page(live_server(), "/?autostart=live", init=init, **PHONE)
+        page.wait("window.__atLoad !== undefined", 20, "the request made at load")
+        assert page.page.evaluate("window.__atLoad") == "SecurityError"
+        tap_start(page, refused_before=1)
+        page.wait(
+            f"document.querySelector('#banner').textContent.includes({says!r})", 20, "the refusal"
+        )
+        got = page.page.evaluate(
+            """() => ({ banner: document.querySelector('#banner').textContent,
+              setup: document.querySelector('#live-status').textContent,
+              active: window.__xrDevice.active(), sessions: window.__xrDevice.state.sessions,
+              session: window.dronesim.client.session, sent: window.dronesim.snapshot().sent })"""
+        )
+    finally:
+        files.close()
+    print(f"{profile.name}: {got['banner']!r}")
+    assert got["setup"] == got["banner"], got
+    assert got["sessions"] == 1 and not got["active"], got  # started from the tap, then ended
+    assert got["session"] is None and got["sent"] == 0, got
+    assert "Start" in got["banner"] or "replay" in got["banner"], got["banner"]
 
 
 def _track_through_a_jump(sequence, new_world: bool) -> tuple[float, dict]:
     """Track 7scenes_a offline at the page's rate with the device's pose as the prior (here the
     true pose): ARCore stops tracking for 1.5 s from 9 s in (no frames are sent) and comes back
-    with its poses 20 cm off; after it they are sent in a new device world (new_world, as the
-    page does) or as they are. -> (ATE rmse in metres, tracking states)."""
+    with its poses 20 cm off; after it they are sent as a new device world (new_world: the
+    frame's device_world, as the page does) or as they are. -> (ATE rmse in metres, tracking
+    states)."""
     gt = sequence.ground_truth
     step, lost = round(30 / PAGE_FPS), range(270, 315)
     tracker = Tracker(sequence.intrinsics)
@@ -366,11 +443,11 @@ def _track_through_a_jump(sequence, new_world: bool) -> tuple[float, dict]:
         frame = sequence[i]
         T_true = gt.poses[int(np.argmin(np.abs(gt.timestamps - frame.timestamp)))]
         prior = T_true.copy()
+        world = 0
         if i > lost[-1]:
             prior[:3, 3] += (0.12, 0.0, 0.16)
-            if new_world:
-                prior = HALF_TURN @ prior
-        result = tracker.track(frame.colour, frame.depth, T_device_camera=prior)
+            world = int(new_world)
+        result = tracker.track(frame.colour, frame.depth, T_device_camera=prior, device_world=world)
         tracker.update_keyframe()
         states[result.state.value] = states.get(result.state.value, 0) + 1
         if result.state is not TrackingState.LOST:
@@ -383,8 +460,8 @@ def _track_through_a_jump(sequence, new_world: bool) -> tuple[float, dict]:
 
 def test_a_new_device_world_keeps_a_pose_jump_out_of_the_map(sequence, offline_ate):
     """What the page relies on after a tracking loss (live.js, top): the server's tracker takes
-    a pose in a new device world (a half turn away) as a reset of the device's tracking, not as
-    motion, and finds the camera without it; trusted instead, ARCore's 20 cm jump would be the
+    a frame in a new device world (its device_world) as a reset of the device's tracking, not
+    as motion, and finds the camera without it; trusted instead, ARCore's 20 cm jump would be the
     camera's motion and enter the map (the scenario is checked to show that)."""
     turned, turned_states = _track_through_a_jump(sequence, new_world=True)
     trusted, trusted_states = _track_through_a_jump(sequence, new_world=False)

@@ -1,9 +1,10 @@
 """The emulated WebXR AR device of the browser tests (tests/webxr/emulated_ar_device.js), fed
 from a recorded RGB-D sequence as a phone with ARCore would see the same room.
 
-A device profile says what the phone gives the page: its view (the screen, and the camera
-image, in pixels), whether it is held in portrait (the landscape sensor turned a quarter turn
-into the view), the depth buffer's size and format; and what today's Chrome does: the WebXR
+A device profile says what the phone gives the page: its view (the screen, in pixels), how the
+sensor's image is turned into it (portrait, landscape, reverse landscape; a sensor mounted at 90
+or 270 degrees), the camera image Chrome gives (ARCore's 1920x1080 image turned and cropped to
+the view's aspect), the depth buffer's size and formats; and what today's Chrome does: the WebXR
 Layers API (Chrome 147+), depth only with some camera frames and none until the phone moves,
 ARCore losing tracking and coming back with its poses jumped. The sequence's camera is the phone's
 sensor: its images are turned and cropped to the view's aspect, as ARCore crops the camera to
@@ -44,10 +45,19 @@ class DeviceProfile:
     """What an AR phone or tablet gives a page."""
 
     name: str
-    view_size: tuple[int, int]  # the XR view and its camera image, (width, height) px
-    portrait: bool  # sensor turned a quarter turn clockwise into the view
+    view_size: tuple[int, int]  # the XR view (the screen's XR framebuffer), (width, height) px
+    # Degrees the sensor's image is turned clockwise into the view: 0 landscape, 90 portrait
+    # (a back camera mounted at 90 degrees, most phones), 180 reverse landscape (the phone turned
+    # the other way), 270 portrait with a sensor mounted at 270 degrees (e.g. Nexus 5X).
+    turn: int
     depth_size: tuple[int, int]  # ARCore's depth buffer, sensor orientation (landscape), px
-    depth_format: str = "luminance-alpha"  # or "float32"
+    # Chrome on ARCore gives depth as luminance-alpha (newer: unsigned-short), uint16 with
+    # rawValueToMeters 0.001, never float32; the first of the page's preferences it has.
+    depth_formats: tuple[str, ...] = ("luminance-alpha", "unsigned-short")
+    # ARCore's camera image (landscape, px): Chrome's XRCamera is this image turned into the
+    # view and cropped to the view's aspect (a 1920x1080 image gives 864x1920 on a 20:9
+    # portrait screen), not the view's own pixel size.
+    sensor_size: tuple[int, int] = (1920, 1080)
     fps: float = 30.0  # camera rate
     display_hz: float = 30.0  # XR frames per second
     empty_depth_s: float = 1.0  # depth from motion: all zero for this long after the start
@@ -60,6 +70,7 @@ class DeviceProfile:
     # the emulated phone more of its frames (3: 41-49 without depth against 7 at 1).
     missing_run: int = 2
     features: tuple[str, ...] = ("depth-sensing", "camera-access")
+    camera_denied: bool = False  # the user refused the camera permission: no camera-access
     # The camera image and XR framebuffer at this fraction of the view's pixels: software WebGL
     # on two cores cannot fill 1080x2400 at 30 Hz beside a tracking server. The projection
     # matrix, aspect ratios and depth mapping are the full-size view's; only pixels are fewer.
@@ -87,11 +98,20 @@ _TODAY = dict(layers_api=True, empty_depth_s=0.0, missing_depth_every=0, depth_a
 PROFILES = {
     p.name: p
     for p in (
-        DeviceProfile("phone-portrait", (1080, 2400), True, (160, 90)),
-        DeviceProfile("phone-landscape", (2400, 1080), False, (160, 90), depth_format="float32"),
-        DeviceProfile("tablet-4x3", (1536, 2048), True, (160, 120)),
+        DeviceProfile("phone-portrait", (1080, 2400), 90, (160, 90)),
+        DeviceProfile("phone-landscape", (2400, 1080), 0, (160, 90)),
+        # A tablet whose camera is mounted at 270 degrees: its view turns the sensor's image the
+        # other way, and normDepthBufferFromNormView with it.
+        DeviceProfile("tablet-4x3-sensor-270", (1536, 2048), 270, (160, 120)),
+        # Reverse landscape: the phone turned the other way round, its view the sensor's image
+        # upside down.
         DeviceProfile(
-            "chrome147-depth-every-2", (1080, 2400), True, (160, 90), depth_every=2, **_TODAY
+            "chrome147-reverse-landscape-depth-every-2",
+            (2400, 1080),
+            180,
+            (160, 90),
+            depth_every=2,
+            **_TODAY,
         ),
         # ARCore loses tracking for 1 s, 9 s in (the camera moves ~0.2 m meanwhile), and its
         # poses come back 20 cm off. A 4:3 view: through the 20:9 portrait view's narrow crop
@@ -101,7 +121,7 @@ PROFILES = {
         DeviceProfile(
             "chrome147-depth-every-3-vio-loss",
             (1536, 2048),
-            True,
+            90,
             (160, 120),
             depth_every=3,
             pose_lost=(9.0, 1.0),
@@ -114,11 +134,18 @@ PROFILES = {
 NEVER_DEPTH = DeviceProfile(
     "chrome147-never-depth",
     (1080, 2400),
-    True,
+    90,
     (160, 90),
     depth_never=True,
     max_frames=150,
     **_TODAY,
+)
+
+# Phones that cannot stream live AR, for the page's start-up: the user refused the camera
+# permission (camera-access is not granted), or ARCore has no Depth API on this model.
+CAMERA_DENIED = DeviceProfile("camera-denied", (1080, 2400), 90, (160, 90), camera_denied=True)
+NO_DEPTH_SUPPORT = DeviceProfile(
+    "no-depth-support", (1080, 2400), 90, (160, 90), features=("camera-access",)
 )
 
 
@@ -155,31 +182,46 @@ class PreparedDevice:
         return cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)[..., ::-1]
 
 
+def _quarter_turns(size: tuple[int, int], turn: int) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """An image of ``size`` (w, h) turned ``turn`` degrees clockwise (a multiple of 90): (the
+    affine map of pixel edge coordinates, turned from unturned, 3x3; R_unturned_turned, the
+    rotation of camera axes; the turned size)."""
+    assert turn % 90 == 0, turn
+    A, R = np.eye(3), np.eye(3)
+    w, h = size
+    for _ in range(turn // 90 % 4):
+        # One quarter turn clockwise: x' = h - y, y' = x; camera X' = -Y, Y' = X.
+        A = np.array([[0.0, -1.0, h], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ A
+        R = R @ np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        w, h = h, w
+    return A, R, (w, h)
+
+
 def _view_of_sensor(K: Intrinsics, profile: DeviceProfile):
-    """The sensor -> view mapping: (view intrinsics, crop, R_sensor_view, the affine map from
-    view pixels (edge coordinates: 0..W) to sensor pixels, as a 3x3)."""
-    sw, sh = K.width, K.height
-    # Edge coordinates (pixel centres at +0.5) make crops and scales plain affine maps.
-    fx, fy, cx, cy = K.fx, K.fy, K.cx + 0.5, K.cy + 0.5
-    if profile.portrait:
-        # Turned clockwise: view x = sh - sensor y, view y = sensor x; camera X_v = -Y_s, Y_v = X_s.
-        turned = (sh, sw)
-        fxv, fyv, cxv, cyv = fy, fx, sh - cy, cx
-        R_sensor_view = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-        sensor_from_turned = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, sh], [0.0, 0.0, 1.0]])
-    else:
-        turned = (sw, sh)
-        fxv, fyv, cxv, cyv = fx, fy, cx, cy
-        R_sensor_view = np.eye(3)
-        sensor_from_turned = np.eye(3)
+    """The sensor -> view mapping: (view intrinsics, crop of the turned sensor image,
+    R_sensor_view, the affine map from view pixels (edge coordinates: 0..W) to sensor pixels,
+    as a 3x3)."""
+    # Edge coordinates (pixel centres at +0.5) make turns, crops and scales plain affine maps.
+    K_edge = np.array([[K.fx, 0.0, K.cx + 0.5], [0.0, K.fy, K.cy + 0.5], [0.0, 0.0, 1.0]])
+    turned_from_sensor, R_sensor_view, turned = _quarter_turns((K.width, K.height), profile.turn)
     W, H = profile.view_size
     crop = _centre_crop(turned, W / H)
     s = W / crop[2]
-    K_view = Intrinsics(
-        fxv * s, fyv * s, (cxv - crop[0]) * s - 0.5, (cyv - crop[1]) * s - 0.5, W, H
-    )
-    turned_from_view = np.array([[1 / s, 0, crop[0]], [0, 1 / s, crop[1]], [0, 0, 1.0]])
-    return K_view, crop, R_sensor_view, sensor_from_turned @ turned_from_view
+    view_from_turned = np.array([[s, 0, -crop[0] * s], [0, s, -crop[1] * s], [0, 0, 1.0]])
+    # A point seen by the sensor: sensor px = K X_s, X_s = R_sensor_view X_v.
+    Kv = view_from_turned @ turned_from_sensor @ K_edge @ R_sensor_view
+    assert abs(Kv[0, 1]) < 1e-9 and abs(Kv[1, 0]) < 1e-9, Kv
+    K_view = Intrinsics(Kv[0, 0], Kv[1, 1], Kv[0, 2] - 0.5, Kv[1, 2] - 0.5, W, H)
+    sensor_from_view = np.linalg.inv(view_from_turned @ turned_from_sensor)
+    return K_view, crop, R_sensor_view, sensor_from_view
+
+
+def camera_size(profile: DeviceProfile) -> tuple[int, int]:
+    """Chrome's XRCamera size (px): ARCore's camera image turned into the view and cropped to
+    the view's aspect (e.g. 864x1920 from 1920x1080 on a 20:9 portrait screen)."""
+    *_, turned = _quarter_turns(profile.sensor_size, profile.turn)
+    _, _, w, h = _centre_crop(turned, profile.view_size[0] / profile.view_size[1])
+    return round(w), round(h)
 
 
 def projection_matrix(K: Intrinsics) -> list[float]:
@@ -223,6 +265,8 @@ def prepare(
     of the sensor's crop end to end, offsets in the configuration) and depth.bin (each frame's
     depth buffer, raw little-endian values); return the device's configuration and the truth."""
     assert dataset.ground_truth is not None, "the emulated device needs ground-truth poses"
+    # depth.bin holds one encoding, whichever of the formats the page picks.
+    assert profile.depth_formats == ("float32",) or "float32" not in profile.depth_formats
     max_frames = max_frames if max_frames is not None else profile.max_frames
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     K = dataset.intrinsics
@@ -254,8 +298,8 @@ def prepare(
     for i in range(n):
         frame = dataset[i]
         colour = frame.colour
-        if profile.portrait:
-            colour = cv2.rotate(colour, cv2.ROTATE_90_CLOCKWISE)
+        if profile.turn % 360:
+            colour = cv2.rotate(colour, _CV_TURNS[profile.turn % 360])
         colour = np.ascontiguousarray(colour[y0 : y0 + ch, x0 : x0 + cw])
         ok, jpeg = cv2.imencode(".jpg", colour[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
         assert ok
@@ -263,7 +307,7 @@ def prepare(
         offsets.append(offsets[-1] + len(jpegs[-1]))
         depth = frame.depth[dy0 : dy0 + dch, dx0 : dx0 + dcw]
         depth = cv2.resize(depth, (dw, dh), interpolation=cv2.INTER_NEAREST)
-        if profile.depth_format == "float32":
+        if profile.depth_formats[0] == "float32":
             raw = depth.astype("<f4")
         else:
             raw = np.clip(np.round(depth * 1000.0), 0, 65535).astype("<u2")
@@ -303,15 +347,17 @@ def prepare(
         "fps": profile.fps,
         "displayHz": profile.display_hz,
         "viewSize": [pw, ph],
+        "cameraSize": [round(v * profile.pixel_scale) for v in camera_size(profile)],
         "projection": projection_matrix(K_view),
         "poses": poses_gl,
         "depthSize": [dw, dh],
-        "depthFormat": profile.depth_format,
+        "depthFormats": list(profile.depth_formats),
         "normDepthBufferFromNormView": norm.T.reshape(-1).tolist(),
         "emptyDepthS": profile.empty_depth_s,
         "missingDepth": _every(n, profile.missing_depth_every, 5, profile.missing_run),
         "missingCamera": _every(n, profile.missing_camera_every, 11, profile.missing_run),
         "features": list(profile.features),
+        "cameraDenied": profile.camera_denied,
         "layersApi": profile.layers_api,
         "depthEvery": profile.depth_every,
         "depthAfterMoveM": profile.depth_after_move_m,
@@ -327,6 +373,13 @@ def prepare(
         ph,
     )
     return PreparedDevice(config, T_world_view, K_pixels, stamps, crop, out)
+
+
+_CV_TURNS = {
+    90: cv2.ROTATE_90_CLOCKWISE,
+    180: cv2.ROTATE_180,
+    270: cv2.ROTATE_90_COUNTERCLOCKWISE,
+}
 
 
 def _every(n: int, every: int, start: int, run: int) -> list[int]:

@@ -102,6 +102,13 @@ class App {
     try {
       let source;
       if (mode === "live") {
+        if (navigator.userActivation && !navigator.userActivation.isActive) {
+          // A browser starts AR only from the user's tap (e.g. ?autostart=live): ask for it.
+          document.querySelector('input[name="mode"][value="live"]').checked = true;
+          this.hud.showBanner("Tap Start to begin live AR (a browser starts AR only from a tap).", "info", 30000);
+          return;
+        }
+        this.hud.hideBanner();
         source = new LiveSource(this.ar, $("#overlay-root"));
         source.onEnd = () => this.stopStreaming("AR ended");
         this.hud.toast("starting AR…");
@@ -145,6 +152,7 @@ class App {
     } catch (exc) {
       console.error(exc);
       this.hud.showBanner(exc.message, "error", 10000);
+      if (mode === "live") $("#live-status").textContent = exc.message; // stays in Setup, too
       this.#streamingChanged({ running: false });
       throw exc;
     } finally {

@@ -230,11 +230,14 @@ export class Protocol {
    * @param {number} [p.depthScale] units per metre, when not the hello's
    * @param {number[]} [p.deviceCamera] T_device_camera: the device's own camera pose in its world,
    *   16 numbers, row-major, metres, this protocol's camera axes (x right, y down, z forward)
+   * @param {number} [p.deviceWorld] which of the device's worlds deviceCamera is in: a new number
+   *   after the device's own tracking restarted (its poses may have jumped)
    */
-  frame({ seq, timestamp, colour, depth, depthFormat, depthScale, deviceCamera }) {
+  frame({ seq, timestamp, colour, depth, depthFormat, depthScale, deviceCamera, deviceWorld }) {
     const message = { type: "frame", seq, timestamp, colour, depth, depth_format: depthFormat };
     if (depthScale !== undefined) message.depth_scale = depthScale;
     if (deviceCamera) message.T_device_camera = Array.from(deviceCamera, Number);
+    if (deviceWorld) message.device_world = deviceWorld;
     return this.validate(message, CLIENT_TO_SERVER, { strict: true });
   }
 

@@ -88,10 +88,12 @@ def make_frame(
     jpeg_quality: int = 80,
     depth_scale: float = 1000.0,
     T_device_camera: ArrayLike | None = None,
+    device_world: int | None = None,
 ) -> dict:
     """A frame message: colour (H, W, 3) uint8 RGB as JPEG, depth (h, w) metres as uint16;
     T_device_camera: the device's own 4x4 camera pose in its world (metres, this protocol's
-    camera axes), or None."""
+    camera axes), or None; device_world: which of the device's worlds that is (a new number
+    after its own tracking restarted), or None."""
     return _message(
         "frame",
         seq=int(seq),
@@ -103,6 +105,7 @@ def make_frame(
         T_device_camera=None
         if T_device_camera is None
         else _floats(T_device_camera, 16, "T_device_camera"),
+        device_world=None if device_world is None else int(device_world),
     )
 
 

@@ -195,6 +195,7 @@ class Tracker:
         self.pending: _PendingKeyframe | None = None
         self.alignment = DeviceAlignment(self.cfg.prior)
         self.device_last: FloatArray | None = None  # the prior of the last tracked frame
+        self.device_world = 0  # the device's world the priors are in (track)
         # Keyframes of a saved map (a room) this session continues in: candidates for a keyframe
         # switch beside the recent ones, so that tracking goes back to the map where it can.
         self.map_keyframes: list[Keyframe] = []
@@ -296,6 +297,7 @@ class Tracker:
         colour: GreyImage,
         depth: Float32Array,
         T_device_camera: FloatArray | None = None,
+        device_world: int = 0,
     ) -> TrackResult:
         """Register one frame: colour (H, W, 3) RGB uint8, depth (H, W) metres (0 = none).
 
@@ -304,6 +306,11 @@ class Tracker:
         y down, z forward. Its motion since the last tracked frame, applied to that frame's pose,
         is the initial guess (instead of constant velocity) and is tried first after a loss;
         the result stays in the map frame. A non-finite prior is ignored.
+
+        ``device_world``: which of the device's worlds the prior is in. A device whose own
+        tracking restarted or relocalised (ARCore after a loss) says so with a new number: the
+        prior's step across the change is no motion (its world jumped), so it is not used, and
+        where the device's world lies in the map is found again.
 
         Returns as soon as the pose T_world_camera is accepted; a keyframe change it calls for is
         only recorded (``keyframe_due``), for :meth:`update_keyframe`. The very first frame (and
@@ -316,6 +323,10 @@ class Tracker:
         t0 = time.perf_counter()
         grey = to_grey(colour)
         prior = self._check_prior(T_device_camera)
+        if device_world != self.device_world:
+            self.device_world = device_world
+            self.device_last = None
+            self.alignment.reset()
         repeated = self._repeated(grey, depth)
         if repeated is not None and self._last_result is not None and not self.lost:
             return self._hold(index, repeated, {"preprocess": _ms(t0)}, prior)

@@ -64,13 +64,17 @@ class RoomTracker:
         return not self.relocalised or self.tracker.lost
 
     def track(
-        self, colour: GreyImage, depth: Float32Array, T_device_camera: FloatArray | None = None
+        self,
+        colour: GreyImage,
+        depth: Float32Array,
+        T_device_camera: FloatArray | None = None,
+        device_world: int = 0,
     ) -> TrackResult | None:
-        """Register one frame (colour (H, W, 3) RGB uint8, depth (H, W) metres): None while the
-        room has not recognised a frame yet, else the tracker's result (T_world_camera in the
-        room's frame)."""
+        """Register one frame (colour (H, W, 3) RGB uint8, depth (H, W) metres; the device's
+        prior as Tracker.track takes it): None while the room has not recognised a frame yet,
+        else the tracker's result (T_world_camera in the room's frame)."""
         if self.relocalised:
-            return self.tracker.track(colour, depth, T_device_camera)
+            return self.tracker.track(colour, depth, T_device_camera, device_world)
         index, self.attempts = self.attempts, self.attempts + 1
         t0 = time.perf_counter()
         grey, clean = to_grey(colour), clean_depth(depth, self.cfg.depth)
@@ -85,7 +89,7 @@ class RoomTracker:
         keyframe = next(k for k in self.map_keyframes if k.id == match.keyframe_id)
         self.tracker.resume_in_map(T_guess, keyframe, self.map_keyframes, self.database)
         # The tracker refines the guess against the keyframe's own corners: a second check too.
-        result = self.tracker.track(colour, depth, T_device_camera)
+        result = self.tracker.track(colour, depth, T_device_camera, device_world)
         ms = (time.perf_counter() - t0) * 1e3
         self._spent_ms += ms
         if result.state is TrackingState.LOST:

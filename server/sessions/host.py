@@ -183,6 +183,7 @@ class SessionHost:
                 T_device_camera=None
                 if message.get("T_device_camera") is None
                 else np.asarray(message["T_device_camera"], dtype=np.float64).reshape(4, 4),
+                device_world=message.get("device_world") or 0,
             )
             self.session.submit(frame)
         except proto.ProtocolError as exc:

@@ -151,7 +151,8 @@ class Session:
         self._states = {s.value: 0 for s in TrackingState}
         self.received = self.processed = self.dropped = 0
         # Frames that carried the device's own pose, and those whose guess started from it.
-        self._device_pose = {"frames": 0, "guesses": 0}
+        self._device_pose = {"frames": 0, "guesses": 0, "world_changes": 0}
+        self._device_world = 0  # the last frame's device_world
         self._recovery = {
             "relocalised": 0,
             "segments": 0,
@@ -498,7 +499,9 @@ class Session:
             if self._colour_to_depth is None
             else self._colour_to_depth(frame.colour, depth)
         )
-        result = tracker.track(colour, depth, T_device_camera=frame.T_device_camera)
+        result = tracker.track(
+            colour, depth, T_device_camera=frame.T_device_camera, device_world=frame.device_world
+        )
         if result is None:  # in a room, before a frame is recognised in it: no pose yet
             result = _not_placed(frame.seq)
         timings = {
@@ -521,6 +524,8 @@ class Session:
             self.repeated += result.repeated is not None
             self._device_pose["frames"] += frame.T_device_camera is not None
             self._device_pose["guesses"] += result.prior_used
+            self._device_pose["world_changes"] += frame.device_world != self._device_world
+            self._device_world = frame.device_world
             self._count_recovery(result)
             dropped, processed = self.dropped, self.processed
             self._dirty = True

@@ -24,6 +24,7 @@ class FrameData:
     decode_ms: float = 0.0
     # The device's own camera pose in its world (4x4, metres), when the frame carried one.
     T_device_camera: np.ndarray | None = None
+    device_world: int = 0  # which of the device's worlds it is in (protocol: device_world)
 
 
 @dataclass

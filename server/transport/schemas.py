@@ -275,6 +275,11 @@ class DevicePoseUse(_Body):
         "(the rest fell back to constant velocity: the first frame, a device pose that jumped, "
         "or registration.prior.enabled false)"
     )
+    world_changes: int = Field(
+        0,
+        description="frames whose device_world differed from the frame before: the device's own "
+        "tracking restarted (its prior's alignment to the map started again)",
+    )
 
 
 class TrackingRecovery(_Body):

@@ -5,13 +5,19 @@
 // Modelled on the WebXR Device API, the Depth Sensing module (cpu-optimized; luminance-alpha and
 // float32 buffers with rawValueToMeters and normDepthBufferFromNormView), Raw Camera Access
 // (XRView.camera, XRWebGLBinding.getCameraImage) and Chrome's behaviour on ARCore:
-// - one immersive-ar session at a time; a required feature the device lacks rejects the request
-//   with NotSupportedError; depth-sensing needs the depthSensing preferences;
+// - an immersive-ar session only from a user's tap (SecurityError otherwise), one at a time; a
+//   required feature the device lacks rejects the request with NotSupportedError, an optional
+//   one is left out of enabledFeatures; depth-sensing needs the depthSensing preferences; a user
+//   who refused the camera permission gets no camera-access (and permissions.query says
+//   "denied");
 // - frames at the display rate; the camera runs at the recording's rate; the depth buffer is a
 //   small landscape image of the sensor (e.g. 160x90) whatever the screen's orientation, mapped
 //   to the view through normDepthBufferFromNormView (a rotation for portrait);
-// - the camera image is a WebGL texture the size of the view, valid during the frame; depth data
-//   may only be read during the frame callback (InvalidStateError after it);
+// - the camera image is a WebGL texture valid during the frame, of Chrome's size: ARCore's
+//   camera image turned into the view and cropped to its aspect (864x1920 on a 1080x2400
+//   portrait view), not the view's; depth is uint16 (luminance-alpha or unsigned-short,
+//   rawValueToMeters 0.001) and may only be read during the frame callback (InvalidStateError
+//   after it); the sensor may be turned 0, 90, 180 or 270 degrees into the view;
 // - some frames come without depth information or without a camera image (ARCore
 //   re-initialising), and depth from motion is empty for the first second;
 // - viewer poses are the phone's visual-inertial odometry: the recording's ground truth with
@@ -137,8 +143,8 @@
 
   class EmulatedCamera {
     constructor(index) {
-      this.width = config.viewSize[0];
-      this.height = config.viewSize[1];
+      this.width = config.cameraSize[0];
+      this.height = config.cameraSize[1];
       this._index = index;
     }
   }
@@ -161,7 +167,7 @@
       this._frame = frame;
       this.width = config.depthSize[0];
       this.height = config.depthSize[1];
-      this.rawValueToMeters = config.depthFormat === "float32" ? 1.0 : 0.001;
+      this.rawValueToMeters = frame.session.depthDataFormat === "float32" ? 1.0 : 0.001;
       this.normDepthBufferFromNormView = new EmulatedRigidTransform(config.normDepthBufferFromNormView);
       this._buffer = buffer;
     }
@@ -177,7 +183,7 @@
       const v = m[1] * x + m[5] * y + m[13];
       const col = Math.min(this.width - 1, Math.max(0, Math.floor(u * this.width)));
       const row = Math.min(this.height - 1, Math.max(0, Math.floor(v * this.height)));
-      const values = config.depthFormat === "float32" ? new Float32Array(this.data) : new Uint16Array(this.data);
+      const values = this._frame.session.depthDataFormat === "float32" ? new Float32Array(this.data) : new Uint16Array(this.data);
       return values[row * this.width + col] * this.rawValueToMeters;
     }
   }
@@ -215,7 +221,7 @@
       }
       let buffer;
       if (this.predictedDisplayTime - device.t0 < config.emptyDepthS * 1000) {
-        buffer = new ArrayBuffer(config.depthSize[0] * config.depthSize[1] * (config.depthFormat === "float32" ? 4 : 2));
+        buffer = new ArrayBuffer(config.depthSize[0] * config.depthSize[1] * (this.session.depthDataFormat === "float32" ? 4 : 2));
       } else {
         buffer = device.recording.depthOf(view._index);
       }
@@ -310,7 +316,7 @@
       // depth; poseLost: XR frames without a viewer pose; crashes: getCameraImage calls that
       // would have crashed the tab (layersApi without a baseLayer).
       this.state = { frameIndex: 0, frames: 0, stalls: 0, depthRequests: 0, cameraUploads: 0, uploadMs: 0, callbackMs: 0, sessions: 0, held: false,
-        cameraFrames: 0, depthFrames: 0, poseLost: 0, crashes: 0 };
+        cameraFrames: 0, depthFrames: 0, poseLost: 0, crashes: 0, refusals: [] };
       this.afterFrame = []; // one-shot callbacks right after the next frame's callbacks
       this.heldMs = 0;
       this.heldSince = null;
@@ -383,10 +389,11 @@
       clearTimeout(this.timer);
     }
 
-    /** The camera image of recording frame `index` in `texture` (the view's size), uploaded
-     * when the frame changed. GL state is saved and restored: the page's renderer caches it. */
+    /** The camera image of recording frame `index` in `texture` (the camera's size, not the
+     * view's), uploaded when the frame changed. GL state is saved and restored: the page's
+     * renderer caches it. */
     cameraTexture(gl, index) {
-      const [w, h] = config.viewSize;
+      const [w, h] = config.cameraSize;
       if (this.gl !== gl) {
         this.gl = gl;
         this.texture = gl.createTexture();
@@ -551,12 +558,24 @@
   const xr = new EventTarget();
   xr.isSessionSupported = async (mode) => mode === "immersive-ar" || mode === "inline";
   xr.requestSession = async (mode, options = {}) => {
+    // An immersive session only from a user's gesture (WebXR: "triggered by user activation",
+    // else SecurityError; Chrome: "The requested session requires user activation.").
+    if (!navigator.userActivation.isActive) {
+      device.state.refusals.push("no user activation");
+      throw domError("SecurityError", "The requested session requires user activation.");
+    }
     if (mode !== "immersive-ar") throw domError("NotSupportedError", `${mode} sessions are not supported by this device`);
     if (device.session) throw domError("InvalidStateError", "an immersive session is already active");
-    const supported = new Set(["viewer", "local", "local-floor", "dom-overlay", "hit-test", "anchors", ...config.features]);
+    // The user refused the camera permission (or Chrome's prompt for it): camera-access is not
+    // granted; a session that requires it is refused as any unsupported required feature.
+    const granted = config.cameraDenied ? config.features.filter((f) => f !== "camera-access") : config.features;
+    const supported = new Set(["viewer", "local", "local-floor", "dom-overlay", "hit-test", "anchors", ...granted]);
     const required = options.requiredFeatures ?? [];
     const missing = required.filter((f) => !supported.has(f));
-    if (missing.length) throw domError("NotSupportedError", `required features not supported: ${missing.join(", ")}`);
+    if (missing.length) {
+      device.state.refusals.push(`required: ${missing.join(", ")}`);
+      throw domError("NotSupportedError", "The specified session configuration is not supported.");
+    }
     const features = new Set(["viewer", "local"]);
     for (const f of [...required, ...(options.optionalFeatures ?? [])]) if (supported.has(f)) features.add(f);
     let depthUsage, depthFormat;
@@ -564,7 +583,7 @@
       const prefs = options.depthSensing;
       if (!prefs) throw new TypeError("depth-sensing needs the depthSensing usage and data format preferences");
       depthUsage = (prefs.usagePreference ?? []).find((u) => u === "cpu-optimized");
-      depthFormat = (prefs.dataFormatPreference ?? []).find((f) => f === config.depthFormat);
+      depthFormat = (prefs.dataFormatPreference ?? []).find((f) => config.depthFormats.includes(f));
       if (!depthUsage || !depthFormat) {
         if (required.includes("depth-sensing")) throw domError("NotSupportedError", "no supported depth usage or data format among the preferences");
         features.delete("depth-sensing");
@@ -577,6 +596,14 @@
   };
 
   Object.defineProperty(Navigator.prototype, "xr", { get: () => xr, configurable: true });
+  if (config.cameraDenied) {
+    // What the page can learn of the refusal: the camera permission's state.
+    const query = Permissions.prototype.query;
+    Permissions.prototype.query = function (descriptor) {
+      if (descriptor?.name === "camera") return Promise.resolve({ name: "camera", state: "denied", onchange: null });
+      return query.call(this, descriptor);
+    };
+  }
   window.XRWebGLLayer = EmulatedWebGLLayer;
   window.XRWebGLBinding = config.layersApi ? EmulatedLayersBinding : EmulatedWebGLBinding;
   window.XRRigidTransform = EmulatedRigidTransform;

@@ -23,17 +23,16 @@
 // Tracking loss: while ARCore is not tracking, XR frames have no viewer pose (nothing is drawn
 // or captured); when it tracks again, its local space may have jumped (it relocalised). The
 // phone's pose is sent as the tracker's prior (T_device_camera, "in the device's world"), so
-// after each loss the page starts a new device world: the XR space turned a half turn about its
-// vertical axis. The step from the old world to the new is then no motion the server's tracker
-// can take (it exceeds PriorConfig.max_motion_deg): it drops the prior for that frame and
-// re-estimates where the device's world lies in the map, instead of trusting a jump of ARCore's
-// as the camera's motion.
+// after each loss the page counts a new device world and sends its number with each frame
+// (device_world): the server's tracker then does not take the step across as the camera's
+// motion, and finds again where the device's world lies in the map.
 
 import * as THREE from "three";
 import {
   DEPTH_SCALE_MM, depthSizeFor, deviceCameraFromView, encodeJpeg, flipRows, gravityInCamera, intrinsicsFromProjection,
   packDepth, resampleDepth, scaleIntrinsics,
 } from "../packing.js";
+import { LIVE_DEPTH_SENSING } from "../live_needs.js";
 
 const COLOUR_LONG_SIDE = 640; // colour sent at 640 px on the long side (see PROTOCOL.md, bandwidth)
 const ANCHORS_KEPT = 64;
@@ -57,6 +56,54 @@ export const HINTS = Object.freeze({
     "Start again and move the phone slowly sideways over a lit, textured scene; if depth still never comes, this " +
     "phone's ARCore gives the web no depth: use replay instead.",
 });
+
+const CHECK_PAGE = "Open /check on this phone to see what its browser offers.";
+
+/** What to tell the user when requestSession is refused, by the DOMException's name (WebXR:
+ * SecurityError without a user's tap, NotSupportedError for a mode or feature the device
+ * lacks, NotAllowedError when the user or a policy declined). */
+export function refusalMessage(exc) {
+  const why = `(${exc?.name}: ${exc?.message})`;
+  switch (exc?.name) {
+    case "SecurityError":
+      return `AR starts only from a tap on the page: tap Start. ${why}`;
+    case "NotAllowedError":
+      return `AR was not allowed on this page: accept Chrome's AR and camera prompts when you tap Start, or allow them ` +
+        `in the site's settings (the lock icon by the address). ${why}`;
+    case "InvalidStateError":
+      return `Another AR session is still open: close it (or reload this page) and tap Start again. ${why}`;
+    default:
+      return `This phone or browser could not start AR: it needs Chrome on Android with Google Play Services for AR ` +
+        `installed and up to date. ${CHECK_PAGE} ${why}`;
+  }
+}
+
+/** Why a started session cannot stream (no depth, no camera image), or null when it can. A
+ * browser without enabledFeatures (before Chrome 116) is taken at its word here; its missing
+ * depth or camera image are then found in its frames. */
+export async function missingFeatureMessage(session) {
+  const enabled = session.enabledFeatures;
+  if (!enabled) return null;
+  if (!enabled.includes("camera-access")) {
+    let permission = null;
+    try {
+      permission = (await navigator.permissions.query({ name: "camera" })).state;
+    } catch {
+      permission = null; // a browser that cannot say
+    }
+    if (permission === "denied") {
+      return "Live AR needs the camera image, and the camera permission was refused for this site: allow the camera " +
+        "(Chrome: the lock icon by the address, Permissions, Camera), then tap Start again.";
+    }
+    return `This browser gives AR pages no camera image (WebXR camera access: Chrome 107+ on Android). Update Chrome, ` +
+      `or use replay instead. ${CHECK_PAGE}`;
+  }
+  if (!enabled.includes("depth-sensing")) {
+    return `This phone gives AR pages no depth (ARCore's Depth API is not supported on this device, or this browser ` +
+      `has no WebXR depth sensing): live AR needs it. Use replay instead. ${CHECK_PAGE}`;
+  }
+  return null;
+}
 
 /** Whether this browser can run the live mode, and if not, why, in plain words. */
 export async function liveSupport() {
@@ -96,28 +143,39 @@ export class LiveSource {
     this.trackedSince = null; // XR time since which it has (again)
     this.firstFrameAt = null; // XR time of the session's first frame (FIRST_DEPTH_TIMEOUT_MS)
     this.lastDrawn = undefined; // XR time the overlay was last drawn
-    this.worlds = 0; // tracking losses so far: the device world is the XR space turned by worlds half turns
+    this.worlds = 0; // tracking losses so far: the device world's number (frames' device_world)
     this.stats = { depthImages: 0, pairedOlder: 0, maxPairedAgeMs: 0, poseLostFrames: 0 };
     this.said = []; // [XR time ms, text] of each line shown to the user (#say), the latest 50
     this.hint = arView.xrHint;
     this.#say(null);
   }
 
-  /** Start the XR session; resolves with the camera description for the hello. */
+  /** Start the XR session (call it from the user's tap: a browser starts AR only from one);
+   * resolves with the camera description for the hello. Rejects with a message that says what
+   * to do when AR cannot start, or when the session lacks depth or the camera image. */
   async start() {
+    // Depth and the camera image are asked for, not required: a browser refuses a required
+    // feature it lacks with the same error as anything else it cannot do, while a session
+    // without it tells which one is missing (enabledFeatures), so the user can be told.
     const options = {
-      requiredFeatures: ["depth-sensing", "camera-access", "local"],
-      optionalFeatures: ["dom-overlay"],
-      depthSensing: { usagePreference: ["cpu-optimized"], dataFormatPreference: ["luminance-alpha", "float32"] },
+      requiredFeatures: ["local"],
+      optionalFeatures: ["depth-sensing", "camera-access", "dom-overlay"],
+      depthSensing: { usagePreference: [...LIVE_DEPTH_SENSING.usagePreference],
+        dataFormatPreference: [...LIVE_DEPTH_SENSING.dataFormatPreference] },
       domOverlay: { root: this.overlayRoot },
     };
     try {
       this.session = await navigator.xr.requestSession("immersive-ar", options);
     } catch (exc) {
-      throw new Error(`AR could not start with depth sensing and camera access (${exc.name}: ${exc.message}). ` +
-        "This device or browser gives the web no depth or no camera image; use replay instead.");
+      throw new Error(refusalMessage(exc));
     }
     const session = this.session;
+    const missing = await missingFeatureMessage(session);
+    if (missing) {
+      this.session = null;
+      await session.end().catch(() => {});
+      throw new Error(missing);
+    }
     const renderer = this.arView.renderer;
     const gl = renderer.getContext();
     this.gl = gl;
@@ -268,9 +326,10 @@ export class LiveSource {
       // Stamped with the XR frame's time (when its camera image was taken), not the request's;
       // the phone's own pose of this image, in the current device world, goes along as the
       // tracker's prior.
-      const deviceCamera = deviceCameraFromView(this.#inDeviceWorld(view.transform.matrix));
+      const deviceCamera = deviceCameraFromView(view.transform.matrix);
+      const deviceWorld = this.worlds;
       const packing = reading.then((rgba) => this.#pack(rgba, depthValues, depth.rawValueToMeters))
-        .then((packed) => ({ ...packed, fields: { ...packed.fields, timestamp: time / 1000, deviceCamera } }));
+        .then((packed) => ({ ...packed, fields: { ...packed.fields, timestamp: time / 1000, deviceCamera, deviceWorld } }));
       request.resolve({ packing, anchor });
     } catch (exc) {
       request.reject(exc);
@@ -289,18 +348,6 @@ export class LiveSource {
     renderer.setRenderTarget(null);
     this.request?.resolve({ skip: "no pose" });
     this.request = null;
-  }
-
-  /** A pose in the XR space (column-major 4x4) in the current device world: the XR space turned
-   * a half turn about its vertical (y) axis after an odd number of tracking losses. */
-  #inDeviceWorld(matrix) {
-    if (this.worlds % 2 === 0) return matrix;
-    const turned = Float32Array.from(matrix);
-    for (let c = 0; c < 4; c++) {
-      turned[c * 4] = -matrix[c * 4]; // x -> -x
-      turned[c * 4 + 2] = -matrix[c * 4 + 2]; // z -> -z
-    }
-    return turned;
   }
 
   /** Keep this frame's depth: the buffer is readable only inside its frame, so it is copied. */

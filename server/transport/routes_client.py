@@ -4,6 +4,7 @@ and the bundled demo sequence that the page's replay mode streams.
 | path | what |
 |---|---|
 | ``/`` | the page (``client_web/index.html``) |
+| ``/check`` | the device check: what a phone's browser offers live AR (``check.html``) |
 | ``/app/{path}`` | the page's own files (``client_web/``: js, css, icons) |
 | ``/vendor/{package}/{path}`` | the npm packages the page imports (three, @msgpack/msgpack) |
 | ``/protocol.json`` | ``shared/protocol.json``, unchanged: the page validates against it |
@@ -102,6 +103,12 @@ def _file(root: Path, relative: str, headers: dict | None = None) -> FileRespons
 def page() -> FileResponse:
     """The phone page."""
     return _file(CLIENT_DIR, "index.html", NO_CACHE)
+
+
+@router.get("/check", include_in_schema=False)
+def check_page() -> FileResponse:
+    """The device check: what this phone's browser offers live AR, as a JSON report."""
+    return _file(CLIENT_DIR, "check.html", NO_CACHE)
 
 
 @router.get("/app/{path:path}", include_in_schema=False)

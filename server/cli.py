@@ -321,6 +321,16 @@ def serve(
     port: Annotated[int | None, typer.Option(help="TCP port")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="where sessions are stored")] = None,
     tls: Annotated[bool | None, typer.Option("--tls/--no-tls", help="HTTPS, self-signed")] = None,
+    phone_hosts: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--phone-host",
+            metavar="HOST",
+            help="an address or name phones reach this server by, beyond the LAN addresses it "
+            "finds (e.g. the host's, in a container): named in the certificate, first in the "
+            "phone URL (repeatable)",
+        ),
+    ] = None,
     demo: Annotated[
         bool | None, typer.Option("--demo/--no-demo", help="replay the demo sequence")
     ] = None,
@@ -336,9 +346,18 @@ def serve(
     sets: ConfigSets = None,
 ) -> None:
     """Run the server. Configuration: defaults < --config FILE < DRONESIM_* environment
-    variables < --set KEY=VALUE < the options --host, --port, --data-dir, --tls, --demo and --ray
-    (each the server.* key of its name)."""
-    flags = {"host": host, "port": port, "data_dir": data_dir, "tls": tls, "demo": demo, "ray": ray}
+    variables < --set KEY=VALUE < the options --host, --port, --data-dir, --tls, --phone-host,
+    --demo and --ray (each the server.* key of its name). Prints the URL a phone on the same
+    network opens, and its QR code."""
+    flags = {
+        "host": host,
+        "port": port,
+        "data_dir": data_dir,
+        "tls": tls,
+        "phone_hosts": phone_hosts or None,  # typer gives [] when the option is absent
+        "demo": demo,
+        "ray": ray,
+    }
     given = {k: v for k, v in flags.items() if v is not None}
     config = _load_config(config_file, sets, {"server": given})
     settings = config.server
@@ -347,22 +366,46 @@ def serve(
 
         restart_on_jemalloc()  # before the heavy imports below; returns only when it cannot
     from server.transport.app import make_server
+    from server.transport.phone_link import certificate_hosts, phone_link
 
     _print_config(config, "configuration")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ssl_certfile = ssl_keyfile = None  # plain HTTP
     if settings.tls:
-        from server.transport.tls import ensure_certificate, local_addresses
+        from server.transport.tls import ensure_certificate
 
-        cert, key = ensure_certificate(settings.data_dir / "tls")
-        ssl_certfile, ssl_keyfile = str(cert), str(key)
+        hosts = certificate_hosts(settings.host, settings.phone_hosts)
+        certificate = ensure_certificate(settings.data_dir / "tls", hosts)
+        ssl_certfile, ssl_keyfile = str(certificate.cert), str(certificate.key)
+        made = "a new" if certificate.issued else "the kept"
         console.print(
-            f"HTTPS with a self-signed certificate ({cert}); from a phone on the same "
-            f"network open https://<this machine>:{settings.port}/ (addresses: "
-            f"{', '.join(local_addresses())}) and accept the certificate once."
+            f"HTTPS with {made} self-signed certificate ({certificate.cert}) for "
+            f"{', '.join(certificate.hosts)}",
+            highlight=False,
         )
+    _print_phone_link(phone_link(settings.host, settings.port, settings.tls, settings.phone_hosts))
     logging.getLogger().setLevel(logging.INFO)
     make_server(config, log_level="info", ssl_certfile=ssl_certfile, ssl_keyfile=ssl_keyfile).run()
+
+
+def _print_phone_link(link) -> None:
+    """The URLs a phone opens, what its user must know, and the first URL's QR code."""
+    from server.transport.phone_link import qr_text
+
+    console.rule("phone")
+    for url in link.urls:
+        console.print(f"open on a phone on the same network: {url}", highlight=False)
+    for note in link.notes:
+        console.print(f"note: {note}", highlight=False)
+    if link.urls:
+        code = qr_text(link.urls[0])
+        try:
+            code.encode(console.encoding)
+        except (UnicodeEncodeError, LookupError):  # a log or terminal without block characters
+            console.print("(no QR code: this output cannot show its block characters)")
+        else:
+            console.print(code, markup=False, highlight=False, end="")
+    console.rule()
 
 
 @app.command()

@@ -25,8 +25,10 @@ A bad value or an unknown key raises ``ConfigError`` naming the key, before anyt
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
+import re
 import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -59,6 +61,11 @@ class ServerConfig(BaseModel):
     port: int = Field(default=8000, ge=1, le=65535)
     data_dir: Path = Path("data")  # sessions' maps and trajectories live here
     tls: bool = False  # serve HTTPS with a self-signed certificate kept in data_dir/tls
+    # Addresses or names phones reach this server by, beyond the LAN addresses it finds itself
+    # (server/transport/phone_link.py): a container's host's LAN address, which the container
+    # cannot see. Named in the TLS certificate, and first in the phone URL that serve prints.
+    # The flat variable DRONESIM_PHONE_HOSTS takes them comma-separated.
+    phone_hosts: list[str] = []
     max_sessions: int = Field(default=16, ge=1)  # live sessions at once; more get 503
     # Refused before decoding; at most uvicorn's ws_max_size (16 MiB), which refuses larger first.
     max_message_bytes: int = Field(default=4 * 1024 * 1024, ge=1024, le=16 * 1024 * 1024)
@@ -114,6 +121,28 @@ class ServerConfig(BaseModel):
     def _data_dir_usable(cls, v: Path) -> Path:
         if v.exists() and not v.is_dir():
             raise ValueError(f"data_dir {v} exists and is not a folder")
+        return v
+
+    @field_validator("phone_hosts", mode="before")
+    @classmethod
+    def _comma_separated(cls, v: Any) -> Any:
+        return [h.strip() for h in v.split(",") if h.strip()] if isinstance(v, str) else v
+
+    @field_validator("phone_hosts")
+    @classmethod
+    def _host_names(cls, v: list[str]) -> list[str]:
+        for host in v:
+            # A bare host: the certificate names it and the phone URL adds scheme and port.
+            try:
+                ipaddress.ip_address(host)
+                continue
+            except ValueError:
+                pass
+            if not re.fullmatch(r"[A-Za-z0-9-]+(\.[A-Za-z0-9-]+)*", host):
+                raise ValueError(
+                    f"phone host {host!r} must be an address or a host name "
+                    "(no scheme, port or path), e.g. 192.168.1.20"
+                )
         return v
 
     @field_validator("cors_origins")

@@ -86,3 +86,24 @@ def test_health_endpoint_answers(live_server):
     server = live_server()
     body = httpx.get(f"{server.url}/healthz").json()
     assert body["status"] == "ok" and body["live_sessions"] == 0
+
+
+def test_compose_phone_profile_serves_tls_on_its_own_port_and_volume_as_the_readme_says():
+    """`docker compose --profile phone up`: TLS on (a phone's camera needs a secure origin),
+    the certificate on a volume of its own (accepted once, kept), the same port inside and out
+    (the printed URL names it), the host's LAN address passed in, an HTTPS health check."""
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    phone, server = compose["services"]["phone"], compose["services"]["server"]
+    assert phone["profiles"] == ["phone"] and phone["image"] == server["image"]
+    env = phone["environment"]
+    assert set(env) <= {f"DRONESIM_{name.upper()}" for name in FLAT_ENV}
+    assert env["DRONESIM_TLS"] == "true" and env["DRONESIM_HOST"] == "0.0.0.0"
+    assert env["DRONESIM_PHONE_HOSTS"] == "${DRONESIM_PHONE_HOSTS:-}"  # from the shell, or none
+    port = env["DRONESIM_PORT"]
+    assert phone["ports"] == [f"{port}:{port}"] and f"{port}:" not in " ".join(server["ports"])
+    volume, mount = phone["volumes"][0].split(":")
+    assert mount == env["DRONESIM_DATA_DIR"] and volume in compose["volumes"]
+    assert volume not in {v.split(":")[0] for v in server["volumes"]}  # two servers, two stores
+    health = " ".join(phone["healthcheck"]["test"])
+    assert f"https://127.0.0.1:{port}/healthz" in health and "unverified" in health
+    assert "docker compose --profile phone up" in (REPO / "README.md").read_text()

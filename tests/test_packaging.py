@@ -18,6 +18,7 @@ import os
 import re
 import shutil
 import signal
+import site
 import socket
 import subprocess
 import sys
@@ -139,6 +140,18 @@ def installed(tmp_path_factory) -> Installed:
         text=True,
         check=True,
     ).stdout.strip()
+    # The dependencies the caller's environment holds beyond the machine's (a .venv made with
+    # --system-site-packages, as scripts/setup.sh makes it, gets only what the machine lacks):
+    # listed as plain paths, after the venv's own, so their .pth files (this project's editable
+    # install among them) are not run.
+    seen = subprocess.run(
+        [python, "-c", "import sys; print('\\n'.join(sys.path))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.splitlines()
+    extra = [p for p in site.getsitepackages() if p not in seen]
+    (Path(purelib) / "_caller_site_packages.pth").write_text("".join(f"{p}\n" for p in extra))
     # Nothing from the caller steers the imports or the server: no PYTHONPATH, no settings.
     env = {
         k: v

@@ -19,6 +19,7 @@ import { ReplaySequence, ReplaySource } from "./sources/replay.js";
 import { Streamer } from "./streamer.js";
 import { FlightsPanel } from "./flights_panel.js";
 import { ViewerClient, viewerLink } from "./viewer.js";
+import { showPhoneLink } from "./phone_link.js";
 
 const $ = (selector) => document.querySelector(selector);
 const REPLAY_KEY = "dronesim.replay"; // where a replay was, to go on there after a reload
@@ -57,6 +58,7 @@ class App {
     this.#renderLoop();
     this.#setupDialog();
     this.hud.connection(State.IDLE);
+    if (!watch) showPhoneLink($("#ar-view")); // desktop-size pages: a QR code until frames show
     const params = new URLSearchParams(window.location.search);
     if (params.get("view")) this.setView(params.get("view"));
     if (params.get("occlusion") === "off") this.setOcclusion(false);

@@ -31,6 +31,7 @@ from server.sessions.worker import warm_up
 from server.transport import (
     routes_client,
     routes_flights,
+    routes_phone,
     routes_recordings,
     routes_sessions,
     routes_viewers,
@@ -159,6 +160,7 @@ def create_app(config: Config | None = None) -> FastAPI:
     app.include_router(viewer_socket.router)
     app.include_router(routes_client.router)
     app.include_router(routes_recordings.router)
+    app.include_router(routes_phone.router)
 
     @app.exception_handler(SessionError)
     async def session_error(request: Request, exc: SessionError) -> JSONResponse:

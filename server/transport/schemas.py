@@ -538,3 +538,16 @@ class ViewerList(_Body):
     """``GET /api/sessions/{id}/viewers``: the session's viewer links."""
 
     viewers: list[str] = Field(description="viewer_id of every link not revoked")
+
+
+class PhoneLinkBody(_Body):
+    """``GET /api/phone-link``: how a phone on the local network opens this server (the link
+    and notes ``serve`` prints)."""
+
+    urls: list[str] = Field(
+        description="the page's URLs on this machine's LAN addresses (and the hosts the "
+        "operator named, `server.phone_hosts`), best first; `/api/phone-link.svg` is the first's "
+        "QR code. Empty when no phone can reach the server (it listens on loopback only)"
+    )
+    tls: bool = Field(description="served over HTTPS (a secure origin: camera and depth work)")
+    notes: list[str] = Field(description="what the phone's user must know, a sentence each")

@@ -45,8 +45,11 @@ from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.loops import LoopCloser  # noqa: E402
 from server.registration.place import describe_place  # noqa: E402
 from server.registration.preprocess import clean_depth, to_grey  # noqa: E402
-from server.sessions.loop_process import LOOPS_NICE  # noqa: E402
-from server.sessions.mapping import MAPPING_NICE, lower_this_threads_priority  # noqa: E402
+from server.sessions.priority import (  # noqa: E402
+    LOOPS_NICE,
+    MAPPING_NICE,
+    lower_this_threads_priority,
+)
 
 FPS, FUSE_PERIOD_S, TARGET_P95_RATIO = 15.0, 0.2, 1.2
 KEYFRAME_EVERY = 8

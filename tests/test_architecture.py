@@ -157,6 +157,85 @@ def test_a_violation_is_reported(tmp_path, monkeypatch):
     ]
 
 
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """server module -> the server modules it imports (lazy and type-checking imports count:
+    each is a dependency a reader follows). A name taken from a package is its __init__'s."""
+    paths = {_module_name(p): p for p in sorted(root.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        targets = set()
+        for name in imported_modules(path.read_text(), module):
+            while name and name not in paths:  # a name from a module: the module
+                name = name.rpartition(".")[0]
+            if name and name != module:
+                targets.add(name)
+        graph[module] = targets
+    return graph
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+    for start in graph:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    group.append(member)
+                    if member == node:
+                        break
+                if len(group) > 1:
+                    circles.append(sorted(group))
+    return circles
+
+
+def test_no_module_of_the_server_imports_itself_in_a_circle():
+    """No import circles in server/: each module can be read (and tested) after the ones it
+    imports, lazy imports inside functions and type-checking imports included."""
+    assert import_circles(import_graph(SERVER)) == []
+
+
+def test_an_import_circle_is_found(tmp_path, monkeypatch):
+    """The check is not vacuous: a circle through a lazy import is caught, and a chain is not."""
+    package = tmp_path / "server" / "sessions"
+    package.mkdir(parents=True)
+    (package / "a.py").write_text("from server.sessions.b import B\n")
+    (package / "b.py").write_text("def f():\n    from server.sessions.c import C\n")
+    (package / "c.py").write_text("from server.sessions import a\n")
+    (package / "d.py").write_text("from server.sessions.a import A\n")
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    graph = import_graph(tmp_path / "server")
+    assert import_circles(graph) == [
+        ["server.sessions.a", "server.sessions.b", "server.sessions.c"]
+    ]
+
+
 def test_ray_stays_optional():
     """Ray is imported by server/sessions/ray_workers.py alone, and that module only from inside
     a function (``serve --ray``): without it, Ray is never imported."""

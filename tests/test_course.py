@@ -16,7 +16,9 @@ from server import protocol as proto
 from server.datasets.demo import DemoSpec, _room_boxes
 from server.geometry import Intrinsics
 from server.sessions.course import BEST_KEPT, read_best
-from server.sessions.flight import CommandRefused, DroneNotice, Flight
+from server.sessions.errors import CommandRefused
+from server.sessions.flight import Flight
+from server.sessions.updates import DroneNotice
 from server.simulation.config import SimulationConfig
 from server.simulation.course import (
     FIRST_GATE_REACH_M,

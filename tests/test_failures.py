@@ -19,8 +19,9 @@ from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.geometry import Intrinsics
 from server.sessions import DroneNotice, DroneUpdate, SessionError, SessionFailed
+from server.sessions.errors import CommandRefused
 from server.sessions.faults import inject
-from server.sessions.flight import CommandRefused, Flight
+from server.sessions.flight import Flight
 from server.sessions.session import Session, _FuseJob
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, PoseUpdate

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from server.geometry import Intrinsics, exp_se3
-from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate, Flight, flight_frame
+from server.sessions.errors import CommandRefused
+from server.sessions.flight import Flight, flight_frame
+from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation import scenes
 from server.simulation.config import SimulationConfig
 

@@ -3,12 +3,13 @@
 No web code here: the transport hands decoded frames and commands in and gets updates back.
 """
 
-from server.sessions.errors import SessionError
-from server.sessions.flight import CommandRefused, DroneNotice, DroneUpdate
+from server.sessions.errors import CommandRefused, SessionError
 from server.sessions.live import LiveSession, SessionTakenOver
 from server.sessions.manager import SessionManager
 from server.sessions.session import Session
 from server.sessions.updates import (
+    DroneNotice,
+    DroneUpdate,
     FrameData,
     FrameRefused,
     MapCorrected,

@@ -2,9 +2,10 @@
 each flight step judges the drone's way through it, an autopilot may fly it, and finished runs
 go into the session's best list (``course_best.json`` beside its other files).
 
-``Flight`` owns one ``CourseControl``: ``command`` comes from the worker's main thread (like a
-goto), ``tick`` from the flight thread after each physics advance, both around ``Flight._lock``
-as the simulator needs. What it hands out goes through ``Flight.publish``: ``DroneNotice`` for
+``Flight`` owns one ``CourseControl`` and is its ``CourseFlight``, the little a course needs of a
+flight: ``command`` comes from the worker's main thread (like a goto), ``tick`` from the flight
+thread after each physics advance, both around ``CourseFlight.lock`` as the simulator needs. What
+it hands out goes through ``CourseFlight.publish``: ``DroneNotice`` for
 gate_passed, gate_missed and course_finished, and ready ``course`` protocol messages (dicts,
 sent as they are).
 
@@ -23,12 +24,15 @@ import secrets
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from server import protocol as proto
 from server.atomic import atomic_write_bytes
+from server.sessions.errors import CommandRefused
+from server.sessions.updates import DroneNotice
+from server.simulation.config import SimulationConfig
 from server.simulation.course import (
     Course,
     CourseError,
@@ -38,13 +42,43 @@ from server.simulation.course import (
     generate_course,
     plan_course_route,
 )
-from server.simulation.drone import DroneCommandError, DroneEvent, DroneEventKind, DroneMode
+from server.simulation.drone import (
+    DroneCommandError,
+    DroneEvent,
+    DroneEventKind,
+    DroneMode,
+    DroneSimulator,
+)
+from server.simulation.flight_map import FlightMap
 from server.simulation.planner import PlanningError, Reason
 
-if TYPE_CHECKING:
-    from server.sessions.flight import Flight
-
 log = logging.getLogger(__name__)
+
+
+class CourseFlight(Protocol):
+    """What a course needs of the flight it runs in (``server.sessions.flight.Flight``): the
+    simulator and its map (used under ``lock``), the flight's settings and log, its frames
+    (``to_world``: flight-frame points (3,) or (N, 3) in the client's world, metres;
+    ``direction_to_world``: directions the same way), and its way out (``publish`` sends a
+    ``DroneNotice`` or a protocol message; ``record_course`` keeps a course message in the
+    flight's recording)."""
+
+    sim: DroneSimulator
+    flight_map: FlightMap
+    config: SimulationConfig
+    log: logging.Logger | logging.LoggerAdapter
+
+    @property
+    def lock(self) -> Any: ...  # a threading.Lock: what the simulator and its map are used under
+
+    def to_world(self, p_flight: np.ndarray) -> np.ndarray: ...
+
+    def direction_to_world(self, v_flight: np.ndarray) -> np.ndarray: ...
+
+    def publish(self, update: Any) -> None: ...
+
+    def record_course(self, message: dict) -> None: ...
+
 
 COURSE_COMMANDS = frozenset({"course_start", "course_stop"})
 BEST_FILE = "course_best.json"  # in the session's folder (SessionStore.file)
@@ -95,7 +129,7 @@ def _ranked(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
 class CourseControl:
     """The course of one session's drone (module docstring)."""
 
-    def __init__(self, flight: Flight, best_path: Path | None = None) -> None:
+    def __init__(self, flight: CourseFlight, best_path: Path | None = None) -> None:
         self.flight = flight
         self.best_path = best_path  # None: the best list lives in memory only
         self._best: list[dict[str, Any]] | None = None  # read from best_path on first use
@@ -112,10 +146,9 @@ class CourseControl:
     # ------------------------------------------------------------------ commands
     def command(self, name: str, command_id: int, **options: Any) -> None:
         """course_start or course_stop (protocol names and fields); raises CommandRefused."""
-        from server.sessions.flight import CommandRefused
 
         if name == "course_stop":
-            with self.flight._lock:
+            with self.flight.lock:
                 if self.run is None or self.state != "running":
                     raise CommandRefused("bad_command", "no course is running")
                 self._stop(hold=True)
@@ -134,7 +167,7 @@ class CourseControl:
         autopilot = bool(options.get("autopilot"))
         speed = options.get("speed")
         sim = self.flight.sim
-        with self.flight._lock:
+        with self.flight.lock:
             if not sim.spawned:
                 raise CommandRefused("bad_command", "no drone yet: it spawns with the first map")
             mode = sim.mode
@@ -162,7 +195,7 @@ class CourseControl:
             course.par_s,
             (time.perf_counter() - t0) * 1e3,
         )
-        with self.flight._lock:
+        with self.flight.lock:
             if self.run is not None and self.state == "running":
                 self._stop(hold=self.autopilot)
             if autopilot:
@@ -230,7 +263,6 @@ class CourseControl:
     def tick(self, events: list[DroneEvent]) -> list:
         """After a physics advance (``events`` are its drone events; Flight's lock held): judge
         the way since the last tick; returns DroneNotices and course messages to publish."""
-        from server.sessions.flight import DroneNotice
 
         run = self.run
         if run is None or self.state != "running":
@@ -256,7 +288,7 @@ class CourseControl:
                 DroneNotice(
                     ge.kind,
                     ge.time_s,
-                    self.flight._to_world(ge.point),
+                    self.flight.to_world(ge.point),
                     self._message(ge),
                     self.command_id,
                 )
@@ -290,8 +322,8 @@ class CourseControl:
         assert run is not None
         course: Course = run.course
         rows = course.rows()
-        rows[:, 0:3] = self.flight._to_world(rows[:, 0:3])
-        rows[:, 3:6] = self.flight._direction_to_world(rows[:, 3:6])  # normals stay unit
+        rows[:, 0:3] = self.flight.to_world(rows[:, 0:3])
+        rows[:, 3:6] = self.flight.direction_to_world(rows[:, 3:6])  # normals stay unit
         self._sent_at = now_s
         return proto.make_course(
             self.course_id,

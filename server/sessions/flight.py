@@ -20,8 +20,9 @@ import numpy as np
 
 from server.geometry import Intrinsics, invert
 from server.sessions.course import COURSE_COMMANDS, CourseControl
-from server.sessions.errors import SessionError
+from server.sessions.errors import CommandRefused
 from server.sessions.failures import RateLimitedLog
+from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneCommandError, DroneSimulator
 from server.simulation.flight_map import FlightMap, Region
@@ -69,45 +70,6 @@ def flight_frame(gravity_world: np.ndarray | None) -> np.ndarray:
 # What a flight recording keeps of a course message (PROTOCOL.md, "Flight recordings").
 _COURSE_FIELDS = ("course_id", "difficulty", "seed", "gates", "par_s", "autopilot")
 _RESULT_FIELDS = ("course_id", "elapsed_s", "par_s", "score", "bumps", "crashes", "rank")
-
-
-class CommandRefused(SessionError):
-    """A pilot command that cannot be carried out. ``nearest``: a reachable point close to the
-    asked target (world frame, metres), when there is one."""
-
-    def __init__(self, code: str, message: str, nearest: np.ndarray | None = None) -> None:
-        super().__init__(code, message)
-        self.nearest = nearest
-
-
-@dataclass
-class DroneUpdate:
-    """The drone's state for the client, in the world frame (metres, seconds)."""
-
-    timestamp: float  # simulation time
-    T_world_drone: np.ndarray
-    T_camera_drone: np.ndarray | None  # for the latest processed frame's camera
-    camera_seq: int | None
-    velocity: np.ndarray  # (3,) world frame, m/s
-    mode: str
-    clearance: float
-    target: np.ndarray | None
-    route: np.ndarray | None  # (N, 3) remaining route, world frame
-    command_id: int | None
-    flight_mode: str = "position"  # how sticks fly the drone: position, angle or acro
-    attitude: np.ndarray | None = None  # (3,) roll, pitch, yaw in degrees, flight frame
-    damage: float = 0.0  # bump damage points since spawn
-
-
-@dataclass
-class DroneNotice:
-    """Something that happened to the drone (collision, arrival, ...), world frame."""
-
-    event: str
-    timestamp: float
-    position: np.ndarray
-    message: str
-    command_id: int | None
 
 
 @dataclass
@@ -198,17 +160,22 @@ class Flight:
         with self._view_lock:
             return self._T_view_sim @ self.T_world_flight
 
+    @property
+    def lock(self) -> threading.Lock:
+        """The lock the simulator and flight map are used under (CourseFlight)."""
+        return self._lock
+
     def _to_flight(self, p_world: np.ndarray) -> np.ndarray:
         """A point (3,) of the client's world in the flight frame."""
         T = invert(self._T_world_flight_shown())
         return T[:3, :3] @ np.asarray(p_world, dtype=np.float64) + T[:3, 3]
 
-    def _to_world(self, p_flight: np.ndarray) -> np.ndarray:
+    def to_world(self, p_flight: np.ndarray) -> np.ndarray:
         """Flight-frame points ((3,) or (N, 3)) in the client's world."""
         T = self._T_world_flight_shown()
         return np.asarray(p_flight, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
-    def _direction_to_world(self, v_flight: np.ndarray) -> np.ndarray:
+    def direction_to_world(self, v_flight: np.ndarray) -> np.ndarray:
         """Flight-frame directions or velocities ((3,) or (N, 3)) in the client's world."""
         return np.asarray(v_flight, dtype=np.float64) @ self._T_world_flight_shown()[:3, :3].T
 
@@ -385,7 +352,7 @@ class Flight:
             self.sim.command_goto(self._to_flight(target_world), speed=speed, command_id=command_id)
         except PlanningError as exc:
             # The planner speaks in flight-frame coordinates; the client knows the world's.
-            nearest = None if exc.nearest is None else self._to_world(exc.nearest)
+            nearest = None if exc.nearest is None else self.to_world(exc.nearest)
             code = "bad_command" if exc.reason == "not_finite" else "unreachable_target"
             why = _REFUSALS.get(exc.reason.value, str(exc))
             message = f"target {_xyz(target_world)}: {why}"
@@ -611,8 +578,8 @@ class Flight:
         return DroneNotice(
             event.kind.value,
             event.time_s,
-            self._to_world(event.position),
-            event.text(self._to_world),  # the pilot's frame, as the event's other fields
+            self.to_world(event.position),
+            event.text(self.to_world),  # the pilot's frame, as the event's other fields
             event.command_id,
         )
 
@@ -635,16 +602,16 @@ class Flight:
         camera = self._latest_camera()
         T_world_drone = T_world_flight @ s.T_flight_drone
         T_camera_drone = None if camera is None else invert(camera[1]) @ T_world_drone
-        route = None if s.route is None or len(s.route) == 0 else self._to_world(s.route)
+        route = None if s.route is None or len(s.route) == 0 else self.to_world(s.route)
         return DroneUpdate(
             timestamp=s.time_s,
             T_world_drone=T_world_drone,
             T_camera_drone=T_camera_drone,
             camera_seq=None if camera is None else camera[0],
-            velocity=self._direction_to_world(s.velocity),
+            velocity=self.direction_to_world(s.velocity),
             mode=s.mode.value,
             clearance=float(s.clearance),
-            target=None if s.target is None else self._to_world(s.target),
+            target=None if s.target is None else self.to_world(s.target),
             route=route,
             command_id=s.command_id,
             flight_mode=s.flight_mode.value,

@@ -4,9 +4,7 @@ or a Ray actor), apart from the web process.
 The web process forwards what the client sent: the hello as a dict, frames as the bytes that
 arrived (decoded here, so image decoding never costs the event loop), pilot commands. The host
 answers calls with plain values and hands updates (poses, map points, drone states and events,
-refused frames) to ``publish``. Errors cross as :class:`RemoteError` values, which pickle
-whatever the exception class looks like, and are raised again on the web side by
-:func:`raise_remote`.
+refused frames) to ``publish``. Errors cross as ``RemoteError`` values (server/sessions/remote.py).
 """
 
 from __future__ import annotations
@@ -24,64 +22,15 @@ from server import protocol as proto
 from server.errors import ConfigError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
-from server.mapping.tsdf import MapError
 from server.sessions.config import SessionConfig
-from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.errors import SessionError
 from server.sessions.faults import inject
-from server.sessions.flight import CommandRefused
 from server.sessions.mapping import MapperClient
 from server.sessions.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, FrameRefused
 
 DOWNLOADS = ("map.ply", "mesh.ply", "trajectory.tum")
-
-
-@dataclass
-class RemoteError:
-    """An exception raised in the worker, as plain values (``kind`` names its class)."""
-
-    kind: str
-    code: str
-    message: str
-    nearest: list[float] | None = None
-
-
-def as_remote(exc: BaseException) -> RemoteError:
-    if isinstance(exc, CommandRefused):
-        nearest = None if exc.nearest is None else [float(v) for v in exc.nearest]
-        return RemoteError("command", exc.code, str(exc), nearest)
-    if isinstance(exc, SessionError):
-        return RemoteError("session", exc.code, str(exc))
-    if isinstance(exc, proto.ProtocolError):
-        return RemoteError("protocol", exc.code, str(exc))
-    if isinstance(exc, SnapshotError):
-        return RemoteError("snapshot", "snapshot_failed", str(exc))
-    if isinstance(exc, MapError):
-        return RemoteError("map", "map_unavailable", str(exc))
-    if isinstance(exc, OSError):  # a disk that refuses a snapshot: the caller keeps its data
-        return RemoteError("os", type(exc).__name__, str(exc))
-    return RemoteError("internal", "internal_error", f"{type(exc).__name__}: {exc}")
-
-
-def raise_remote(error: RemoteError) -> None:
-    """Raise, on the web side, the exception a worker's call raised."""
-    import numpy as np
-
-    if error.kind == "command":
-        nearest = None if error.nearest is None else np.asarray(error.nearest)
-        raise CommandRefused(error.code, error.message, nearest)
-    if error.kind == "session":
-        raise SessionError(error.code, error.message)
-    if error.kind == "protocol":
-        raise proto.ProtocolError(error.code, error.message)
-    if error.kind == "snapshot":
-        raise SnapshotError(error.message)
-    if error.kind == "map":
-        raise MapError(error.message)
-    if error.kind == "os":
-        raise OSError(f"{error.code}: {error.message}")
-    raise RuntimeError(f"the session's worker failed: {error.message}")
 
 
 def limit_threads(threads: int) -> None:

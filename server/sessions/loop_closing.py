@@ -30,8 +30,8 @@ from server.geometry import Intrinsics, invert, orthonormalize, rotation_angle_d
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.place import PlaceFeatures
-from server.sessions.loop_process import LOOPS_NICE, LoopCloserClient
-from server.sessions.mapping import lower_this_threads_priority
+from server.sessions.loop_process import LoopCloserClient
+from server.sessions.priority import LOOPS_NICE, lower_this_threads_priority
 
 log = logging.getLogger(__name__)
 

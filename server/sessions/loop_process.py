@@ -26,11 +26,7 @@ from server.geometry.arrays import Float32Array, FloatArray
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser, LoopEdge
 from server.registration.place import PlaceFeatures
-from server.sessions.mapping import MAPPING_NICE, lower_this_threads_priority
-
-# Below the mapping's priority: when the cores are short, loops fall behind the map, and the
-# map behind the poses (the drone flies in the map: it must not wait for loops).
-LOOPS_NICE = MAPPING_NICE + 5
+from server.sessions.priority import LOOPS_NICE, lower_this_threads_priority
 
 
 class LoopProcessError(RuntimeError):

@@ -11,7 +11,6 @@ another process.
 from __future__ import annotations
 
 import logging
-import os
 import signal
 import tempfile
 import threading
@@ -28,21 +27,12 @@ from server.mapping.tsdf import MapError, TSDFMap
 from server.rooms.room import read_keyframe_images
 from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
+from server.sessions.priority import MAPPING_NICE, lower_this_threads_priority
+from server.sessions.remote import as_remote, raise_remote
 
 log = logging.getLogger(__name__)
 
 MAP_FILES = ("map.npz", "map.ply")  # what a snapshot of the map writes
-MAPPING_NICE = 10  # added to the map's nice value: it yields to tracking when cores are short
-
-
-def lower_this_threads_priority(nice: int) -> None:
-    """Raise the calling thread's nice value by ``nice`` (Linux nice values are per thread; a
-    new process's first thread speaks for the process)."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
-    except (OSError, AttributeError):  # not Linux, or not allowed: the same priority, still right
-        pass
 
 
 @dataclass
@@ -294,8 +284,6 @@ def mapper_main(conn, config: MappingConfig, threads: int, session_id: str = "")
 
     o3d.utility.set_max_threads(threads)
     lower_this_threads_priority(MAPPING_NICE)
-    from server.sessions.host import as_remote
-
     mapper = Mapper(config)
     session_log = SessionLog(log, session_id)
     while True:
@@ -325,8 +313,6 @@ class MapperClient:
         self._lock = threading.Lock()
 
     def _call(self, method: str, *args):
-        from server.sessions.host import raise_remote
-
         with self._lock:
             try:
                 self._conn.send((method, args))

@@ -127,7 +127,7 @@ class SessionActor:
     @ray.method(concurrency_group="ordered")
     def ordered(self, owner: str, number: int, method: str, args: tuple):
         """The hello, frames, commands and the stop: run strictly in each front-end's order."""
-        from server.sessions.host import as_remote
+        from server.sessions.remote import as_remote
 
         with self._cond:
             deadline = time.monotonic() + 10.0
@@ -181,7 +181,7 @@ class SessionActor:
     @ray.method(concurrency_group="query")
     def query(self, method: str, args: tuple):
         """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
-        from server.sessions.host import as_remote
+        from server.sessions.remote import as_remote
 
         try:
             value = getattr(self.host, method)(*args)
@@ -293,7 +293,7 @@ class RayWorker:
         return self._get(ref, timeout_s, method)
 
     def _get(self, ref, timeout_s: float, method: str):
-        from server.sessions.host import raise_remote
+        from server.sessions.remote import raise_remote
 
         try:
             ok, value = ray.get(ref, timeout=timeout_s)

@@ -38,19 +38,13 @@ from server.rooms.room import (
 )
 from server.sessions.config import SessionConfig
 from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
-from server.sessions.errors import SessionError, SnapshotError
+from server.sessions.errors import CommandRefused, SessionError, SnapshotError
 from server.sessions.failures import Failures, SessionLog
-from server.sessions.flight import CommandRefused, Flight
+from server.sessions.flight import Flight
 from server.sessions.flight_log import FlightLog
 from server.sessions.loop_closing import Correction, LoopClosing, LoopKeyframe, pose_move_m
-from server.sessions.mapping import (
-    MAPPING_NICE,
-    Mapper,
-    MapperClient,
-    MapperLost,
-    Rebuilt,
-    lower_this_threads_priority,
-)
+from server.sessions.mapping import Mapper, MapperClient, MapperLost, Rebuilt
+from server.sessions.priority import MAPPING_NICE, lower_this_threads_priority
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.updates import (
     FrameData,

@@ -8,7 +8,35 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.sessions.flight import DroneNotice, DroneUpdate
+
+@dataclass
+class DroneUpdate:
+    """The drone's state for the client, in the world frame (metres, seconds)."""
+
+    timestamp: float  # simulation time
+    T_world_drone: np.ndarray
+    T_camera_drone: np.ndarray | None  # for the latest processed frame's camera
+    camera_seq: int | None
+    velocity: np.ndarray  # (3,) world frame, m/s
+    mode: str
+    clearance: float
+    target: np.ndarray | None
+    route: np.ndarray | None  # (N, 3) remaining route, world frame
+    command_id: int | None
+    flight_mode: str = "position"  # how sticks fly the drone: position, angle or acro
+    attitude: np.ndarray | None = None  # (3,) roll, pitch, yaw in degrees, flight frame
+    damage: float = 0.0  # bump damage points since spawn
+
+
+@dataclass
+class DroneNotice:
+    """Something that happened to the drone (collision, arrival, ...), world frame."""
+
+    event: str
+    timestamp: float
+    position: np.ndarray
+    message: str
+    command_id: int | None
 
 
 @dataclass

@@ -20,9 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from server.sessions.errors import SessionError
-from server.sessions.flight import DroneNotice, DroneUpdate
 from server.sessions.store import hash_token
-from server.sessions.updates import MapCorrected, MapUpdate, PoseUpdate
+from server.sessions.updates import DroneNotice, DroneUpdate, MapCorrected, MapUpdate, PoseUpdate
 
 # What a viewer is shown; refused frames (the owner's errors) and failures are not for it.
 VIEWED = (PoseUpdate, MapUpdate, MapCorrected, DroneUpdate, DroneNotice)

@@ -60,8 +60,9 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from server.sessions.failures import SessionLog
-    from server.sessions.host import SessionHost, as_remote
+    from server.sessions.host import SessionHost
     from server.sessions.mapping import MapperClient
+    from server.sessions.remote import as_remote
 
     session_log = SessionLog(log, args.session_id)
 
@@ -233,7 +234,7 @@ class ProcessWorker:
         return self._wait(future, timeout_s, method, call_id)
 
     def _wait(self, future: Future, timeout_s: float, method: str, call_id: int = 0):
-        from server.sessions.host import raise_remote
+        from server.sessions.remote import raise_remote
 
         try:
             ok, value = future.result(timeout_s)

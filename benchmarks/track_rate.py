@@ -49,6 +49,7 @@ def run_track(sequence: Path, out: Path, overlap: bool) -> dict:
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"{shlex.join(cmd)} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+    out = out / "latest"  # the run's own folder under --out
     summary = json.loads((out / "summary.json").read_text())
     return {
         "wall_s": wall,

@@ -115,7 +115,13 @@ def track(
             ".r3d file, or 'demo'"
         ),
     ],
-    out: Annotated[Path, typer.Option(help="results folder")] = Path("results/track"),
+    out: Annotated[
+        Path,
+        typer.Option(
+            help="folder of the runs: each run writes a new folder OUT/DATASET_DATE_TIME and "
+            "OUT/latest links to the newest"
+        ),
+    ] = Path("results/track"),
     frames: Annotated[int | None, typer.Option(help="only N frames (from --start)")] = None,
     start: Annotated[int, typer.Option(min=0, help="begin at this frame (0 = the first)")] = 0,
     dense: Annotated[
@@ -136,18 +142,28 @@ def track(
     room: Annotated[
         Path | None,
         typer.Option(
-            help="continue in the room saved by an earlier run (its --out folder, or the room "
-            "folder in it): relocalise by place recognition, track in its frame, extend it",
+            help="continue in the room saved by an earlier run (its run folder or the room "
+            "folder in it; an --out folder means its latest run): relocalise by place "
+            "recognition, track in its frame, extend it",
         ),
     ] = None,
     save_room: Annotated[
         bool,
         typer.Option(
             "--save-room/--no-save-room",
-            help="keep the keyframes and save OUT/room (ORB features per keyframe, a TSDF "
+            help="keep the keyframes and save RUN/room (ORB features per keyframe, a TSDF "
             "fused from them behind tracking)",
         ),
     ] = True,
+    mesh: Annotated[
+        bool,
+        typer.Option(
+            "--mesh/--no-mesh",
+            help="also write the keyframes' TSDF surface upright: RUN/mesh.ply (z up) and "
+            "RUN/mesh.glb (y up, as glTF defines); up from the phone's gravity, else the map's "
+            "floors and table tops, else the first camera",
+        ),
+    ] = False,
     overlap: Annotated[
         bool,
         typer.Option(
@@ -168,12 +184,15 @@ def track(
     sets: ConfigSets = None,
 ) -> None:
     """Register a sequence; write trajectory (TUM), map (PLY), a top-view picture, metrics, the
-    configuration used (config.yaml: `--config OUT/config.yaml` runs it again) and the room
-    (OUT/room: keyframes and TSDF map, for a later --room). A Stray Scanner or Record3D
-    recording's own odometry is each frame's prior unless --no-device-prior."""
+    configuration used (config.yaml: `--config RUN/config.yaml` runs it again), the room
+    (RUN/room: keyframes and TSDF map, for a later --room) and with --mesh an upright mesh.
+    RUN is a new folder under --out for each run; OUT/latest links to the newest. A Stray
+    Scanner or Record3D recording's own odometry is each frame's prior unless
+    --no-device-prior."""
     from server.config import write_config
     from server.evaluation.metrics import format_table
     from server.pipeline import run_odometry, write_outputs
+    from server.results import link_latest, new_run_folder, room_folder
 
     registration: dict = {}
     if dense is not None:
@@ -187,8 +206,7 @@ def track(
     if room is not None:
         from server.rooms import load_room
 
-        folder = room / "room" if (room / "room").is_dir() else room
-        saved_room = load_room(folder, config.registration)
+        saved_room = load_room(room_folder(room), config.registration)
     _print_config(config, "configuration")
     run = run_odometry(
         ds,
@@ -197,15 +215,17 @@ def track(
         mapping=config.mapping,
         room=saved_room,
         start=start,
-        keep_room=save_room,
+        keep_room=save_room or mesh,  # the mesh is fused from the keyframes
         overlap=overlap,
     )
     if saved_room is not None and not run.summary["relocalisation"]["relocalised"]:
         raise DroneSimError(
             f"no frame of {ds.name} was recognised in the room {room}: nothing tracked"
         )
-    paths = write_outputs(run, out, ds, config.registration)
-    paths["config"] = write_config(config, out / "config.yaml")
+    folder = new_run_folder(out, ds.name)
+    paths = write_outputs(run, folder, ds, config.registration, mesh=mesh, save_room=save_room)
+    paths["config"] = write_config(config, folder / "config.yaml")
+    latest = link_latest(folder)
     s = run.summary
     stats = Table(title=f"{ds.name}: registration")
     for col in ("frames", "keyframes", "ok", "weak", "lost", "repeated", "median ms", "p90 ms"):
@@ -241,8 +261,14 @@ def track(
         console.print(
             format_table({"estimate": run.metrics}, title=f"{ds.name}: error vs ground truth")
         )
+    upright = s.get("upright")
+    if upright is not None:
+        said = {"gravity": "the phone's gravity", "surfaces": "the map's floors and table tops"}
+        console.print(f"mesh: up from {said.get(upright['source'], 'the first camera (-y)')}")
     for name, path in paths.items():
         console.print(f"{name:>10}: {path}")
+    if latest is not None:
+        console.print(f"{'latest':>10}: {latest} -> {folder.name}")
 
 
 @app.command("evaluate")

@@ -8,22 +8,25 @@ from __future__ import annotations
 import json
 import logging
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from server.datasets import RGBDDataset, RGBDFrame
+from server.datasets.replay_export import ARKIT_GRAVITY
 from server.errors import DatasetError
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
 from server.geometry import invert
 from server.geometry.arrays import FloatArray
-from server.mapping.config import MappingConfig
+from server.mapping.config import MappingConfig, TSDFConfig
+from server.mapping.mesh_files import write_upright
 from server.mapping.pointcloud import PointCloudMap
 from server.mapping.tsdf import TSDFMap
+from server.mapping.upright import upright_frame
 from server.overlap import Behind, read_ahead
 from server.registration import Tracker, TrackResult
 from server.registration.calibration import ColourToDepth
@@ -32,7 +35,8 @@ from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
 from server.registration.relocalise import SegmentFrames
 from server.rooms.continuation import RoomTracker
-from server.rooms.room import Room, save_room
+from server.rooms.room import Room
+from server.rooms.room import save_room as write_room
 
 log = logging.getLogger(__name__)
 
@@ -296,10 +300,18 @@ def _relocalisation_summary(tracker: RoomTracker, start: int) -> dict:
 
 
 def write_outputs(
-    run: OdometryRun, out_dir: Path, dataset: RGBDDataset, config: RegistrationConfig
+    run: OdometryRun,
+    out_dir: Path,
+    dataset: RGBDDataset,
+    config: RegistrationConfig,
+    mesh: bool = False,
+    save_room: bool = True,
 ) -> dict:
     """Write trajectory.tum, map.ply, trajectory.png and summary.json into ``out_dir``, and the
-    run's room, when it kept keyframes, into ``out_dir/room`` (see server/rooms/room.py)."""
+    run's room, when it kept keyframes and ``save_room``, into ``out_dir/room`` (see
+    server/rooms/room.py). With ``mesh``, also the surface of a TSDF fused from the keyframes,
+    upright: mesh.ply (z up) and mesh.glb (y up, glTF's axes; server/mapping/mesh_files.py);
+    summary.json's ``upright`` then holds R_upright_world and where up came from."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {
         "trajectory": out_dir / "trajectory.tum",
@@ -316,9 +328,11 @@ def write_outputs(
         within = (gt.timestamps >= t0) & (gt.timestamps <= t1)
         curves = {"ground truth": gt.poses[within], **curves}
     plot_top_view(paths["picture"], curves, run.map.points, title=f"{dataset.name}: top view")
-    if run.room.keyframes:
+    if run.room.keyframes and save_room:
         paths["room"] = out_dir / "room"
-        run.summary["room_bytes"] = save_room(run.room, paths["room"])
+        run.summary["room_bytes"] = write_room(run.room, paths["room"])
+    if mesh:
+        paths |= _write_mesh(run, out_dir, dataset)
     summary = {
         "dataset": str(dataset.path),
         **run.summary,
@@ -327,3 +341,40 @@ def write_outputs(
     }
     paths["summary"].write_text(json.dumps(summary, indent=2))
     return paths
+
+
+def _write_mesh(run: OdometryRun, out_dir: Path, dataset: RGBDDataset) -> dict[str, Path]:
+    """mesh.ply and mesh.glb of a TSDF fused from the keyframes at their final poses, upright
+    (server/mapping/upright.py): up from the phone's gravity when the recording has device
+    poses, else from the map's floors and table tops, else the first camera's -y. Nothing
+    (logged) when there is no surface to mesh."""
+    # Each surface is seen by few keyframes (they are made as the view changes): one
+    # observation is enough here, where the live map, fed every 3rd frame, asks for 3.
+    tsdf = TSDFMap(replace(TSDFConfig(), min_weight=0.5))  # Open3D keeps weights above it
+    run.room.fuse_into(tsdf, run.room.keyframes)
+    surface = tsdf.mesh()
+    if not surface.has_triangles() or len(run.trajectory) == 0:
+        log.warning("%s: the keyframes hold no surface to mesh: no mesh written", dataset.name)
+        return {}
+    R_upright_world, source = upright_frame(
+        run.trajectory.poses[0],
+        np.asarray(surface.vertices),
+        np.asarray(surface.triangles),
+        gravity_in_world(dataset, run.trajectory),
+    )
+    run.summary["upright"] = {"source": source.value, "R_upright_world": R_upright_world.tolist()}
+    return write_upright(out_dir, surface, R_upright_world)
+
+
+def gravity_in_world(dataset: RGBDDataset, trajectory: Trajectory) -> FloatArray | None:
+    """Gravity's direction (unit) in the run's world frame, from the phone's own pose at the
+    first tracked frame (ARKit's world is y up); None without device poses there."""
+    device = dataset.device_poses
+    if device is None or len(device) == 0 or len(trajectory) == 0:
+        return None
+    nearest = int(np.argmin(np.abs(device.timestamps - trajectory.timestamps[0])))
+    if abs(device.timestamps[nearest] - trajectory.timestamps[0]) > 0.02:
+        return None
+    R_world_camera = trajectory.poses[0][:3, :3]
+    R_device_camera = device.poses[nearest][:3, :3]
+    return R_world_camera @ (R_device_camera.T @ ARKIT_GRAVITY)

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import pytest
 
 from server.config import load_config
@@ -42,6 +43,7 @@ def test_track_writes_trajectory_map_picture_and_metrics(shared_data, tmp_path):
         "track", str(shared_data / "synthetic_room0"), "--frames", "8", "--out", str(out)
     )
     assert proc.returncode == 0, proc.stderr
+    out = out / "latest"  # the run's own folder
     traj = read_tum(out / "trajectory.tum")
     assert len(traj) == 8  # one pose per input frame
     assert np.isfinite(traj.poses).all()
@@ -51,6 +53,47 @@ def test_track_writes_trajectory_map_picture_and_metrics(shared_data, tmp_path):
     png = (out / "trajectory.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     assert "ATE" in proc.stdout
+
+
+def test_each_track_run_gets_its_own_folder_latest_names_it_and_room_continues_it(
+    shared_data, tmp_path
+):
+    """Two runs into one --out: two folders, ``latest`` at the second, which continued in the
+    first's room by naming --out alone; --mesh wrote the upright mesh (z-up PLY, y-up GLB)."""
+    from evo.tools import file_interface
+    from test_upright import accessor, read_glb
+
+    seq, out = str(shared_data / "synthetic_room0"), tmp_path / "out"
+    proc = run_cli("track", seq, "--frames", "8", "--out", str(out), "--mesh")
+    assert proc.returncode == 0, proc.stderr
+    first = (out / "latest").resolve()
+    assert first.parent == out and first.name.startswith("synthetic_room0_")
+    proc = run_cli(
+        "track", seq, "--frames", "5", "--out", str(out), "--room", str(out), "--no-save-room"
+    )
+    assert proc.returncode == 0, proc.stderr
+    second = (out / "latest").resolve()
+    assert sorted(p.name for p in out.iterdir()) == sorted(["latest", first.name, second.name])
+    assert json.loads((second / "summary.json").read_text())["relocalisation"]["relocalised"]
+    assert not (second / "room").exists() and not (second / "mesh.ply").exists()
+    # evo reads the trajectory as it is written.
+    assert file_interface.read_tum_trajectory_file(out / "latest" / "trajectory.tum").num_poses == 5
+
+    summary = json.loads((first / "summary.json").read_text())
+    R = np.array(summary["upright"]["R_upright_world"])
+    assert summary["upright"]["source"] in ("surfaces", "camera")
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    ply = o3d.io.read_triangle_mesh(str(first / "mesh.ply"))
+    z_up = np.asarray(ply.vertices)
+    assert len(ply.triangles) > 1000 and ply.has_vertex_colors()
+    document, blob = read_glb((first / "mesh.glb").read_bytes())
+    primitive = document["meshes"][0]["primitives"][0]
+    y_up = accessor(document, blob, primitive["attributes"]["POSITION"])
+    np.testing.assert_allclose(y_up, z_up[:, [1, 2, 0]], atol=1e-5)  # the same mesh, y up
+    assert len(accessor(document, blob, primitive["indices"])) == 3 * len(ply.triangles)
+    # Upright: the first camera's up (-y) points up in the PLY, within a tilted hand's angle.
+    camera_up = read_tum(first / "trajectory.tum").poses[0][:3, :3] @ [0, -1.0, 0]
+    assert (R @ camera_up)[2] > np.cos(np.radians(50))
 
 
 def test_evaluate_prints_the_table_for_two_files(shared_data, tmp_path):
@@ -81,6 +124,7 @@ def test_track_takes_set_and_writes_the_configuration_that_reproduces_the_run(
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "max_rotation_deg: 10.0" in proc.stdout  # the effective configuration, printed
+    first = first / "latest"
     written = load_config(first / "config.yaml")
     assert written.registration.keyframes.max_rotation_deg == 10.0
     assert written.registration.solver.dense is False
@@ -89,6 +133,7 @@ def test_track_takes_set_and_writes_the_configuration_that_reproduces_the_run(
         "--config", str(first / "config.yaml"),
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
+    second = second / "latest"
     assert load_config(second / "config.yaml") == written
     a, b = read_tum(first / "trajectory.tum"), read_tum(second / "trajectory.tum")
     np.testing.assert_allclose(a.poses, b.poses, atol=1e-9)

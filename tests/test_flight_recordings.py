@@ -17,6 +17,7 @@ from test_openapi import strictly
 
 from server import protocol as proto
 from server.datasets import open_dataset
+from server.evaluation.trajectory import read_tum
 from server.sessions.flight_log import FlightLog, read_flight, read_index
 from server.sessions.store import SessionStore
 from server.simulation.flight_recording import STATE_COLUMNS, FlightRecorder, states_csv
@@ -79,6 +80,31 @@ def test_a_flight_opens_in_the_air_closes_on_the_ground_and_carries_its_course(t
     again.recorder.state(0.0, _pose(0.0), np.zeros(3), "hover")
     again.close()
     assert read_index(store, "0123456789abcdef")[-1]["id"] == "4"
+
+
+def test_a_flights_path_reads_back_as_a_tum_trajectory_in_the_world_frame(tmp_path):
+    """states_tum: ``t x y z qx qy qz qw`` per state, T_world_drone, as read_tum and evo read
+    a session's trajectory.tum."""
+    from evo.tools import file_interface
+    from scipy.spatial.transform import Rotation
+
+    from server.simulation.flight_recording import states_tum
+
+    store = SessionStore(tmp_path)
+    log = FlightLog(store, "0123456789abcdef", state_hz=20.0, max_flight_s=10.0, flights_kept=2)
+    poses = []
+    for k in range(10):
+        T = _pose(0.1 * k)
+        T[:3, :3] = Rotation.from_euler("z", 9 * k, degrees=True).as_matrix()
+        poses.append(T)
+        log.recorder.state(0.05 * (k + 1), T, np.zeros(3), "hover" if k < 9 else "landed")
+    text = states_tum(read_flight(store, "0123456789abcdef", "1"))
+    assert text.startswith("# timestamp tx ty tz qx qy qz qw (T_world_drone")
+    (tmp_path / "flight.tum").write_text(text)
+    flight = read_tum(tmp_path / "flight.tum")
+    np.testing.assert_allclose(flight.timestamps, 0.05 * np.arange(1, 11), atol=1e-9)
+    np.testing.assert_allclose(flight.poses, np.array(poses), atol=1e-4)  # 4 decimals kept
+    assert file_interface.read_tum_trajectory_file(tmp_path / "flight.tum").num_poses == 10
 
 
 def test_a_minute_of_flight_takes_the_documented_bytes():
@@ -200,6 +226,12 @@ def test_a_session_records_its_flights_and_serves_them_after_a_restart(
     rows = list(csv.reader(io.StringIO(csv_text.text)))
     assert rows[0] == list(STATE_COLUMNS) and len(rows) == len(flight["states"]) + 1
     assert float(rows[1][0]) == flight["states"][0][0]
+    tum = httpx.get(f"{base}/1.tum", headers=auth(token))
+    assert tum.status_code == 200 and tum.headers["content-type"].startswith("text/plain")
+    path = tmp_path / "flight.tum"
+    path.write_bytes(tum.content)
+    path_tum = read_tum(path)  # the drone's path, in the frame of the session's trajectory.tum
+    np.testing.assert_allclose(path_tum.poses[:, :3, 3], states[:, 1:4], atol=1e-9)
 
     # Bad flight ids and strangers: 404 / 401 as every session route.
     assert httpx.get(f"{base}/99.json", headers=auth(token)).status_code == 404

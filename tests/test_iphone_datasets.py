@@ -196,7 +196,7 @@ def test_track_command_reads_a_record3d_file(r3d_file, tmp_path):
         env=env,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    trajectory = read_tum(out / "trajectory.tum")
+    trajectory = read_tum(out / "latest" / "trajectory.tum")
     np.testing.assert_allclose(trajectory.timestamps, np.arange(8) / 30.0, atol=1e-6)
     assert "room_scan" in proc.stdout
 

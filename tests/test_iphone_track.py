@@ -90,9 +90,10 @@ def track_command(folder: Path, out: Path, *flags: str) -> dict:
         env=env,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    summary = json.loads((out / "summary.json").read_text())
+    run = out / "latest"  # the run's own folder under --out
+    summary = json.loads((run / "summary.json").read_text())
     summary["stdout"] = proc.stdout
-    summary["config_file"] = yaml.safe_load((out / "config.yaml").read_text())
+    summary["config_file"] = yaml.safe_load((run / "config.yaml").read_text())
     return summary
 
 

@@ -90,6 +90,7 @@ def test_downloads_document_their_media_types(openapi):
     for name, media in (
         ("map.ply", "application/octet-stream"),
         ("mesh.ply", "application/octet-stream"),
+        ("mesh.glb", "model/gltf-binary"),
         ("trajectory.tum", "text/plain"),
     ):
         ok = answer(openapi, f"{SESSION}/{name}", "get", 200)
@@ -98,6 +99,11 @@ def test_downloads_document_their_media_types(openapi):
     doc = openapi["paths"][f"{SESSION}/trajectory.tum"]["get"]["description"]
     assert "timestamp echoed" in doc and "T_world_camera" in doc
     assert "double x, y, z" in openapi["paths"][f"{SESSION}/map.ply"]["get"]["description"]
+    mesh = openapi["paths"][f"{SESSION}/mesh.ply"]["get"]
+    assert [p["name"] for p in mesh["parameters"] if p["in"] == "query"] == ["frame"]
+    assert "y up" in openapi["paths"][f"{SESSION}/mesh.glb"]["get"]["description"]
+    flight = answer(openapi, f"{SESSION}/flights/{{flight_id}}.tum", "get", 200)
+    assert list(flight["content"]) == ["text/plain"]
     assert "204" in openapi["paths"][SESSION]["delete"]["responses"]
 
 

@@ -372,6 +372,7 @@ def test_dronesim_track_demo_from_the_wheel_writes_its_results(installed, tmp_pa
         timeout_s=300,
     )
     assert proc.returncode == 0, f"{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
+    out = out / "latest"  # each run's own folder under --out
     rows = [
         [float(v) for v in line.split()]
         for line in (out / "trajectory.tum").read_text().splitlines()

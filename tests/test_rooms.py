@@ -126,17 +126,20 @@ def test_another_camera_cannot_open_the_room(room_run, shared_data):
 
 
 def test_track_room_continues_in_the_rooms_frame_and_extends_it(shared_data, tmp_path):
-    """End to end: track --out A, then track --start 60 --room A relocalises in its first frames
-    and its trajectory lies in the room's frame (that of the ground truth) without alignment."""
+    """End to end: track --out A, then track --start 60 --room A (its latest run) relocalises in
+    its first frames and its trajectory lies in the room's frame (that of the ground truth)
+    without alignment."""
     seq = str(shared_data / "7scenes_a")
     a, b = tmp_path / "a", tmp_path / "b"
     first = run_cli("track", seq, "--frames", str(ROOM_FRAMES), "--out", str(a))
     assert first.returncode == 0, first.stderr
-    assert (a / "room" / "room.json").is_file() and (a / "room" / "map.npz").is_file()
+    assert (a / "latest" / "room" / "room.json").is_file()
+    assert (a / "latest" / "room" / "map.npz").is_file()
     second = run_cli(
         "track", seq, "--start", "60", "--frames", "30", "--out", str(b), "--room", str(a)
     )
     assert second.returncode == 0, second.stderr
+    a, b = a / "latest", b / "latest"  # each run's own folder
     summary = json.loads((b / "summary.json").read_text())
     found = summary["relocalisation"]
     assert found["relocalised"] and found["frame"] <= 5, found
@@ -172,4 +175,4 @@ def test_track_room_says_so_when_no_frame_is_recognised(room_run, shared_data, t
     )
     assert second.returncode == 1
     assert "was recognised in the room" in second.stderr
-    assert not (tmp_path / "b" / "trajectory.tum").exists()
+    assert not (tmp_path / "b").exists()  # no run folder for a run that tracked nothing

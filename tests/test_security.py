@@ -35,6 +35,8 @@ RESOURCES = [
     ("GET", ""),
     ("GET", "/map.ply"),
     ("GET", "/mesh.ply"),
+    ("GET", "/mesh.ply?frame=upright"),
+    ("GET", "/mesh.glb"),
     ("GET", "/trajectory.tum"),
     ("DELETE", ""),
 ]

@@ -112,6 +112,9 @@ class Session:
         self.closed = False
         self.client_name = ""
         self.intrinsics: Intrinsics | None = None
+        # The first hello's gravity (unit, the first camera's axes): the drone's and an upright
+        # mesh's down (server/mapping/upright.py); None when the client measured none.
+        self.gravity: list[float] | None = None
         self.tracker: Tracker | RoomTracker | None = None
         self._colour_to_depth: ColourToDepth | None = None  # from the first frame on
         self.room_dir = room_dir
@@ -239,6 +242,9 @@ class Session:
             )
             self.flight.recorder = self.flight_log.recorder
             self.flight.course.best_path = self._course_best_path()
+        if self.intrinsics is None and gravity is not None:  # a reconnect keeps the first
+            g = np.asarray(gravity, dtype=np.float64)
+            self.gravity = [float(v) for v in g / np.linalg.norm(g)]
         self.intrinsics = intrinsics
         self.client_name = client_name
         self.last_seen = time.monotonic()
@@ -1002,6 +1008,7 @@ class Session:
                 "failures": failures,
                 "failure": self.failure,
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
+                "gravity": self.gravity,
                 "drone": None if self.flight is None else self.flight.summary(),
                 "snapshot_error": self.snapshot_error,
                 "loops": loops,

@@ -112,6 +112,22 @@ def states_csv(flight: Json) -> str:
     return out.getvalue()
 
 
+def states_tum(flight: Json) -> str:
+    """The drone's path as a TUM trajectory: a ``#`` comment, then per state
+    ``t x y z qx qy qz qw``: simulation seconds (0 at spawn), the drone's centre in the
+    session's world frame (metres) and its attitude (T_world_drone's rotation, unit quaternion,
+    w >= 0). The frame is that of the session's trajectory.tum, so evo overlays the two
+    (``evo_traj tum flight.tum trajectory.tum``); the clocks differ (trajectory.tum's is the
+    client's), so they are not matched by time."""
+    columns = list(flight["state_columns"])
+    picked = [columns.index(c) for c in ("t", "x", "y", "z", "qx", "qy", "qz", "qw")]
+    out = io.StringIO()
+    out.write("# timestamp tx ty tz qx qy qz qw (T_world_drone, metres; simulation seconds)\n")
+    for row in flight["states"]:
+        out.write(" ".join(str(row[i]) for i in picked) + "\n")
+    return out.getvalue()
+
+
 class FlightRecorder:
     """Cuts the drone's life into flights and records each (see the module's docstring).
 

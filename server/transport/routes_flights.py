@@ -1,4 +1,5 @@
-"""REST API for a session's flight recordings: the list, one flight as JSON, its states as CSV.
+"""REST API for a session's flight recordings: the list, one flight as JSON, its states as CSV
+and its path as a TUM trajectory.
 
 The worker saves each flight under the session's folder (``server/sessions/flight_log.py``);
 these routes read the files there, so a closed session's flights, and those of a session saved
@@ -15,7 +16,7 @@ from fastapi.responses import JSONResponse
 
 from server.sessions import SessionError
 from server.sessions.flight_log import FlightNotFound, read_flight, read_index
-from server.simulation.flight_recording import states_csv
+from server.simulation.flight_recording import states_csv, states_tum
 from server.transport.deps import ManagerDep, SessionDep
 from server.transport.schemas import FlightList, FlightRecordingBody, error_response
 
@@ -34,6 +35,15 @@ _CSV: dict[int | str, dict[str, Any]] = {
         "description": "the flight's states: a header line `t,x,y,z,vx,vy,vz,qx,qy,qz,qw,mode`, "
         "then one line per drone state (the JSON's state_columns and states)",
         "content": {"text/csv": {"schema": {"type": "string"}}},
+    }
+}
+
+
+_TUM: dict[int | str, dict[str, Any]] = {
+    200: {
+        "description": "the drone's path, TUM format: a `#` comment line, then one line "
+        "`t x y z qx qy qz qw` per drone state",
+        "content": {"text/plain": {"schema": {"type": "string"}}},
     }
 }
 
@@ -83,5 +93,27 @@ def download_flight_csv(
         media_type="text/csv",
         headers={
             "Content-Disposition": f'attachment; filename="{session_id}-flight-{flight_id}.csv"'
+        },
+    )
+
+
+@router.get(
+    "/{session_id}/flights/{flight_id}.tum",
+    response_class=Response,
+    responses={**_TUM, **_ERRORS},
+)
+def download_flight_tum(
+    session_id: str, flight_id: str, session: SessionDep, manager: ManagerDep
+) -> Response:
+    """The drone's path as a TUM trajectory, T_world_drone: `t` in simulation seconds (0 at
+    spawn), `x y z` the drone's centre in the world frame (metres), `qx qy qz qw` its attitude
+    (unit quaternion, w >= 0). The world frame is that of the session's `trajectory.tum`, so
+    evo draws both together: `evo_traj tum flight.tum trajectory.tum`."""
+    data = states_tum(_flight(manager, session_id, flight_id))
+    return Response(
+        data,
+        media_type="text/plain",
+        headers={
+            "Content-Disposition": f'attachment; filename="{session_id}-flight-{flight_id}.tum"'
         },
     )

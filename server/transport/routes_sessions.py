@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import asyncio
 import tempfile
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request, Response, status
+import numpy as np
+import open3d as o3d
+from fastapi import APIRouter, Depends, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 
+from server.mapping.mesh_files import ply_bytes, read_ply, rotated, upright_glb
 from server.mapping.tsdf import MapError, TSDFMap
+from server.mapping.upright import upright_frame
 from server.sessions import LiveSession
 from server.sessions.course import BEST_FILE, read_best
 from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
@@ -29,6 +34,14 @@ from server.transport.schemas import (
 from server.transport.websocket import end_connection
 
 PLY = "application/octet-stream"
+GLB = "model/gltf-binary"
+
+
+class MeshFrame(str, Enum):
+    """The axes a mesh download is in."""
+
+    WORLD = "world"  # the session's world: its first camera's (x right, y down, z forward)
+    UPRIGHT = "upright"  # z up against gravity, x the first camera's forward made level
 
 
 # A route's documented answers, for the OpenAPI document: status -> FastAPI's response entry.
@@ -178,20 +191,77 @@ def download_map(session_id: str, session: SessionDep, manager: ManagerDep) -> R
     return _download(data, f"{session_id}-map.ply", PLY)
 
 
+def _world_mesh(session_id: str, session: Any, manager: Any) -> o3d.geometry.TriangleMesh:
+    """The session's TSDF surface in its world frame (a live one's now, a closed one's saved)."""
+    if isinstance(session, LiveSession):
+        mesh = read_ply(session.download("mesh.ply"))
+    else:
+        _saved(manager.store.file(session_id, "map.npz"), read=False)
+        mesh = TSDFMap.load(manager.store.file(session_id, "map.npz")).mesh()
+    if not mesh.has_triangles():
+        raise MapError("the map has no surface yet")
+    return mesh
+
+
+def _upright(session: Any, mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """``mesh`` (world frame) turned upright (server/mapping/upright.py): down is the first
+    hello's gravity, else found from the map's floors and table tops, else the first camera's
+    +y. The world is the first camera's frame, so that camera's pose is the identity."""
+    body = session.status() if isinstance(session, LiveSession) else session["status"]
+    R_upright_world, _ = upright_frame(
+        np.eye(4), np.asarray(mesh.vertices), np.asarray(mesh.triangles), body.get("gravity")
+    )
+    return rotated(mesh, R_upright_world)
+
+
 @router.get(
     "/{session_id}/mesh.ply",
     response_class=Response,
     responses=_file(PLY, "binary PLY triangle mesh") | _NO_MAP | _TOKEN_ERRORS,
 )
-def download_mesh(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+def download_mesh(
+    session_id: str,
+    session: SessionDep,
+    manager: ManagerDep,
+    frame: Annotated[
+        MeshFrame,
+        Query(
+            description="`world` (the default): the world frame of trajectory.tum and map.ply, "
+            "the first camera's axes (y down); `upright`: z up against gravity, as Blender "
+            "and MeshLab show a PLY"
+        ),
+    ] = MeshFrame.WORLD,
+) -> Response:
     """The TSDF surface as a triangle mesh with vertex colours: binary PLY (`vertex` with
-    x, y, z in the world frame, metres, normals and colours; `face` with vertex indices)."""
-    if isinstance(session, LiveSession):
+    x, y, z in metres, normals and colours; `face` with vertex indices). `?frame=world` (the
+    default) gives the world frame, that of trajectory.tum and map.ply; `?frame=upright` the
+    same mesh rotated about the world's origin so that z is up: against the hello's
+    `gravity`, else the normal of the map's floors and table tops near the first camera's
+    up, else that camera's -y; x is the first camera's forward made level (the drone's
+    flight frame)."""
+    if frame is MeshFrame.UPRIGHT:
+        data = ply_bytes(_upright(session, _world_mesh(session_id, session, manager)))
+    elif isinstance(session, LiveSession):
         data = session.download("mesh.ply")
     else:
         _saved(manager.store.file(session_id, "map.npz"), read=False)
         data = _mesh_bytes(TSDFMap.load(manager.store.file(session_id, "map.npz")))
     return _download(data, f"{session_id}-mesh.ply", PLY)
+
+
+@router.get(
+    "/{session_id}/mesh.glb",
+    response_class=Response,
+    responses=_file(GLB, "binary glTF 2.0 (GLB) triangle mesh, y up") | _NO_MAP | _TOKEN_ERRORS,
+)
+def download_mesh_glb(session_id: str, session: SessionDep, manager: ManagerDep) -> Response:
+    """The TSDF surface as binary glTF 2.0 (GLB): one mesh with float32 POSITION (metres),
+    NORMAL and COLOR_0 (linear RGB), uint32 indices, a matte double-sided material. Upright
+    as `mesh.ply?frame=upright`, in glTF's axes: +y up (against gravity), +z the first
+    camera's forward made level, +x to its left (glTF x = upright y, y = upright z, z =
+    upright x). Blender, three.js and model viewers open it standing."""
+    data = upright_glb(_upright(session, _world_mesh(session_id, session, manager)))
+    return _download(data, f"{session_id}-mesh.glb", GLB)
 
 
 @router.get(

@@ -351,6 +351,15 @@ class SessionStatus(_Body):
     )
     map: MapStats = Field(description="the TSDF map's figures")
     intrinsics: Intrinsics | None = Field(description="the hello's camera; null before a hello")
+    gravity: list[float] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="the first hello's gravity: its direction (unit) in the first camera's frame "
+        "(x right, y down, z forward), which is the world frame unless the session continues a "
+        "room; the down of the drone and of `mesh.ply?frame=upright` and `mesh.glb`. Null when "
+        "the client sent none (absent in snapshots saved before it was kept)",
+    )
     drone: DroneSummary | None = Field(
         description="the drone; null before the first hello (or with the simulation off)"
     )

@@ -113,7 +113,7 @@ class ServerConfig(BaseModel):
     # Run each session as a Ray actor on this cluster instead of a local worker process:
     # "auto" (the cluster this machine is part of), "ray://head:10001" (Ray Client), "host:6379",
     # or "local" (start a local instance). None: local processes, Ray not imported. Needs the
-    # [ray] extra; see server/sessions/ray_workers.py and the README.
+    # [ray] extra; see server/sessions/ray_workers.py and docs/SCALING.md.
     ray: str | None = None
 
     @field_validator("data_dir")

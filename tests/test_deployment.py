@@ -1,4 +1,5 @@
-"""Docker does not run here: check that the deployment files say what the README says."""
+"""Docker does not run here: check that the deployment files say what the docs (README.md and
+docs/) say."""
 
 from __future__ import annotations
 
@@ -10,6 +11,12 @@ import yaml
 from server.config import FLAT_ENV
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def _docs() -> str:
+    """What the README and the documents under docs/ say, as one text."""
+    paths = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    return "\n".join(p.read_text() for p in paths)
 
 
 def test_compose_names_the_service_port_volume_and_health_check():
@@ -45,9 +52,9 @@ def test_compose_loadtest_profile_replays_the_demo_against_the_server_as_the_rea
     assert {arg for arg in command if arg.startswith("--")} <= options
     mount = loadtest["volumes"][0].split(":")[1]
     assert command[command.index("--json") + 1].startswith(mount + "/")
-    readme = (REPO / "README.md").read_text()
-    assert "docker compose --profile loadtest run --rm loadtest" in readme
-    assert "python3 benchmarks/capacity.py" in readme
+    docs = _docs()
+    assert "docker compose --profile loadtest run --rm loadtest" in docs
+    assert "python3 benchmarks/capacity.py" in docs
 
 
 def test_dockerfile_installs_the_package_and_serves_on_the_data_volume():
@@ -75,7 +82,7 @@ def test_dockerfile_pins_its_bases_runs_unprivileged_checks_health_and_builds_ex
     assert text.index("USER ") > text.index("chown")
     assert re.search(r"^HEALTHCHECK .*\n?.*/healthz", text, re.M)
     assert "ARG EXTRAS" in text and "${EXTRAS:+[$EXTRAS]}" in text
-    assert "--build-arg EXTRAS=ray" in (REPO / "README.md").read_text()
+    assert "--build-arg EXTRAS=ray" in _docs()
     pins = (REPO / "constraints.txt").read_text()
     assert re.search(r"^open3d-cpu==", pins, re.M) and re.search(r"^fastapi==", pins, re.M)
 
@@ -106,4 +113,4 @@ def test_compose_phone_profile_serves_tls_on_its_own_port_and_volume_as_the_read
     assert volume not in {v.split(":")[0] for v in server["volumes"]}  # two servers, two stores
     health = " ".join(phone["healthcheck"]["test"])
     assert f"https://127.0.0.1:{port}/healthz" in health and "unverified" in health
-    assert "docker compose --profile phone up" in (REPO / "README.md").read_text()
+    assert "docker compose --profile phone up" in _docs()

@@ -108,7 +108,7 @@ def test_a_flights_path_reads_back_as_a_tum_trajectory_in_the_world_frame(tmp_pa
 
 
 def test_a_minute_of_flight_takes_the_documented_bytes():
-    """README: about 110 kB per minute of states, about 45 kB more per minute of sticks at
+    """docs/SERVER.md: about 110 kB per minute of states, about 45 kB more per minute of sticks at
     10 Hz; the figures come from this flight (random poses, full-precision numbers)."""
     from server.geometry import exp_se3
 

@@ -117,7 +117,7 @@ PROFILES = {
         # poses come back 20 cm off. A 4:3 view: through the 20:9 portrait view's narrow crop
         # the server's flow did not bridge the gap (1 s and 1.5 s, one run each), and the frames
         # until it found the map again were placed roughly (a map segment): ATE 12.7 and 17.9 cm
-        # (README, live AR).
+        # (docs/LIVE_AR.md).
         DeviceProfile(
             "chrome147-depth-every-3-vio-loss",
             (1536, 2048),

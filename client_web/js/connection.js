@@ -114,7 +114,7 @@ export class SessionClient extends EventTarget {
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
    * With `room`, a new session in the room the saved (closed) session left: it relocalises in
-   * that room's map and tracks in its frame (README, "Rooms"). `loopClosure` true or false
+   * that room's map and tracks in its frame (docs/OFFLINE.md, "Rooms"). `loopClosure` true or false
    * asks a new session to close loops or not (null: the server's setting).
    * @returns {Promise<{id: string, token: string, resumed: boolean}>}
    */

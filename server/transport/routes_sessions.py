@@ -100,10 +100,10 @@ def create_session(
     server 503.
 
     With `{"room": "<id>"}` and that closed session's token as `Authorization: Bearer`, the new
-    session continues in the room it saved (README, "Rooms"): its first frames are relocalised
-    in the room (answered `lost` at the identity until one is recognised), then tracked in the
-    room's world frame; the map and the drone's map start as the room's. The new session gets a
-    token of its own.
+    session continues in the room it saved (docs/OFFLINE.md, "Rooms"): its first frames are
+    relocalised in the room (answered `lost` at the identity until one is recognised), then
+    tracked in the room's world frame; the map and the drone's map start as the room's. The new
+    session gets a token of its own.
 
     `{"loop_closure": true}` (or false) asks for online loop closure in this session whatever
     the server's `registration.loops.live`; the answer's `loop_closure` says whether it runs

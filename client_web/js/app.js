@@ -9,6 +9,8 @@ import { FrameDepths } from "./frame_depths.js";
 import { CourseView } from "./course_view.js";
 import { upFromGravity } from "./geometry.js";
 import { Hud } from "./hud.js";
+import { PageLoad } from "./page_load.js";
+import { RenderBudget, softwareWebGL } from "./render_budget.js";
 import { MapMesh } from "./map_mesh.js";
 import { MapView } from "./map_view.js";
 import { Pilot } from "./pilot.js";
@@ -38,7 +40,12 @@ class App {
     this.client = watch ? new ViewerClient(this.protocol, watch) : new SessionClient(this.protocol);
     this.ar = new ARView($("#ar-view"), { onTap: (pixel, seq) => this.#tapAR(pixel, seq) });
     this.map = new MapView($("#map-view"), { onPick: (picked) => this.#tapMap(picked) });
-    this.fpv = new FPVView($("#fpv-view"));
+    this.fpv = new FPVView($("#fpv-view"), { points: this.map.geometry }); // the map's points until the mesh comes
+    // The page's own main-thread work, and what the views may draw (render_budget.js).
+    this.load = new PageLoad();
+    this.budget = new RenderBudget({ frameMs: Number(new URLSearchParams(window.location.search).get("frameBudgetMs")) ||
+      undefined, software: softwareWebGL(this.ar.renderer) });
+    for (const view of [this.ar, this.map, this.fpv]) Object.assign(view, { budget: this.budget, meter: this.load });
     this.mapMesh = new MapMesh(this.client); // the fused mesh, for FPV and occlusion without depth
     this.mapMesh.addEventListener("mesh", ({ detail: geometry }) => {
       this.fpv.setMesh(geometry);
@@ -138,7 +145,7 @@ class App {
       this.map.setUp(up);
       if (resumed && this.map.pointCount === 0) this.#restoreMap();
       // A recording waits for the server rather than dropping frames; a live camera cannot.
-      this.streamer = new Streamer(this.client, source, { fps, holdBack: source.kind === "replay" });
+      this.streamer = new Streamer(this.client, source, { fps, holdBack: source.kind === "replay", meter: this.load });
       // A replay reopened into its session goes on where it was: the camera does not jump.
       const place = JSON.parse(sessionStorage.getItem(REPLAY_KEY) ?? "null");
       if (resumed && source.kind === "replay" && place?.session === id && place.name === source.sequence.name) {
@@ -148,7 +155,6 @@ class App {
       this.streamer.addEventListener("sent", () => sessionStorage.setItem(REPLAY_KEY, JSON.stringify(
         { session: id, name: source.sequence?.name, tick: this.streamer.tick })));
       this.streamer.addEventListener("state", (e) => this.#streamingChanged(e.detail));
-      this.streamer.addEventListener("held", (e) => this.hud.heldBack(e.detail.held));
       this.streamer.addEventListener("failure", (e) => this.hud.toast(`capture failed: ${e.detail.message}`, "error", 8000));
       this.streamer.start();
     } catch (exc) {
@@ -253,7 +259,7 @@ class App {
         this.streamer = null;
       }
     });
-    c.addEventListener("pose", ({ detail: pose }) => this.#pose(pose));
+    c.addEventListener("pose", ({ detail: pose }) => this.load.time("receive", () => this.#pose(pose)));
     c.addEventListener("map_chunk", ({ detail: chunk }) => {
       const { points, colours } = mapChunkArrays(chunk);
       this.map.addPoints(points, colours, chunk.reset === true);
@@ -302,7 +308,7 @@ class App {
       recovery: pose.recovery ?? null };
     s.serverDropped = pose.dropped;
     s.serverFailures = pose.failures ?? {};
-    this.hud.pose(pose);
+    this.hud.pose(pose, this.client.lastLatencyMs);
     this.map.addCameraPose(pose.T_world_camera);
     const bitmap = this.streamer?.takeImage(pose.seq) ?? null;
     this.ar.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state, pose.recovery);
@@ -424,9 +430,12 @@ class App {
       this.mapMesh.poll(now);
       if (now - lastHud > 250) {
         lastHud = now;
-        this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
-          serverDropped: this.seen.serverDropped });
+        const waits = this.hud.rates({ latencyMs: this.client.latencyMs, clientSkipped: this.streamer?.skipped ?? 0,
+          serverDropped: this.seen.serverDropped, askedFps: this.streamer?.running ? this.streamer.fps : 0,
+          load: this.load.summary(now) });
+        this.budget.streamBehind = waits !== null; // then the views draw less often
       }
+      this.budget.update(now);
       requestAnimationFrame(frame);
     };
     requestAnimationFrame(frame);
@@ -524,7 +533,8 @@ class App {
         intrinsics: this.ar.intrinsics, colourSize: this.ar.colourSize, shownSeq: this.ar.frame?.seq ?? null },
       occlusion: { enabled: this.ar.occlusion.enabled, source: this.ar.lastDraw.occlusion ?? "none",
         depthSeq: this.ar.occlusion.depth?.seq ?? null, depthFailures: this.frameDepths.failures },
-      fpv: { ...this.fpv.lastDraw }, mesh: this.mapMesh.summary(),
+      fpv: { ...this.fpv.lastDraw }, mesh: this.mapMesh.summary(), budget: this.budget.summary(),
+      load: this.load.summary(), waitsFor: this.hud.waits.shown ? this.hud.waits.last?.name ?? null : null,
       trail: { points: this.map.trajectory.count, last: this.map.trajectory.count
         ? Array.from(this.map.trajectory.array.subarray(3 * this.map.trajectory.count - 3, 3 * this.map.trajectory.count)) : null },
       commands: this.pilot.log.map(({ id, name, fields }) => ({ id, name, fields })),

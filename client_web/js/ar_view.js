@@ -15,6 +15,7 @@ import { createDrone, createGroundMarker, createTargetMarker } from "./drone_mod
 import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint } from "./geometry.js";
 import { Occlusion } from "./occlusion.js";
 import { projectionFromIntrinsics } from "./packing.js";
+import { RENDER_BUDGET, fitRenderer } from "./render_budget.js";
 
 const TAP_MAX_MOVE_PX = 12;
 const TAP_MAX_MS = 700;
@@ -93,6 +94,10 @@ export class ARView {
     this.lastDraw = { droneVisible: false };
     this.dirty = true; // something changed since the last draw
     this.lastRender = 0;
+    this.budget = null; // the page's RenderBudget (render_budget.js): pixel ratio, draw rate
+    this.meter = null; // the page's PageLoad: draws count as its "draw" work
+    this.cssSize = [0, 0]; // the overlay's size on the page; its drawing buffer follows in tick
+    this.buffer = {}; // fitRenderer's state
     this.#listen();
     new ResizeObserver(() => this.layout()).observe(container);
   }
@@ -131,8 +136,7 @@ export class ARView {
     Object.assign(this.stage.style, {
       width: `${sw}px`, height: `${sh}px`, left: `${Math.round((cw - sw) / 2)}px`, top: `${Math.round((ch - sh) / 2)}px`,
     });
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
-    this.renderer.setSize(sw, sh);
+    this.cssSize = [sw, sh]; // the drawing buffer follows in tick (fitRenderer)
     this.routeMaterial.resolution.set(sw, sh);
     this.dirty = true;
   }
@@ -140,10 +144,14 @@ export class ARView {
   /** Draw when something changed, and at most every `minMs` while the rotors spin. Cheap to
    * call every animation frame: an unchanged view is not redrawn (phones' batteries, and
    * software rendering in tests). */
-  tick(now, minMs = 33) {
+  tick(now, minMs = this.budget?.drawIntervalMs ?? RENDER_BUDGET.drawMs) {
+    const ratio = this.budget?.pixelRatio ?? Math.min(window.devicePixelRatio || 1, 2);
+    if (fitRenderer(this.renderer, this.buffer, ...this.cssSize, ratio, now)) this.dirty = true;
     const spinning = this.drone.visible && !["landed", "crashed"].includes(this.droneState?.mode);
     if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
-    this.render(Math.min(0.1, (now - this.lastRender) / 1000));
+    const dt = Math.min(0.1, (now - this.lastRender) / 1000);
+    if (this.budget) this.budget.draw(() => this.render(dt), this.meter);
+    else this.render(dt);
     this.lastRender = now;
   }
 

@@ -38,6 +38,7 @@ export class SessionClient extends EventTarget {
     this.welcome = null;
     this.inFlight = new Map(); // seq -> performance.now() when sent
     this.latencies = [];
+    this.lastLatencyMs = NaN; // the round trip of the frame the last answer was for
     this.pending = []; // commands waiting for the connection
     this.attempt = 0;
     this.nextCommandId = 1;
@@ -199,8 +200,10 @@ export class SessionClient extends EventTarget {
   /** One answer acknowledges every frame with seq <= its own. */
   #acknowledge(seq, measured) {
     const sentAt = this.inFlight.get(seq);
+    this.lastLatencyMs = NaN;
     if (measured && sentAt !== undefined) {
-      this.latencies.push(performance.now() - sentAt);
+      this.lastLatencyMs = performance.now() - sentAt; // this answer's own round trip
+      this.latencies.push(this.lastLatencyMs);
       if (this.latencies.length > LATENCY_WINDOW) this.latencies.shift();
     }
     for (const s of this.inFlight.keys()) if (s <= seq) this.inFlight.delete(s);

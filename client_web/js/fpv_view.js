@@ -7,9 +7,14 @@
 // flight. It is fixed to the body: when the drone pitches, rolls or yaws, so does the picture.
 // The picture is 4:3 with a horizontal field of view of FPV_CAMERA.horizontalFovDeg (a wide
 // FPV lens; pinhole, no lens distortion), fitted into the view with black bars.
+//
+// Until the mesh arrives (the server makes it on request: seconds for a big map) the view draws
+// the map's preview points (map_view.js's cloud, shared) from the same camera, and says that the
+// map is loading: never an empty picture.
 
 import * as THREE from "three";
 import { matrixFromRowMajor } from "./geometry.js";
+import { RENDER_BUDGET, fitRenderer } from "./render_budget.js";
 
 export const FPV_CAMERA = Object.freeze({
   horizontalFovDeg: 100,
@@ -20,6 +25,10 @@ export const FPV_CAMERA = Object.freeze({
   farM: 60,
 });
 const SKY = 0x27313f; // where the map has no surface (unmapped or open)
+const HINTS = Object.freeze({
+  none: "The drone's camera shows the mapped room once the drone has spawned and a map exists.",
+  loading: "loading the map…",
+});
 
 /** T_body_camera: the GL camera (looking down -z, y up) on its mount in the body frame. */
 export function bodyFromCamera({ mount, uptiltDeg } = FPV_CAMERA) {
@@ -30,8 +39,12 @@ export function bodyFromCamera({ mount, uptiltDeg } = FPV_CAMERA) {
 }
 
 export class FPVView {
-  /** @param {HTMLElement} container */
-  constructor(container) {
+  /**
+   * @param {HTMLElement} container
+   * @param {{points?: THREE.BufferGeometry}} options the map's preview points (world frame,
+   *   with colours), drawn until the mesh arrives; shared, never disposed here
+   */
+  constructor(container, { points = null } = {}) {
     this.container = container;
     // No multisampling: the mesh's colours are soft anyway, and it adds to the cost of a big
     // mesh where WebGL runs in software (headless chromium; benchmarks/page_fps.py).
@@ -40,7 +53,8 @@ export class FPVView {
     this.renderer.domElement.className = "fpv-canvas";
     this.hint = document.createElement("div");
     this.hint.className = "empty-hint";
-    this.hint.textContent = "The drone's camera shows the mapped room once the drone has spawned and a map exists.";
+    this.hint.textContent = HINTS.none;
+    this.hint.setAttribute("role", "status");
     container.append(this.renderer.domElement, this.hint);
     this.scene = new THREE.Scene();
     // Colours are the camera's, already lit. Front faces only: marching cubes turns them towards
@@ -50,6 +64,11 @@ export class FPVView {
     this.room.frustumCulled = false;
     this.room.visible = false;
     this.scene.add(this.room);
+    this.points = new THREE.Points(points ?? new THREE.BufferGeometry(),
+      new THREE.PointsMaterial({ size: 3, sizeAttenuation: false, vertexColors: true }));
+    this.points.frustumCulled = false;
+    this.points.visible = false;
+    this.scene.add(this.points);
     const vertical = 2 * Math.atan(Math.tan(THREE.MathUtils.degToRad(FPV_CAMERA.horizontalFovDeg / 2)) / FPV_CAMERA.aspect);
     this.camera = new THREE.PerspectiveCamera(THREE.MathUtils.radToDeg(vertical), FPV_CAMERA.aspect, FPV_CAMERA.nearM, FPV_CAMERA.farM);
     this.camera.matrixAutoUpdate = false;
@@ -57,7 +76,11 @@ export class FPVView {
     this.droneState = null;
     this.dirty = true;
     this.lastRender = 0;
-    this.lastDraw = { drawn: false, triangles: 0, cameraPosition: null };
+    this.budget = null; // the page's RenderBudget and PageLoad (as ARView's)
+    this.meter = null;
+    this.cssSize = null;
+    this.buffer = {}; // fitRenderer's state
+    this.lastDraw = { drawn: false, triangles: 0, points: 0, hint: HINTS.none, cameraPosition: null };
     new ResizeObserver(() => this.layout()).observe(container);
   }
 
@@ -79,31 +102,46 @@ export class FPVView {
     if (!cw || !ch) return;
     const scale = Math.min(cw / FPV_CAMERA.aspect, ch);
     const [w, h] = [Math.max(1, Math.round(scale * FPV_CAMERA.aspect)), Math.max(1, Math.round(scale))];
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
-    this.renderer.setSize(w, h);
-    Object.assign(this.renderer.domElement.style, { left: `${Math.round((cw - w) / 2)}px`, top: `${Math.round((ch - h) / 2)}px` });
+    this.cssSize = [w, h]; // the drawing buffer follows in tick (fitRenderer)
+    Object.assign(this.renderer.domElement.style, { left: `${Math.round((cw - w) / 2)}px`, top: `${Math.round((ch - h) / 2)}px`,
+      width: `${w}px`, height: `${h}px` });
     this.dirty = true;
   }
 
-  /** Draw when the drone or the mesh changed, at most every minMs; call every animation frame. */
-  tick(now, minMs = 33) {
+  /** Draw when the drone, the mesh or (without a mesh) the points changed, at most every minMs;
+   * call every animation frame. */
+  tick(now, minMs = this.budget?.drawIntervalMs ?? RENDER_BUDGET.drawMs) {
+    const ratio = this.budget?.pixelRatio ?? Math.min(window.devicePixelRatio || 1, 2);
+    if (this.cssSize && fitRenderer(this.renderer, this.buffer, ...this.cssSize, ratio, now)) this.dirty = true;
+    const pointCount = this.points.geometry.drawRange.count;
+    if (this.droneState && !this.room.visible && Number.isFinite(pointCount) && pointCount !== this.lastDraw.points) {
+      this.dirty = true; // the map grew while the mesh is on its way
+    }
     if (now - this.lastRender < minMs || !this.dirty) return;
-    this.render();
+    if (this.budget) this.budget.draw(() => this.render(), this.meter);
+    else this.render();
     this.lastRender = now;
   }
 
   render() {
     const s = this.droneState;
     const ready = s !== null && this.room.visible;
+    // No mesh yet: the map's points from the drone's camera, and the word that the map loads.
+    const count = this.points.geometry.drawRange.count;
+    const points = s !== null && !ready && Number.isFinite(count) && count > 0 ? count : 0;
+    this.points.visible = points > 0;
+    const hint = ready ? "" : s !== null ? HINTS.loading : HINTS.none;
+    if (this.hint.textContent !== hint && hint) this.hint.textContent = hint;
     this.hint.style.display = ready ? "none" : "";
-    if (ready) {
+    this.hint.classList.toggle("over-points", points > 0);
+    if (s !== null) {
       this.camera.matrix.multiplyMatrices(matrixFromRowMajor(s.T_world_drone), this.bodyFromCamera);
       this.camera.matrixWorldNeedsUpdate = true;
       this.camera.updateMatrixWorld(true);
     }
     this.renderer.render(this.scene, this.camera);
     const forward = new THREE.Vector3(0, 0, -1).transformDirection(this.camera.matrixWorld);
-    this.lastDraw = { drawn: ready, triangles: ready ? this.room.geometry.index.count / 3 : 0,
+    this.lastDraw = { drawn: ready, triangles: ready ? this.room.geometry.index.count / 3 : 0, points, hint,
       cameraPosition: ready ? new THREE.Vector3().setFromMatrixPosition(this.camera.matrixWorld).toArray() : null,
       cameraForward: ready ? forward.toArray() : null };
     this.dirty = false;

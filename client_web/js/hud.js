@@ -1,7 +1,13 @@
-// Heads-up line, banner and toasts: tracking, fps, latency, dropped frames, drone mode and
-// clearance, connection state, collision warnings and errors with their message.
+// Heads-up line, banner and toasts: tracking, fps, latency, dropped frames, what a stream that
+// runs behind its rate waits for (server, page or network, from measured times: page_load.js),
+// drone mode and clearance, connection state, collision warnings and errors with their message.
+
+import { mean, waitsFor } from "./page_load.js";
 
 const FPS_WINDOW_MS = 2000;
+const BEHIND = 0.85; // poses per second under this share of the asked rate: the stream is behind
+const WAITS_EVERY_MS = 1000; // the "waits for" chip changes at most this often (no flicker)
+const WAITS_CHECKS = 2; // checks in a row that agree before it shows or hides
 const CLEARANCE_WARN_M = 0.3;
 const CLEARANCE_BAD_M = 0.15;
 
@@ -14,6 +20,8 @@ export class Hud {
     this.banner = root.querySelector("#banner");
     this.toasts = root.querySelector("#toasts");
     this.poseTimes = [];
+    this.frameTimes = []; // [at, server_total ms, round trip ms] of the poses in the window
+    this.waits = { shown: false, agree: 0, checkedAt: 0, last: null };
     // Banner and toasts sit just below the HUD, whose height changes with the screen.
     const hud = root.querySelector("#hud");
     new ResizeObserver(() => document.documentElement.style.setProperty("--hud-h", `${hud.offsetHeight}px`)).observe(hud);
@@ -33,10 +41,13 @@ export class Hud {
     this.fields.connection.title = message || label;
   }
 
-  pose(pose) {
+  /** A pose came back, latencyMs after its frame went out (NaN when not measured). */
+  pose(pose, latencyMs = NaN) {
     const now = performance.now();
     this.poseTimes.push(now);
     while (this.poseTimes.length && this.poseTimes[0] < now - FPS_WINDOW_MS) this.poseTimes.shift();
+    const serverMs = pose.timings_ms?.server_total;
+    if (Number.isFinite(serverMs) && Number.isFinite(latencyMs)) this.frameTimes.push([now, serverMs, latencyMs]);
     const how = RECOVERY[pose.recovery];
     this.#set("tracking", how ? `tracking ${pose.state} · ${how}` : `tracking ${pose.state}`, pose.state);
     this.#failures(pose.failures ?? {});
@@ -53,20 +64,49 @@ export class Hud {
     el.title = failed.map(([name, n]) => `${name}: ${n}`).join(", ");
   }
 
-  /** A replay waiting for the server (it slows down rather than drop frames): say so. */
-  heldBack(held) {
-    const el = this.fields.held;
-    if (el) el.hidden = !held;
-  }
-
-  /** fps from the poses of the last two seconds; latency median in ms; dropped both sides. */
-  rates({ latencyMs, clientSkipped, serverDropped }) {
+  /** fps from the poses of the last two seconds; latency median in ms; dropped both sides; and,
+   * while streaming at `askedFps` (load: the page's PageLoad summary), what the stream waits
+   * for when it runs behind. Returns that (waitsFor's answer) or null while it keeps up. */
+  rates({ latencyMs, clientSkipped, serverDropped, askedFps = 0, load = null }) {
     const now = performance.now();
     while (this.poseTimes.length && this.poseTimes[0] < now - FPS_WINDOW_MS) this.poseTimes.shift();
     const fps = (this.poseTimes.length * 1000) / FPS_WINDOW_MS;
     this.#set("fps", `${fps.toFixed(1)} fps`);
     this.#set("latency", Number.isFinite(latencyMs) ? `${Math.round(latencyMs)} ms` : "— ms");
     this.#set("dropped", `drop ${clientSkipped}+${serverDropped}`);
+    if (now - this.waits.checkedAt >= WAITS_EVERY_MS) {
+      this.waits.checkedAt = now;
+      // Means over the window's frames: the period between frames is the mean round trip plus
+      // the page's gap, and a slow frame's tail belongs to the round trip, not to the page.
+      while (this.frameTimes.length && this.frameTimes[0][0] < now - FPS_WINDOW_MS) this.frameTimes.shift();
+      const frames = this.frameTimes;
+      const behind = askedFps > 0 && fps > 0 && fps < BEHIND * askedFps && frames.length > 0;
+      this.#waits(behind ? waitsFor({ periodMs: 1000 / fps, latencyMs: mean(frames.map((f) => f[2])),
+        serverMs: mean(frames.map((f) => f[1])), busyFraction: load?.fraction ?? 0 }) : null, load);
+    }
+    return this.waits.shown ? this.waits.last : null;
+  }
+
+  /** Show or hide the "waits for" chip once WAITS_CHECKS checks in a row agree. */
+  #waits(behind, load) {
+    const el = this.fields.held;
+    if (behind) this.waits.last = behind;
+    this.waits.agree = (behind !== null) === this.waits.shown ? 0 : this.waits.agree + 1;
+    if (this.waits.agree >= WAITS_CHECKS) {
+      this.waits.shown = behind !== null;
+      this.waits.agree = 0;
+    }
+    if (!el) return;
+    el.hidden = !this.waits.shown;
+    const w = this.waits.last;
+    if (!this.waits.shown || !w) return;
+    const ms = (v) => `${Math.round(v)} ms`;
+    const text = { server: `waiting for server ${ms(w.server)}`, network: `waiting for network ${ms(w.network)}`,
+      page: `page busy${load?.top ? `: ${load.top}` : ""} ${ms(w.page)}` }[w.name];
+    this.#set("held", text, w.name === "server" ? "warn" : "bad");
+    el.dataset.waitsFor = w.name;
+    el.title = `the stream runs slower than asked; per frame: server ${ms(w.server)}, page ${ms(w.page)},` +
+      ` network ${ms(w.network)}`;
   }
 
   drone(state) {

@@ -6,6 +6,7 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { DRONE_COLOUR, createDrone, createTargetMarker } from "./drone_model.js";
 import { matrixFromRowMajor, pointsFromFlat, turbo } from "./geometry.js";
+import { fitRenderer } from "./render_budget.js";
 
 const TAP_MAX_MOVE_PX = 10;
 const TAP_MAX_MS = 600;
@@ -88,6 +89,9 @@ export class MapView {
     this.#makeControls();
     this.dirty = true;
     this.lastRender = 0;
+    this.budget = null; // the page's RenderBudget and PageLoad (as ARView's)
+    this.meter = null;
+    this.buffer = {}; // fitRenderer's state
     this.raycaster = new THREE.Raycaster();
     this.#listen();
     new ResizeObserver(() => this.layout()).observe(container);
@@ -118,8 +122,7 @@ export class MapView {
   layout() {
     const { clientWidth: w, clientHeight: h } = this.container;
     if (!w || !h) return;
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
-    this.renderer.setSize(w, h);
+    this.cssSize = [w, h]; // the canvas fills the view (CSS); its drawing buffer follows in tick
     this.camera.aspect = w / h;
     this.camera.updateProjectionMatrix();
     this.dirty = true;
@@ -260,12 +263,16 @@ export class MapView {
 
   /** Draw when something changed (new points, poses, drone state, the user orbiting), at most
    * every `minMs` for data updates; call it every animation frame. */
-  tick(now, minMs = 50) {
+  tick(now, minMs = Math.max(50, this.budget?.drawIntervalMs ?? 0)) {
     this.controls.update(); // damping: fires "change" while the view still moves
+    const ratio = this.budget?.pixelRatio ?? Math.min(window.devicePixelRatio || 1, 2);
+    if (this.cssSize && fitRenderer(this.renderer, this.buffer, ...this.cssSize, ratio, now)) this.dirty = true;
     const spinning = this.drone.visible && this.drone.userData.spinning;
     if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
     this.drone.userData.update(Math.min(0.1, (now - this.lastRender) / 1000), spinning);
-    this.renderer.render(this.scene, this.camera);
+    const draw = () => this.renderer.render(this.scene, this.camera);
+    if (this.budget) this.budget.draw(draw, this.meter);
+    else draw();
     this.lastRender = now;
     this.dirty = false;
   }

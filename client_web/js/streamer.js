@@ -14,8 +14,10 @@ export class Streamer extends EventTarget {
   /**
    * @param {import("./connection.js").SessionClient} client
    * @param {{capture: (tick: number, timestamp: number) => Promise<object|null>, keep?: Function}} source
+   * @param {{fps?: number, holdBack?: boolean, meter?: import("./page_load.js").PageLoad}} options
+   *   meter: counts the main thread's time to send each frame as "send"
    */
-  constructor(client, source, { fps = 15, holdBack = false } = {}) {
+  constructor(client, source, { fps = 15, holdBack = false, meter = null } = {}) {
     super();
     this.client = client;
     this.source = source;
@@ -32,6 +34,7 @@ export class Streamer extends EventTarget {
     this.heldBack = false; // waiting for the server now
     this.heldBackMs = 0; // in all, since start
     this.images = new Map(); // seq -> ImageBitmap, until shown or answered
+    this.meter = meter;
   }
 
   start() {
@@ -133,6 +136,11 @@ export class Streamer extends EventTarget {
   /** Send a captured frame ({fields, bitmap, anchor?, index?}), or count it skipped when the
    * session has no room for it now. */
   #send(captured) {
+    if (this.meter) this.meter.time("send", () => this.#sendNow(captured));
+    else this.#sendNow(captured);
+  }
+
+  #sendNow(captured) {
     const seq = this.client.sendFrame(captured.fields);
     if (seq === null) {
       this.skipped += 1;

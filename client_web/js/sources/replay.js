@@ -7,7 +7,7 @@
 
 import { encodeJpeg } from "../packing.js";
 
-const PREFETCH = 4; // frames loaded ahead of the one being captured
+const PREFETCH = 4; // frames loaded (and their colour decoded) ahead of the one being captured
 const TUM_INTRINSICS = { // factory calibration of the TUM Kinects, 640x480 (as server/datasets/tum.py)
   fr1: [517.3, 516.5, 318.6, 255.3],
   fr2: [520.9, 521.0, 325.1, 249.7],
@@ -172,7 +172,7 @@ export class ReplaySource {
     this.kind = "replay";
     this.sequence = sequence;
     this.loop = loop;
-    this.cache = new Map(); // frame index -> Promise<{colour, depth}>
+    this.cache = new Map(); // frame index -> Promise<[colour, depth, ImageBitmap]>
   }
 
   get info() {
@@ -193,9 +193,12 @@ export class ReplaySource {
     return k < n ? k : period - k;
   }
 
+  /** Frame index's files and its colour decoded for the AR view: decoding ahead, while the
+   * previous frame is with the server, means a captured frame goes out at once. */
   #load(index) {
     if (!this.cache.has(index)) {
-      const promise = this.sequence.read(this.sequence.frames[index]);
+      const promise = this.sequence.read(this.sequence.frames[index]).then(async ([colour, depth]) =>
+        [colour, depth, await createImageBitmap(new Blob([colour], { type: "image/jpeg" }))]);
       promise.catch(() => this.cache.delete(index));
       this.cache.set(index, promise);
     }
@@ -211,7 +214,11 @@ export class ReplaySource {
       keep.add(index);
       this.#load(index);
     }
-    for (const index of this.cache.keys()) if (!keep.has(index)) this.cache.delete(index);
+    for (const [index, promise] of this.cache) {
+      if (keep.has(index)) continue;
+      this.cache.delete(index);
+      promise.then(([, , bitmap]) => bitmap.close(), () => {});
+    }
   }
 
   /**
@@ -221,9 +228,9 @@ export class ReplaySource {
   async capture(tick, timestamp) {
     const index = this.indexAt(tick);
     if (index === null) return null;
-    const [colour, depth] = await this.#load(index);
+    const [colour, depth, bitmap] = await this.#load(index);
+    this.cache.delete(index); // the bitmap is the AR view's now (it closes it once shown)
     this.prefetch(tick + 1);
-    const bitmap = await createImageBitmap(new Blob([colour], { type: "image/jpeg" }));
     const fields = { timestamp, colour, depth, depthFormat: "png", depthScale: this.sequence.depthScale };
     // A phone's recording carries the phone's own pose: the server's tracker starts from it.
     const pose = this.sequence.frames[index].T_device_camera;
@@ -232,6 +239,7 @@ export class ReplaySource {
   }
 
   stop() {
+    for (const promise of this.cache.values()) promise.then(([, , bitmap]) => bitmap.close(), () => {});
     this.cache.clear();
   }
 }

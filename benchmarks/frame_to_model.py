@@ -59,8 +59,8 @@ from server.evaluation.metrics import evaluate  # noqa: E402
 from server.evaluation.trajectory import Trajectory  # noqa: E402
 from server.geometry.camera import Intrinsics  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
+from server.registration import Tracker, TrackingState  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
-from server.registration.tracker import Tracker, TrackingState  # noqa: E402
 
 cv2.setNumThreads(1)
 # The ray cast's range map regrows itself with a warning per frame: noise, not a failure.

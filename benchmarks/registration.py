@@ -82,9 +82,9 @@ from server.evaluation.trajectory import (  # noqa: E402
 )
 from server.geometry import Intrinsics, invert, rotation_angle_deg  # noqa: E402
 from server.pipeline import ground_truth_pose_at, run_odometry  # noqa: E402
+from server.registration import Tracker, TrackingState  # noqa: E402
 from server.registration.calibration import ColourToDepth  # noqa: E402
 from server.registration.config import RegistrationConfig  # noqa: E402
-from server.registration.tracker import Tracker, TrackingState  # noqa: E402
 
 cv2.setNumThreads(1)
 o3d.utility.set_max_threads(1)  # Open3D 0.20 runs on TBB, which ignores OMP_NUM_THREADS

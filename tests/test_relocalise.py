@@ -82,7 +82,7 @@ def test_a_gap_in_the_frames_is_found_again_in_the_same_frame(tum_gap):
     )
     assert dt < 2 * own[0] and dr < 2 * own[1] + 0.5, (dt, dr, own)
     assert results[after].timings_ms["relocalise"] > 0
-    assert len(tracker.relocaliser) == tracker.keyframe_count
+    assert len(tracker.recovery.relocaliser) == tracker.keyframe_count
 
 
 def test_a_view_of_an_old_keyframe_is_found_among_all_keyframes(shared_data):
@@ -137,7 +137,7 @@ def test_a_new_segment_is_tracked_on_its_own_and_merges_when_it_sees_the_map(sha
         E = invert(gt[keep[j]]) @ results[j].T_world_camera
         assert np.linalg.norm(E[:3, 3]) < 0.02 and rotation_angle_deg(E) < 1.0, keep[j]
     # The segment's keyframes moved with it: every keyframe is in the map now.
-    assert set(tracker.relocaliser.segment_of.values()) == {0}
+    assert set(tracker.recovery.relocaliser.segment_of.values()) == {0}
     assert all(k.segment == 0 for k in tracker.recent)
 
 

@@ -12,6 +12,8 @@ from server.geometry import invert, rotation_angle_deg
 from server.pipeline import ground_truth_pose_at, run_odometry
 from server.registration import Tracker, TrackingState
 from server.registration.config import RegistrationConfig
+from server.registration.frame_to_keyframe import refine_from_keyframe, track_keyframe
+from server.registration.keyframes import refine_in_window, switch_keyframe
 
 
 def relative_error(T_est, T_true):
@@ -185,19 +187,18 @@ def test_windowed_keyframe_refinement_pulls_a_new_keyframe_towards_older_ones(de
     off = np.eye(4)
     off[:3, 3] = [0.01, 0.0, 0.0]
     kf_b = tracker._new_keyframe(2, *frames[2], gt_at(ds, 2) @ off)  # keyframe B, 1 cm off
-    reg = tracker._track_keyframe(kf_b, *frames[3], gt_at(ds, 3), chained=False)
+    reg = track_keyframe(kf_b, *frames[3], gt_at(ds, 3), ds.intrinsics, config)
     assert reg is not None
     T_via_b = kf_b.T_world_keyframe @ reg.solution.T
     error_b = relative_error(T_via_b, gt_at(ds, 3))[0]
     assert error_b > 0.008  # B's error passes to the frame
-    T_joint = tracker._refine_in_window(*frames[3], T_via_b, reg)
+    T_joint = refine_in_window(tracker.recent, *frames[3], T_via_b, reg, ds.intrinsics, config)
     error_joint = relative_error(T_joint, gt_at(ds, 3))[0]
     assert error_joint < 0.7 * error_b, (error_joint, error_b)
     # With the window off, the frame keeps the pose from B alone.
-    tracker.cfg = RegistrationConfig().with_overrides(
-        solver={"dense": False}, keyframes={"window": 0}
-    )
-    np.testing.assert_array_equal(tracker._refine_in_window(*frames[3], T_via_b, reg), T_via_b)
+    alone = RegistrationConfig().with_overrides(solver={"dense": False}, keyframes={"window": 0})
+    T_alone = refine_in_window(tracker.recent, *frames[3], T_via_b, reg, ds.intrinsics, alone)
+    np.testing.assert_array_equal(T_alone, T_via_b)
 
 
 def test_keyframe_realignment_pulls_wandered_tracks_back_onto_the_keyframe_corner(demo_clean):
@@ -215,11 +216,11 @@ def test_keyframe_realignment_pulls_wandered_tracks_back_onto_the_keyframe_corne
     assert kf is not None
     ids = np.arange(len(kf.uv))
     wandered = kf.uv + np.float32(1.0) * np.where(ids % 2 == 0, 1, -1)[:, None].astype(np.float32)
-    kept, uv = tracker._refine_from_keyframe(kf, kf.grey, ids, wandered)
+    kept, uv = refine_from_keyframe(kf, kf.grey, ids, wandered, config.flow)
     assert len(kept) > 0.8 * len(ids)
     assert np.median(np.linalg.norm(uv - kf.uv[kept], axis=1)) < 0.1
     far = kf.uv + np.float32(3.0)  # the true corner lies 4.2 px away: beyond the limit
-    kept_far, _ = tracker._refine_from_keyframe(kf, kf.grey, ids, far)
+    kept_far, _ = refine_from_keyframe(kf, kf.grey, ids, far, config.flow)
     assert len(kept_far) < 0.2 * len(ids)
 
 
@@ -237,9 +238,10 @@ def test_keyframe_switch_order(demo_clean, order, expected_frame):
     images = {i: (to_grey(ds[i].colour), clean_depth(ds[i].depth, config.depth)) for i in (0, 1, 3)}
     for i in (0, 1, 3):
         tracker._new_keyframe(i, *images[i], gt_at(ds, i))  # the last one is current
-    switched = tracker._switch_keyframe(*images[1], gt_at(ds, 1))
+    current, K = tracker.keyframe, ds.intrinsics
+    switched = switch_keyframe(tracker.recent, [], current, 0, *images[1], gt_at(ds, 1), K, config)
     assert switched is not None
-    assert switched.frame_index == expected_frame
+    assert switched[0].frame_index == expected_frame
 
 
 def test_colour_registration_is_estimated_on_unregistered_images_only(demo_clean):

@@ -34,17 +34,26 @@ from server.geometry.arrays import (
     Float32Array,
     FloatArray,
     GreyImage,
-    IndexArray,
     Int64Array,
     RealArray,
 )
 from server.mapping.config import TSDFConfig
+from server.mapping.occupancy import (
+    block_cells,
+    camera_cells,
+    check_cell,
+    free_space_keys,
+    grid_of,
+    in_box,
+    pack_keys,
+    unpack_keys,
+    voxel_cells,
+)
+from server.mapping.tsdf_files import StoredTSDF, read_tsdf, write_tsdf
 
 log = logging.getLogger(__name__)
 
-_CARVE_STRIDE_PX = 16  # one free-space ray per 16 x 16 depth pixels
 _BYTES_PER_VOXEL = 4 * (1 + 1 + 3)  # float32 tsdf, weight, RGB
-_KEY_BIAS = 1 << 20  # integer keys packed in one int64: 21 bits per axis
 # The device numpy arrays become tensors on: Open3D's default, passed (with the dtype) because
 # open3d's stubs declare no defaults for Tensor(np_array, dtype, device).
 _HOST = o3c.Device("CPU:0")
@@ -52,32 +61,6 @@ _HOST = o3c.Device("CPU:0")
 
 class MapError(DroneSimError):
     """A frame or a file given to the TSDF map is malformed."""
-
-
-def _pack(ijk: ArrayLike) -> Int64Array:
-    """Integer 3D keys (N, 3) (each within +-2^20) -> one sortable int64 each."""
-    k = np.asarray(ijk, dtype=np.int64) + _KEY_BIAS
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-
-
-def _unpack(keys: Int64Array) -> Int64Array:
-    """Inverse of ``_pack``: (N,) keys -> (N, 3) integer keys."""
-    mask = (1 << 21) - 1
-    return np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1) - _KEY_BIAS
-
-
-def _rotate(points: ArrayLike, R: RealArray | None) -> FloatArray:
-    """(N, 3) points (float64) rotated by R (3x3; None: unrotated). Written out per element, not
-    as a matrix product, so that a point's result does not depend on how many points are rotated
-    with it (a BLAS product may round differently by batch): occupancy_update then finds the
-    very cells a full occupancy does."""
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if R is None:
-        return p
-    R = np.asarray(R, dtype=np.float64)
-    return np.stack(
-        [p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2] for i in range(3)], axis=1
-    )
 
 
 def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: object) -> None:
@@ -91,8 +74,6 @@ def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: objec
 
 
 _ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB
-# What TSDFMap.save writes (a zip of .npy arrays; see save), named inside the file.
-FILE_FORMAT = "dronesim-tsdf-2"
 
 
 def _new_grid(config: TSDFConfig, block_count: int) -> o3d.t.geometry.VoxelBlockGrid:
@@ -152,7 +133,9 @@ class TSDFMap:
         self._cameras: list[FloatArray] = list(
             np.reshape([] if camera_positions is None else camera_positions, (-1, 3))
         )
-        self._dirty = np.sort(_pack(self._active_keys()))  # blocks touched since the last preview
+        self._dirty = np.sort(
+            pack_keys(self._active_keys())
+        )  # blocks touched since the last preview
         # Blocks touched, and cameras added, since the last occupancy_update (all at first, so
         # that the first update is the whole grid).
         self._occupancy_dirty = self._dirty.copy()
@@ -209,16 +192,18 @@ class TSDFMap:
             blocks = self._grid.compute_unique_block_coordinates(
                 depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels
             )
-            keys = np.unique(_pack(blocks.cpu().numpy()))
+            keys = np.unique(pack_keys(blocks.cpu().numpy()))
             carve = cfg.carve_free_space and self._integrations % cfg.carve_every == 0
             self._integrations += 1
             if carve:
-                keys = np.union1d(keys, self._free_space_keys(depth, K, T))
+                keys = np.union1d(keys, free_space_keys(depth, K, T, cfg))
             if keys.size == 0:
                 return 0
             hashmap = self._grid.hashmap()
             before = hashmap.size()
-            coords = o3c.Tensor(_unpack(keys).astype(np.int32), o3c.int32, _HOST).to(self._device)
+            coords = o3c.Tensor(unpack_keys(keys).astype(np.int32), o3c.int32, _HOST).to(
+                self._device
+            )
             self._grid.integrate(
                 coords,
                 depth_img,
@@ -240,27 +225,6 @@ class TSDFMap:
         if abs(K.height * factor - h) > 1.0:
             raise MapError(f"depth {w}x{h} has not the aspect of intrinsics {K.width}x{K.height}")
         return K.scaled(factor)
-
-    def _free_space_keys(self, depth: Float32Array, K: Intrinsics, T: FloatArray) -> Int64Array:
-        """Packed keys of the blocks that sparse rays cross between the camera and the surface
-        band (which compute_unique_block_coordinates already covers)."""
-        cfg, s = self.config, _CARVE_STRIDE_PX
-        d = depth[s // 2 :: s, s // 2 :: s]
-        v, u = np.nonzero((d > 0) & (d <= cfg.depth_max_m))
-        z = d[v, u]
-        # Ray direction scaled to unit depth, so that a point at depth t is rays * t.
-        rays = np.stack(
-            [
-                (u * s + s // 2 - K.cx) / K.fx,
-                (v * s + s // 2 - K.cy) / K.fy,
-                np.ones_like(z, dtype=np.float64),
-            ],
-            axis=1,
-        )
-        t = np.arange(0.0, cfg.depth_max_m, cfg.block_m / 2)
-        r, c = np.nonzero(t[None, :] < z[:, None] - cfg.trunc_m)
-        world = (rays[r] * t[c, None]) @ T[:3, :3].T + T[:3, 3]
-        return np.unique(_pack(np.floor(world / cfg.block_m)))
 
     # --- extraction --------------------------------------------------------------------------
     def _active_keys(self) -> NDArray[np.int32]:
@@ -295,8 +259,8 @@ class TSDFMap:
             if self._dirty.size == 0:
                 return np.empty((0, 3)), np.empty((0, 3))
             points, colours = self._extract()
-            voxels = _pack(np.floor(points / self.config.voxel_m))
-            blocks = _pack(np.floor(points / self.config.block_m))
+            voxels = pack_keys(np.floor(points / self.config.voxel_m))
+            blocks = pack_keys(np.floor(points / self.config.block_m))
             fresh = np.isin(blocks, self._dirty) & ~np.isin(voxels, self._sent)
             _, first = np.unique(voxels[fresh], return_index=True)
             idx = np.flatnonzero(fresh)[first]
@@ -333,16 +297,16 @@ class TSDFMap:
         TSDF voxel, at most the truncation). Free = observed & ~occupied; unobserved cells should
         be treated as unknown (not safe to fly).
         """
-        self._check_cell(voxel_m)
+        check_cell(voxel_m)
         with self._lock:
             keys, tsdf, weight = self._read_blocks()
             cameras = np.array(self._cameras).reshape(-1, 3)
-        seen, surface, at_camera = self._cells(keys, tsdf, weight, cameras, voxel_m, R_grid_world)
-        observed_cells = np.concatenate([seen, surface, at_camera])
-        if observed_cells.size == 0:
+        seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, self.config)
+        at_camera = camera_cells(cameras, voxel_m, R_grid_world)
+        grid = grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
+        if grid is None:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
-        lo = observed_cells.min(axis=0)
-        return self._grid_of(lo, observed_cells.max(axis=0) + 1, observed_cells, surface, voxel_m)
+        return grid
 
     def occupancy_update(
         self, voxel_m: float = 0.05, R_grid_world: RealArray | None = None
@@ -364,45 +328,35 @@ class TSDFMap:
         a map has one such reader (the session's drone), which passes the same voxel_m and
         R_grid_world every time; ``occupancy`` restarts nothing.
         """
-        self._check_cell(voxel_m)
+        check_cell(voxel_m)
+        cfg = self.config
         with self._lock:
-            dirty = _unpack(self._occupancy_dirty)
+            dirty = unpack_keys(self._occupancy_dirty)
             cameras = np.array(self._cameras).reshape(-1, 3)
             new_cameras = cameras[self._occupancy_cameras :]
             self._occupancy_dirty = np.empty(0, np.int64)
             self._occupancy_cameras = len(cameras)
             if len(dirty) == 0 and len(new_cameras) == 0:
                 return None
-            reach = [self._block_cells(dirty, voxel_m, R_grid_world)]
+            reach = [block_cells(dirty, voxel_m, R_grid_world, cfg)]
             if len(new_cameras):
-                at = np.floor(_rotate(new_cameras, R_grid_world) / voxel_m).astype(np.int64)
+                at = camera_cells(new_cameras, voxel_m, R_grid_world)
                 reach.append((at, at))
             box_lo = np.min([lo.min(axis=0) for lo, _ in reach if len(lo)], axis=0)
             box_hi = np.max([hi.max(axis=0) for _, hi in reach if len(hi)], axis=0) + 1
 
             def overlapping(keys: Int64Array) -> BoolArray:  # blocks with a voxel in the box
-                lo, hi = self._block_cells(keys, voxel_m, R_grid_world)
+                lo, hi = block_cells(keys, voxel_m, R_grid_world, cfg)
                 hit: BoolArray = np.all((lo < box_hi) & (hi >= box_lo), axis=1)
                 return hit
 
             keys, tsdf, weight = self._read_blocks(overlapping)
-        seen, surface, at_camera = self._cells(keys, tsdf, weight, cameras, voxel_m, R_grid_world)
-
-        def inside(cells: Int64Array) -> Int64Array:
-            return cells[np.all((cells >= box_lo) & (cells < box_hi), axis=1)]
-
-        seen, surface, at_camera = inside(seen), inside(surface), inside(at_camera)
-        observed_cells = np.concatenate([seen, surface, at_camera])
-        if observed_cells.size == 0:
-            return None
+        seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, cfg)
+        at_camera = camera_cells(cameras, voxel_m, R_grid_world)
+        seen, surface = in_box(seen, box_lo, box_hi), in_box(surface, box_lo, box_hi)
+        at_camera = in_box(at_camera, box_lo, box_hi)
         # Cropped to what is observed: the rest of the box was unobserved before too.
-        lo = observed_cells.min(axis=0)
-        return self._grid_of(lo, observed_cells.max(axis=0) + 1, observed_cells, surface, voxel_m)
-
-    @staticmethod
-    def _check_cell(voxel_m: float) -> None:
-        if not voxel_m > 0:
-            raise ConfigError(f"occupancy voxel size must be positive, got {voxel_m}")
+        return grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
 
     def _read_blocks(
         self, select: Callable[[Int64Array], BoolArray] | None = None
@@ -420,67 +374,6 @@ class TSDFMap:
         tsdf: Float32Array = self._grid.attribute("tsdf").numpy()[idx, ..., 0]
         weight: Float32Array = self._grid.attribute("weight").numpy()[idx, ..., 0]
         return keys, tsdf, weight
-
-    def _block_cells(
-        self, keys: Int64Array, voxel_m: float, R_grid_world: RealArray | None
-    ) -> tuple[Int64Array, Int64Array]:
-        """(lo, hi), (B, 3) int64 each: the range of grid cells (inclusive) the voxels of each
-        block (keys (B, 3)) can fall in, one cell wider each side than the blocks' corners
-        say, for the float32 rounding of voxel positions in ``_cells``."""
-        res = self.config.block_resolution
-        corners = np.array(np.meshgrid(*[[0, res - 1]] * 3, indexing="ij")).reshape(3, 8).T
-        points = ((keys[:, None, :] * res + corners) * self.config.voxel_m).reshape(-1, 3)
-        cells = np.floor(_rotate(points, R_grid_world) / voxel_m).reshape(-1, 8, 3)
-        return cells.min(axis=1).astype(np.int64) - 1, cells.max(axis=1).astype(np.int64) + 1
-
-    def _cells(
-        self,
-        keys: Int64Array,
-        tsdf: Float32Array,
-        weight: Float32Array,
-        cameras: FloatArray,
-        voxel_m: float,
-        R_grid_world: RealArray | None,
-    ) -> tuple[Int64Array, Int64Array, Int64Array]:
-        """Grid cells (integer (N, 3) each, not unique) of the given blocks' seen voxels, of
-        their surface voxels, and of the cameras (world (C, 3))."""
-        cfg, res = self.config, self.config.block_resolution
-        # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
-        # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
-        band = min(max(0.87 * voxel_m, cfg.voxel_m), 0.99 * cfg.trunc_m)
-        # Every s-th TSDF voxel is enough to say what was seen, as long as samples stay closer
-        # than a cell; surfaces (a thin band) are placed from every voxel of the band.
-        s = 1
-        while s < res and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
-            s *= 2
-
-        def cells(voxels: tuple[IndexArray, ...], step: int = 1) -> Int64Array:
-            """Cells of the voxels at ``voxels`` = (block, z, y, x) indices, every step-th."""
-            b, zl, yl, xl = voxels
-            local = np.stack([xl, yl, zl], axis=1) * step
-            world = (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
-            return np.floor(_rotate(world, R_grid_world) / voxel_m).astype(np.int64)
-
-        seen = cells(np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
-        surface = cells(np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
-        at_camera = np.floor(_rotate(cameras, R_grid_world) / voxel_m).astype(np.int64)
-        return seen, surface, at_camera
-
-    @staticmethod
-    def _grid_of(
-        lo: Int64Array,
-        hi: Int64Array,
-        observed_cells: Int64Array,
-        surface_cells: Int64Array,
-        voxel_m: float,
-    ) -> tuple[FloatArray, BoolArray, BoolArray]:
-        """(origin, occupied, observed) of the cells [lo, hi) (integer (3,) each)."""
-        observed: BoolArray = np.zeros(tuple(hi - lo), dtype=bool)
-        occupied = np.zeros_like(observed)
-        observed[tuple((observed_cells - lo).T)] = True
-        occupied[tuple((surface_cells - lo).T)] = True
-        # np.float64: numpy's stubs type an int64 array times a float as of any float precision.
-        return lo * np.float64(voxel_m), occupied, observed
 
     # --- files -------------------------------------------------------------------------------
     def write_point_cloud_ply(self, path: str | Path) -> None:
@@ -500,10 +393,8 @@ class TSDFMap:
         _open3d_write(path, o3d.io.write_triangle_mesh, mesh)
 
     def save(self, path: str | Path) -> None:
-        """Persist the whole grid and the camera positions, written atomically: a zip of numpy
-        arrays (``FILE_FORMAT``), deflated, TSDF values as float16 (-1..1: steps of at most
-        1/2048 of the truncation) and colours as uint8, about a tenth of the float32 grid (a
-        600-frame room: 64 MB -> 6 MB). Gathered with numpy rather than Open3D's own save, which
+        """Persist the whole grid and the camera positions, written atomically (the format:
+        server/mapping/tsdf_files.py). Gathered with numpy rather than Open3D's own save, which
         is ~20x slower at it, under the lock that fusion waits for."""
         with self._lock:
             hashmap = self._grid.hashmap()
@@ -511,30 +402,8 @@ class TSDFMap:
             keys = hashmap.key_tensor().numpy()[active]
             values = {name: self._grid.attribute(name).numpy()[active] for name in _ATTRIBUTES}
             cameras = np.array(self._cameras).reshape(-1, 3)
-        colour = values["color"]
-        # Open3D's grid holds colour on 0..255 (given the 0..1 images integrate makes); should
-        # a grid hold 0..1, it is stored scaled up, so that uint8 steps stay fine either way.
-        colour_scale = 1.0 if colour.size == 0 or float(colour.max()) > 1.0 + 1e-6 else 1.0 / 255
-        arrays = {
-            "format": np.array(FILE_FORMAT),
-            "key": keys,
-            "tsdf": values["tsdf"].astype(np.float16),
-            "weight": values["weight"],
-            "color": np.clip(np.rint(colour / colour_scale), 0, 255).astype(np.uint8),
-            "color_scale": np.array(colour_scale, np.float64),
-            "block_resolution": np.array(self.config.block_resolution, np.int64),
-            "voxel_size": np.array(self.config.voxel_m, np.float64),
-            "camera_positions": cameras,
-        }
-
-        def write(tmp: str) -> None:
-            # Level 1: most of level 6's size (6.4 against 5.8 MB) in half the time (0.5 s).
-            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
-                for name, array in arrays.items():
-                    with z.open(f"{name}.npy", "w", force_zip64=True) as f:
-                        np.lib.format.write_array(f, array, allow_pickle=False)
-
-        atomic_write(path, write, suffix=".npz", mode=0o644)
+        cfg = self.config
+        write_tsdf(path, StoredTSDF(cfg.voxel_m, cfg.block_resolution, cameras, keys, values))
         log.info("saved TSDF map (%d blocks) to %s", len(active), path)
 
     @classmethod
@@ -546,21 +415,8 @@ class TSDFMap:
         if not path.is_file():
             raise MapError(f"no TSDF map file at {path}")
         try:
-            with np.load(path, allow_pickle=False) as stored:
-                voxel_m = float(np.ravel(stored["voxel_size"])[0])
-                resolution = int(np.ravel(stored["block_resolution"])[0])
-                cameras = stored["camera_positions"] if "camera_positions" in stored else None
-                compact = "format" in stored
-                if compact:
-                    if str(stored["format"]) != FILE_FORMAT:
-                        raise ValueError(f"unknown map format {stored['format']}")
-                    keys = stored["key"]
-                    values = {
-                        "tsdf": stored["tsdf"].astype(np.float32),
-                        "weight": stored["weight"].astype(np.float32),
-                        "color": stored["color"].astype(np.float32)
-                        * np.float32(stored["color_scale"]),
-                    }
+            stored = read_tsdf(path)
+            voxel_m, resolution = stored.voxel_m, stored.block_resolution
             if config is None:
                 config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
             elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
@@ -568,13 +424,16 @@ class TSDFMap:
                     f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
                     f"asks for {config.voxel_m} m in {config.block_resolution}^3"
                 )
-            if compact:
-                grid = _grid_from_blocks(config, keys, values)
+            if stored.keys is not None and stored.values is not None:
+                grid = _grid_from_blocks(config, stored.keys, stored.values)
             else:
                 grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
         except (OSError, RuntimeError, KeyError, ValueError, zipfile.BadZipFile) as exc:
             raise MapError(f"cannot load a TSDF map from {path}: {exc}") from exc
-        return cls(config, grid=grid.to(o3c.Device(config.device)), camera_positions=cameras)
+        camera_positions = stored.camera_positions
+        return cls(
+            config, grid=grid.to(o3c.Device(config.device)), camera_positions=camera_positions
+        )
 
     def stats(self) -> dict[str, int | float]:
         """frames_integrated, active_blocks, capacity_blocks, voxel_m, memory_bytes (approximate:

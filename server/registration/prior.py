@@ -10,6 +10,7 @@ move between the two frames (the phone's overlay draws in the device's world).
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 
 import numpy as np
@@ -17,6 +18,9 @@ import numpy as np
 from server.geometry import invert, orthonormalize, rotation_angle_deg
 from server.geometry.arrays import FloatArray
 from server.registration.config import PriorConfig
+from server.registration.results import Anchor, TrackResult
+
+log = logging.getLogger(__name__)
 
 
 def prior_motion(
@@ -55,6 +59,84 @@ class DeviceAlignment:
         """Forget the alignment: the device's world frame has changed (its tracking restarted)."""
         self.estimates.clear()
         self.T_world_device = None
+
+
+class DevicePrior:
+    """The tracker's use of the device's poses: each frame's prior checked, its guess for the
+    frame (``guess``), and the device world's alignment to the map from frames tracked ok."""
+
+    def __init__(self, config: PriorConfig) -> None:
+        self.cfg = config
+        self.alignment = DeviceAlignment(config)
+        self.last: FloatArray | None = None  # the prior of the last tracked frame
+        self.world = 0  # the device's world the priors are in (Tracker.track's device_world)
+
+    def check(self, T_device_camera: FloatArray | None) -> FloatArray | None:
+        """The prior to use for this frame, or None (none sent, disabled, or not finite)."""
+        if T_device_camera is None or not self.cfg.enabled:
+            return None
+        T = np.asarray(T_device_camera, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_device_camera must be 4x4, got shape {T.shape}")
+        if not np.isfinite(T).all():
+            log.debug("non-finite device pose ignored")
+            return None
+        return orthonormalize(T)
+
+    def enter_world(self, world: int) -> None:
+        """The frame's prior is in the device's world number ``world``: a new one is a jump of
+        the device's world, so the last prior and the alignment no longer hold."""
+        if world != self.world:
+            self.world = world
+            self.reset()
+
+    def guess(self, prior: FloatArray | None, T_world_last: FloatArray) -> FloatArray | None:
+        """T_world_camera by the prior: its motion since the last tracked frame applied to that
+        frame's pose (T_world_last, 4x4, metres); or, when that frame had no prior, the prior
+        moved into the map."""
+        if prior is None:
+            return None
+        if self.last is not None:
+            motion = prior_motion(self.last, prior, self.cfg)
+            if motion is not None:
+                return orthonormalize(T_world_last @ motion)
+            # The device's world jumped: its alignment to the map is void.
+            log.info("device pose jumped: prior ignored, alignment reset")
+            self.reset()
+            return None
+        T_world_device = self.alignment.T_world_device
+        return None if T_world_device is None else orthonormalize(T_world_device @ prior)
+
+    def resume(
+        self, index: int, prior: FloatArray, T_world_prior: FloatArray, anchor: Anchor, lost: bool
+    ) -> TrackResult | None:
+        """No keyframe registers frame ``index`` (a gap in the frames, fast motion, blur), but the
+        device still knows where it is: a new keyframe at the prior's pose (T_world_prior, 4x4,
+        metres) lets tracking go on in the map. The device's drift since the last tracked frame
+        (millimetres over a short gap) enters the map with it; staying lost until the user comes
+        back to a mapped view would lose the rest of the session. The pose is WEAK. None (stay
+        lost) when resuming is off or this frame cannot anchor tracking. ``lost``: the tracker
+        was lost before this frame already."""
+        if not self.cfg.resume_after_loss:
+            return None
+        if not lost:
+            log.info("frame %d: no keyframe registers it; resumed from the device pose", index)
+        result = anchor(T_world_prior, prior_used=True)
+        if result is not None:
+            self.last = prior
+        return result
+
+    def tracked(self, prior: FloatArray | None, T_world_camera: FloatArray, ok: bool) -> None:
+        """A frame was tracked at T_world_camera with this prior (None: none); a frame tracked
+        ``ok`` adds to the alignment."""
+        self.last = prior
+        if prior is not None and ok:
+            self.alignment.add(T_world_camera, prior)
+
+    def reset(self) -> None:
+        """Forget the last prior and the alignment."""
+        self.last = None
+        self.alignment.reset()
 
 
 def _robust_mean(Ts: FloatArray) -> FloatArray:

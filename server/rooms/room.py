@@ -9,7 +9,7 @@ On disk a room is a folder (written by :func:`save_room`, read by :func:`load_ro
                          colour (JPEG bytes), depth (16-bit PNG bytes, millimetres), and the
                          place features: uv (N, 2) px, descriptors (N, 32) ORB, points (N, 3)
                          metres in the keyframe's camera frame
-    map.npz              the TSDF fused from the keyframes (server/mapping/tsdf.py's format)
+    map.npz              the TSDF fused from the keyframes (server/mapping/tsdf_files.py's format)
 
 Keyframe images are kept (rather than only their features) so that the map can be re-fused
 from them, e.g. after their poses are corrected, and so that tracking can follow corners from

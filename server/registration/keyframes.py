@@ -1,0 +1,222 @@
+"""The keyframes a frame is registered against, and keyframe changes: when one is due, going
+back to an earlier keyframe that sees the view, and the pose of a frame about to become a new
+keyframe, solved against several recent ones."""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from server.geometry import (
+    Intrinsics,
+    adjoint,
+    exp_se3,
+    invert,
+    orthonormalize,
+    pose_distance,
+    rotation_angle_deg,
+)
+from server.geometry.arrays import Float32Array, FloatArray, GreyImage
+from server.registration.config import KeyframeConfig, RegistrationConfig
+from server.registration.frame_to_keyframe import Registration, Tracks, judge, track_keyframe
+from server.registration.keyframe import Keyframe, make_keyframe
+from server.registration.results import TrackingState, TrackResult
+from server.registration.sparse import (
+    information,
+    mahalanobis,
+    point_information,
+    robust_weights,
+    sparse_equations,
+)
+
+log = logging.getLogger(__name__)
+
+
+class Keyframes:
+    """The tracker's keyframes: the ``current`` one, the ``recent`` ones (newest last) and those of
+    a saved map (``map``, a room's) this session continues in; ``count`` have been made here (or
+    taken from a map), the next one's id."""
+
+    def __init__(self, K: Intrinsics, cfg: RegistrationConfig) -> None:
+        self.K, self.cfg = K, cfg
+        self.current: Keyframe | None = None
+        self.recent: deque[Keyframe] = deque(maxlen=cfg.keyframes.recent_keyframes)
+        self.map: list[Keyframe] = []
+        self.count = 0
+
+    def held(self) -> list[Keyframe]:
+        """Every keyframe held: the current one, the recent ones, a saved map's."""
+        return [k for k in [self.current, *self.recent, *self.map] if k is not None]
+
+    def make(
+        self, index: int, T_world_camera: FloatArray, grey: GreyImage, depth: Float32Array
+    ) -> Keyframe:
+        """Frame ``index`` as a keyframe at T_world_camera (4x4, metres; depth cleaned, metres),
+        not held yet (``add``)."""
+        return make_keyframe(self.count, index, T_world_camera, grey, depth, self.K, self.cfg)
+
+    def add(self, kf: Keyframe, segment: int) -> Keyframe | None:
+        """Make ``kf`` (of map segment ``segment``) the current keyframe and the newest recent
+        one; returns the recent keyframe it pushes out, if any."""
+        self.count += 1
+        kf.segment = segment
+        self.current = kf
+        left = self.recent[0] if len(self.recent) == self.recent.maxlen else None
+        self.recent.append(kf)
+        return left
+
+    def resume(self, keyframe: Keyframe, map_keyframes: list[Keyframe]) -> None:
+        """Hold a saved map's keyframes (in the map, segment 0) instead, ``keyframe`` current."""
+        self.map = list(map_keyframes)
+        for kf in self.map:
+            kf.segment = 0
+        self.recent.clear()
+        self.recent.append(keyframe)
+        self.current = keyframe
+        self.count = max(k.id for k in [keyframe, *self.map]) + 1
+
+    def switch(self, segment: int, p: PendingKeyframe) -> tuple[Keyframe, Tracks] | None:
+        """Go back to an earlier keyframe of ``segment`` that sees the pending frame's view
+        (``switch_keyframe``): it becomes current. Returns it and its corners followed into the
+        frame, or None (no switch)."""
+        args = (p.grey, p.depth, p.T_world_camera, self.K, self.cfg)
+        switched = switch_keyframe(self.recent, self.map, self.current, segment, *args)
+        if switched is not None:
+            self.current = switched[0]
+        return switched
+
+
+@dataclass
+class PendingKeyframe:
+    """A keyframe change that ``Tracker.track`` found due, for ``update_keyframe`` to make."""
+
+    index: int
+    grey: GreyImage
+    depth: Float32Array  # cleaned, metres
+    T_world_camera: FloatArray
+    result: TrackResult  # updated in place when the change is made
+    registration: Registration | None = None  # against the current keyframe
+
+
+def needs_keyframe(kf: Keyframe, T_kf_cur: FloatArray, tracked: int, c: KeyframeConfig) -> bool:
+    """A keyframe change is due: too few of ``kf``'s corners still followed (``tracked``), or
+    the camera too far from it (T_kf_cur, 4x4, metres)."""
+    return (
+        tracked < max(c.min_tracked, c.min_tracked_ratio * len(kf.points))
+        or float(np.linalg.norm(T_kf_cur[:3, 3])) > c.max_translation_m
+        or rotation_angle_deg(T_kf_cur) > c.max_rotation_deg
+    )
+
+
+def switch_keyframe(
+    recent: Iterable[Keyframe],
+    map_keyframes: Iterable[Keyframe],
+    current: Keyframe | None,
+    segment: int,
+    grey: GreyImage,
+    depth: Float32Array,
+    T_world_cur: FloatArray,
+    K: Intrinsics,
+    cfg: RegistrationConfig,
+) -> tuple[Keyframe, Tracks] | None:
+    """Go back to an earlier keyframe of this segment (a recent one or a saved map's) that sees
+    this view well (depth: cleaned, metres; T_world_cur: 4x4, metres), instead of making a new
+    one: every new keyframe adds its own error to the chain, an old one adds none. Returns that
+    keyframe and its corners followed into this frame, or None."""
+    c = cfg.keyframes
+    in_segment = [k for k in recent if k.segment == segment]
+    candidates = in_segment + [
+        k for k in map_keyframes if k.segment == segment and all(k is not r for r in in_segment)
+    ]
+    near = sorted(candidates, key=lambda k: pose_distance(k.T_world_keyframe, T_world_cur))
+    if c.switch_order == "oldest":
+        near.sort(key=lambda k: k.id)
+    for kf in near:
+        if kf is current:
+            continue
+        T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
+        if np.linalg.norm(T_kf_cur[:3, 3]) > c.switch_reach * c.max_translation_m:
+            if c.switch_order == "nearest":
+                break
+            continue
+        if rotation_angle_deg(T_kf_cur) > c.switch_reach * c.max_rotation_deg:
+            continue
+        reg = track_keyframe(kf, grey, depth, T_world_cur, K, cfg)
+        if reg is None or judge(reg.solution, cfg.state) is not TrackingState.OK:
+            continue
+        keep = reg.surviving()
+        need = c.switch_tracked_factor * c.min_tracked_ratio * len(kf.points)
+        if keep.sum() < max(c.min_tracked, need):
+            continue
+        return kf, Tracks(reg.ids[keep], reg.uv[keep], grey)
+    return None
+
+
+def refine_in_window(
+    recent: Iterable[Keyframe],
+    grey: GreyImage,
+    depth: Float32Array,
+    T_world_cur: FloatArray,
+    reg: Registration,
+    K: Intrinsics,
+    cfg: RegistrationConfig,
+) -> FloatArray:
+    """The pose of a frame about to become a keyframe, solved jointly against the current
+    keyframe and up to ``keyframes.window`` other ``recent`` ones (newest last, as the tracker
+    holds them).
+
+    The current keyframe's estimate (``reg``) enters as a quadratic prior (its sparse information
+    about ``T_world_cur``, which may carry the dense refinement); each other keyframe that
+    registers the frame ok adds its sparse terms. A new keyframe then hangs on several older ones
+    instead of one, so one poor registration no longer passes all its error down the chain.
+    """
+    c = cfg.keyframes
+    others: list[Registration] = []
+    for kf in reversed(list(recent)):
+        if len(others) >= c.window:
+            break
+        if kf is reg.kf or kf.segment != reg.kf.segment:
+            continue
+        T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
+        if (
+            float(np.linalg.norm(T_kf_cur[:3, 3])) > c.window_reach * c.max_translation_m
+            or rotation_angle_deg(T_kf_cur) > c.window_reach * c.max_rotation_deg
+        ):
+            continue
+        found = track_keyframe(kf, grey, depth, T_world_cur, K, cfg)
+        # A weak registration (few inliers) still adds what it knows: its information says
+        # how little that is.
+        if found is not None and judge(found.solution, cfg.state) is not TrackingState.LOST:
+            others.append(found)
+            log.debug("window: keyframe %d adds %d inliers", kf.id, found.solution.inliers.sum())
+    if not others:
+        return T_world_cur
+    # The current keyframe's information about the pose, moved to world-frame twists.
+    A0 = adjoint(invert(reg.kf.T_world_keyframe))
+    H0 = A0.T @ reg.solution.equations.H @ A0
+    T: FloatArray = T_world_cur.copy()
+    xi_total = np.zeros(6)
+    for _ in range(cfg.solver.max_iterations):
+        H, g = H0.copy(), H0 @ xi_total
+        for o in others:
+            inl = o.solution.inliers
+            P = o.kf.points[o.ids[o.with_depth][inl]]
+            cov_P = o.kf.covariances[o.ids[o.with_depth][inl]]
+            Q = o.points[inl]
+            T_kf_cur = invert(o.kf.T_world_keyframe) @ T
+            W = information(cov_P, point_information(Q, K, cfg.depth), T_kf_cur[:3, :3])
+            weights = robust_weights(mahalanobis(P, Q, W, T_kf_cur), cfg.solver, True)
+            eq = sparse_equations(P, Q, W, T_kf_cur, weights)[0]
+            A = adjoint(invert(o.kf.T_world_keyframe))
+            H += A.T @ eq.H @ A
+            g += A.T @ eq.g
+        xi = np.linalg.lstsq(H, -g, rcond=None)[0]
+        T = orthonormalize(exp_se3(xi) @ T)
+        xi_total += xi
+        if np.linalg.norm(xi) < cfg.solver.convergence_step:
+            break
+    return T

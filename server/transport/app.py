@@ -38,6 +38,7 @@ from server.transport import (
     viewer_socket,
     websocket,
 )
+from server.transport.connections import end_all_connections
 from server.transport.deps import RateLimiter
 from server.transport.recordings import RecordingError, RecordingStore
 
@@ -128,7 +129,7 @@ def create_app(config: Config | None = None) -> FastAPI:
     app.state.config = config
     app.state.settings = settings  # the server section, read by the routes and the socket
     app.state.manager = manager
-    app.state.connections = {}  # session id -> its open WebSocket (websocket._Connection)
+    app.state.connections = {}  # session id -> its open WebSocket (connections.Connection)
     app.state.demo = None
     app.state.create_limiter = RateLimiter(settings.create_rate_per_min, settings.create_burst)
     app.state.recordings = RecordingStore(
@@ -274,5 +275,5 @@ class Server(uvicorn.Server):
     left with its generic 1012; the lifespan's shutdown then saves every session."""
 
     async def shutdown(self, sockets=None) -> None:
-        await websocket.end_all_connections(self.config.app)
+        await end_all_connections(self.config.app)
         await super().shutdown(sockets)

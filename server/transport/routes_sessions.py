@@ -23,6 +23,7 @@ from server.mapping.tsdf import MapError, TSDFMap
 from server.mapping.upright import upright_frame
 from server.sessions import LiveSession
 from server.sessions.course import BEST_FILE, read_best
+from server.transport.connections import end_connection
 from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
 from server.transport.schemas import (
     CourseBest,
@@ -31,7 +32,6 @@ from server.transport.schemas import (
     SessionStatus,
     error_response,
 )
-from server.transport.websocket import end_connection
 
 PLY = "application/octet-stream"
 GLB = "model/gltf-binary"

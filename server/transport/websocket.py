@@ -3,6 +3,7 @@
 This module knows the protocol and asyncio; frames go on to the session's worker (a process of
 its own) as the bytes that arrived, and the worker decodes and registers them, so one slow
 session never stalls the event loop or another session.
+Which socket holds a session, and how other tasks end it, is ``connections.py``'s.
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass, field
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from starlette.websockets import WebSocketState
@@ -30,6 +30,7 @@ from server.sessions import (
     SessionTakenOver,
 )
 from server.sessions.failures import SessionLog
+from server.transport.connections import RELEASE_WAIT_S, Connection
 from server.transport.outbox import Outbox
 
 log = logging.getLogger(__name__)
@@ -62,36 +63,11 @@ async def _refuse(ws: WebSocket, error: proto.ProtocolError) -> None:
         pass
 
 
-@dataclass
-class _Connection:
-    """The one open WebSocket of a session, as other tasks see it: they may end it (``end``),
-    and wait until it has let go of the session (``released``)."""
-
-    ending: asyncio.Event = field(default_factory=asyncio.Event)
-    why: proto.ProtocolError | None = None  # what the client is told, then closed with
-    released: asyncio.Event = field(default_factory=asyncio.Event)
-
-    def end(self, code: str, message: str) -> None:
-        """Event-loop thread only. The first reason given is the one the client hears."""
-        self.why = self.why or proto.ProtocolError(code, message)
-        self.ending.set()
-
-
-def end_connection(app, session_id: str, code: str, message: str) -> None:
-    """End a session's open socket, if it has one, with a fatal protocol error (event loop)."""
-    connection = app.state.connections.get(session_id)
-    if connection is not None:
-        connection.end(code, message)
-
-
-_RELEASE_WAIT_S = 5.0  # for the previous socket of a session to let go
-
-
 @router.websocket("/ws/sessions/{session_id}")
 async def session_socket(ws: WebSocket, session_id: str, token: str | None = None) -> None:
     app = ws.app
     manager, settings = app.state.manager, app.state.settings
-    connections: dict[str, _Connection] = app.state.connections
+    connections: dict[str, Connection] = app.state.connections
     await ws.accept()
     try:
         # Off the event loop: with Ray, an id this process does not hold is looked up on the
@@ -110,11 +86,11 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
             "a newer connection with this session's token took the session over",
         )
         try:
-            await asyncio.wait_for(previous.released.wait(), _RELEASE_WAIT_S)
+            await asyncio.wait_for(previous.released.wait(), RELEASE_WAIT_S)
         except asyncio.TimeoutError:
             await ws.close(code=proto.CLOSE_CODES["session_in_use"], reason="session_in_use")
             return
-    connection = connections[session_id] = _Connection()
+    connection = connections[session_id] = Connection()
     loop = asyncio.get_running_loop()
     outbox = Outbox(_OUTBOX, latest_only=(DroneUpdate,))
 
@@ -147,25 +123,6 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
         await _refuse(ws, connection.why)
 
 
-async def end_all_connections(app) -> None:
-    """Tell every session's socket that the server is stopping and close it with the documented
-    code; returns once all have let go of their sessions, or after a few seconds."""
-    connections: dict[str, _Connection] = app.state.connections
-    waiting = list(connections.values())
-    for connection in waiting:
-        connection.end(
-            "server_shutdown",
-            "the server is stopping; this session is saved and "
-            "closed, its map and trajectory stay downloadable with its token",
-        )
-    if waiting:
-        released = [asyncio.ensure_future(c.released.wait()) for c in waiting]
-        _, stuck = await asyncio.wait(released, timeout=_RELEASE_WAIT_S)
-        for future in stuck:
-            future.cancel()
-        await asyncio.sleep(0.1)  # let the handlers send their error and close frames
-
-
 class _ErrorRun:
     """Non-fatal errors in a row; ``limit`` of them close the socket (too_many_errors). A pose,
     or any other message handled, ends the run. Event-loop thread only: the receiving task
@@ -183,7 +140,7 @@ class _ErrorRun:
         return self.count >= self.limit
 
 
-def _send_failed(session: LiveSession, connection: _Connection) -> None:
+def _send_failed(session: LiveSession, connection: Connection) -> None:
     """Sending to this socket failed on a bug (logged by the caller): count it and end the
     connection with its documented code (send_failed, 4011); the session goes on, and the
     client's reconnect gets a fresh sender."""
@@ -193,7 +150,7 @@ def _send_failed(session: LiveSession, connection: _Connection) -> None:
     )
 
 
-def _sender_ended(task: asyncio.Task, session: LiveSession, connection: _Connection) -> None:
+def _sender_ended(task: asyncio.Task, session: LiveSession, connection: Connection) -> None:
     """The sender task's end is observed: one that raised (past _send_updates' own guard)
     must not leave the client waiting for poses that will never come."""
     exc = None if task.cancelled() else task.exception()
@@ -250,7 +207,7 @@ async def _send_updates(
     outbox: Outbox,
     chunk_points: int,
     session: LiveSession,
-    connection: _Connection,
+    connection: Connection,
     errors: _ErrorRun,
 ) -> None:
     chunk = 0
@@ -352,7 +309,7 @@ async def _receive(
     deliver,
     max_bytes: int,
     outbox: Outbox,
-    connection: _Connection,
+    connection: Connection,
     errors: _ErrorRun,
 ) -> None:
     """Handle the client's messages until it leaves, is closed, or ``connection`` is ended."""

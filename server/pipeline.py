@@ -1,6 +1,7 @@
 """Offline odometry over a dataset: register every frame, fuse the map, write the results.
 
-Shared by the ``track`` command and the tests; the server runs the same stages per session.
+Shared by the ``track`` command and the tests. Each frame goes through the same step as a live
+session's (server/frame_step.py), so offline and live register, key and fuse frames alike.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from server.errors import DatasetError
 from server.evaluation.metrics import evaluate
 from server.evaluation.plots import plot_top_view
 from server.evaluation.trajectory import Trajectory, write_tum
+from server.frame_step import FrameStep
 from server.geometry import invert
 from server.geometry.arrays import FloatArray
 from server.mapping.config import MappingConfig, TSDFConfig
@@ -33,7 +35,6 @@ from server.registration.calibration import ColourToDepth
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.preprocess import clean_depth
-from server.registration.relocalise import SegmentFrames
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import Room
 from server.rooms.room import save_room as write_room
@@ -112,14 +113,15 @@ def run_odometry(
     else:
         tracker = RoomTracker(room, dataset.intrinsics, cfg)
     world_map = PointCloudMap(voxel_m=voxel_m)
-    # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
-    to_depth = ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered)
-    results, stamps = [], []
-    # The current map segment's keyframes (Tracker: segments), fused once it merges, at the
-    # poses it then takes: (colour, depth, keyframe id) each.
-    segment_frames: SegmentFrames[tuple[np.ndarray, np.ndarray, int]] = SegmentFrames(
-        cfg.relocalise.segment_keyframes_kept
+    step = FrameStep(
+        tracker,
+        dataset.intrinsics,
+        # Unregistered colour (a raw RGB-D sensor's) is resampled onto depth; a phone's is not.
+        ColourToDepth(dataset.intrinsics, cfg.depth, not dataset.depth_registered),
+        fuse_every,
+        cfg.relocalise.segment_keyframes_kept,
     )
+    results, stamps = [], []
     closer = LoopCloser(dataset.intrinsics, cfg) if cfg.loops.enabled else None
     keep = keep_room or closer is not None
     use_device = cfg.prior.enabled and dataset.device_poses is not None
@@ -133,41 +135,30 @@ def run_odometry(
     if room_map is not None:
         behind.submit(room.fuse_into, room_map, list(room.keyframes))
 
-    def read(i: int) -> tuple[int, RGBDFrame, np.ndarray]:
+    def read(i: int) -> tuple[int, RGBDFrame, np.ndarray, np.ndarray]:
         frame = first if i == start else dataset[i]
-        return i, frame, to_depth(frame.colour, frame.depth)
+        return i, frame, *step.prepare(frame.colour, frame.depth)
 
     frames = read_ahead(map(read, range(start, start + n)), threaded=overlap)  # a generator
     bar = tqdm(frames, total=n, desc=f"track {dataset.name}", unit="frame", disable=not progress)
+    K = dataset.intrinsics
     try:
-        for i, frame, colour in bar:
+        for i, frame, colour, depth in bar:
             T_device_camera = dataset.device_pose(i) if use_device else None
             with_device_pose += T_device_camera is not None
-            result = tracker.track(colour, frame.depth, T_device_camera=T_device_camera)
+            result = step.track(colour, depth, T_device_camera=T_device_camera)
             if result is None:  # not yet found in the room
                 continue
-            tracker.update_keyframe()  # offline nothing waits for the pose: switch or build now
-            # A segment's keyframes stay out of the room and the pose graph: their poses are in
-            # the segment's world, a guess of where it lies (Tracker: segments).
-            if keep and result.new_keyframe and result.segment == 0:
+            settled = step.settle(result, i, i, colour, depth)  # offline nothing waits
+            if keep and settled.to_room:
                 behind.submit(_add_keyframe, room, room_map, closer, result, colour, frame, i, cfg)
             results.append(result)
             stamps.append(frame.timestamp)
-            if result.fusable and (result.new_keyframe or i % fuse_every == 0):
-                behind.submit(
-                    world_map.fuse,
-                    colour,
-                    frame.depth,
-                    dataset.intrinsics,
-                    result.T_world_camera,
-                    result.keyframe_id,
-                )
-            if result.recovery == "segment" and result.new_keyframe:
-                item = (colour, frame.depth, result.keyframe_id)
-                segment_frames.keep(result.segment, item, result.T_world_camera)
-            elif result.merged is not None:
-                for (c, d, kf_id), T in segment_frames.merged(*result.merged):
-                    behind.submit(world_map.fuse, c, d, dataset.intrinsics, T, kf_id)
+            if settled.fuse:
+                T, kf_id = result.T_world_camera, result.keyframe_id
+                behind.submit(world_map.fuse, colour, depth, K, T, kf_id)
+            for kept, T in settled.merged:
+                behind.submit(world_map.fuse, kept.colour, kept.depth, K, T, kept.keyframe_id)
             bar.set_postfix(
                 state=result.state.value,
                 inliers=result.inliers,

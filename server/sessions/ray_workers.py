@@ -49,6 +49,7 @@ from dataclasses import replace
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 
+from server.sessions.actor_host import ActorHost
 from server.sessions.errors import SessionError
 from server.sessions.live import SessionTakenOver
 from server.sessions.worker import WorkerLost
@@ -61,7 +62,6 @@ SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's acto
 MAX_FRAMES_IN_FLIGHT = 2  # frame calls per session not yet run by the actor
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0
-_UPDATES_KEPT = 256  # updates waiting for the owner's poll; beyond, the oldest are skipped
 _ORDERED = {"configure", "frame", "command", "stop"}
 _ID = re.compile(r"[0-9A-Za-z_-]{1,64}")
 
@@ -79,143 +79,34 @@ def actor_name(session_id: str) -> str:
     concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8}
 )
 class SessionActor:
-    """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
-    owner, until another front-end sends a hello)."""
+    """The Ray actor of one session: each entry point in its concurrency group, the work done
+    by an ActorHost (server/sessions/actor_host.py)."""
 
     def __init__(self, args, owner: str) -> None:
-        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-        from server.sessions.host import SessionHost
-
-        self._cond = threading.Condition()
-        self._turn = threading.Lock()  # one ordered call at a time
-        self._items: deque = deque()
-        self._owner = owner
-        self._next: dict[str, int] = {}  # front-end -> the number of its next ordered call
-        self._ended: str | None = None
-        self._last_active = time.monotonic()
-        self.out_of_order = 0
-        self.foreign_frames = 0  # frames from a front-end that was no longer the owner
-        self.skipped_updates = 0
-        self.args = args
-        self.host = SessionHost(args, self._publish)
+        self.core = ActorHost(args, owner)
         context = ray.get_runtime_context()
-        self.info = self.host.describe() | {
+        self.core.info |= {
             "node_id": context.get_node_id(),
             "node_ip": ray.util.get_node_ip_address(),
             "actor": actor_name(args.session_id),
             "cpus": SESSION_CPUS,
         }
 
-    def _publish(self, item) -> None:  # any of the session's threads
-        with self._cond:
-            self._items.append(item)
-            if len(self._items) > _UPDATES_KEPT:
-                self._items.popleft()
-                self.skipped_updates += 1
-            self._cond.notify_all()
-
     @ray.method(concurrency_group="query")
     def identity(self) -> dict:
-        return {
-            "token_hash": self.args.token_hash,
-            "created_at": self.args.created_at,
-            "data_dir": self.args.data_dir,
-            "info": self.info,
-            "ended": self._ended,
-        }
+        return self.core.identity()
 
     @ray.method(concurrency_group="ordered")
     def ordered(self, owner: str, number: int, method: str, args: tuple):
-        """The hello, frames, commands and the stop: run strictly in each front-end's order."""
-        from server.sessions.remote import as_remote
-
-        with self._cond:
-            deadline = time.monotonic() + 10.0
-            while self._next.get(owner, 0) < number and (wait := deadline - time.monotonic()) > 0:
-                self._cond.wait(wait)
-            if self._next.get(owner, 0) != number:
-                self.out_of_order += 1
-        try:
-            with self._turn:
-                return True, self._run(owner, method, args)
-        except Exception as exc:
-            return False, as_remote(exc)
-        finally:
-            with self._cond:
-                self._next[owner] = max(self._next.get(owner, 0), number + 1)
-                self._cond.notify_all()
-
-    def _run(self, owner: str, method: str, args: tuple):
-        if self._ended is not None:
-            raise SessionError("session_closed", "this session is closed; create a new one")
-        if method == "configure":
-            self.host.configure(*args)
-            with self._cond:
-                if owner != self._owner:  # taken over: the old owner's updates are not ours
-                    self._owner = owner
-                    self._items.clear()
-                self._last_active = time.monotonic()
-                self._cond.notify_all()  # the old owner's poll learns it at once
-            return None
-        if method == "frame":
-            if owner != self._owner:
-                self.foreign_frames += 1
-                return None
-            self._last_active = time.monotonic()
-            data, _received_at = args  # the front-end's clock: another machine's, maybe
-            return self.host.frame(data, self._last_active)
-        if method == "command":
-            if owner != self._owner:
-                raise SessionError(
-                    "session_taken_over", "another connection took this session over"
-                )
-            return self.host.command(*args)
-        if method == "stop":
-            meta = self.host.stop(*args)
-            with self._cond:
-                self._ended = "closed"
-                self._cond.notify_all()
-            return meta
-        raise ValueError(f"not an ordered method: {method}")
+        return self.core.ordered(owner, number, method, args)
 
     @ray.method(concurrency_group="query")
     def query(self, method: str, args: tuple):
-        """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
-        from server.sessions.remote import as_remote
-
-        try:
-            value = getattr(self.host, method)(*args)
-        except Exception as exc:
-            return False, as_remote(exc)
-        if method == "status":
-            value = value | {
-                "out_of_order_calls": self.out_of_order,
-                "foreign_frames": self.foreign_frames,
-                "skipped_updates": self.skipped_updates,
-            }
-        return True, value
+        return self.core.query(method, args)
 
     @ray.method(concurrency_group="poll")
     def updates(self, owner: str, timeout_s: float) -> dict:
-        """Long-poll: the updates waiting for ``owner`` (none unless it is the owner), once there
-        are any or after ``timeout_s``; with who owns the session and how long it has been idle."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._ended is None and not (owner == self._owner and self._items):
-                wait = deadline - time.monotonic()
-                if wait <= 0:
-                    break
-                self._cond.wait(wait)
-            items = []
-            if owner == self._owner:
-                items = list(self._items)
-                self._items.clear()
-            return {
-                "items": items,
-                "owner": owner == self._owner,
-                "idle_s": time.monotonic() - self._last_active,
-                "ended": self._ended,
-            }
+        return self.core.updates(owner, timeout_s)
 
 
 # ---- the front-end's side --------------------------------------------------------------------

@@ -1,0 +1,144 @@
+"""What a session's Ray actor does (server/sessions/ray_workers.py ``SessionActor`` is its Ray
+shell): hosts one SessionHost, runs the ordered calls strictly by each front-end's numbering,
+and keeps the updates for the owner's long-poll. No Ray here: Ray stays in ray_workers.py."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+
+from server.sessions.errors import SessionError
+
+_UPDATES_KEPT = 256  # updates waiting for the owner's poll; beyond, the oldest are skipped
+
+
+class ActorHost:
+    """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
+    owner, until another front-end sends a hello)."""
+
+    def __init__(self, args, owner: str) -> None:
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        from server.sessions.host import SessionHost
+
+        self._cond = threading.Condition()
+        self._turn = threading.Lock()  # one ordered call at a time
+        self._items: deque = deque()
+        self._owner = owner
+        self._next: dict[str, int] = {}  # front-end -> the number of its next ordered call
+        self._ended: str | None = None
+        self._last_active = time.monotonic()
+        self.out_of_order = 0
+        self.foreign_frames = 0  # frames from a front-end that was no longer the owner
+        self.skipped_updates = 0
+        self.args = args
+        self.host = SessionHost(args, self._publish)
+        self.info: dict = self.host.describe()
+
+    def _publish(self, item) -> None:  # any of the session's threads
+        with self._cond:
+            self._items.append(item)
+            if len(self._items) > _UPDATES_KEPT:
+                self._items.popleft()
+                self.skipped_updates += 1
+            self._cond.notify_all()
+
+    def identity(self) -> dict:
+        return {
+            "token_hash": self.args.token_hash,
+            "created_at": self.args.created_at,
+            "data_dir": self.args.data_dir,
+            "info": self.info,
+            "ended": self._ended,
+        }
+
+    def ordered(self, owner: str, number: int, method: str, args: tuple):
+        """The hello, frames, commands and the stop: run strictly in each front-end's order."""
+        from server.sessions.remote import as_remote
+
+        with self._cond:
+            deadline = time.monotonic() + 10.0
+            while self._next.get(owner, 0) < number and (wait := deadline - time.monotonic()) > 0:
+                self._cond.wait(wait)
+            if self._next.get(owner, 0) != number:
+                self.out_of_order += 1
+        try:
+            with self._turn:
+                return True, self._run(owner, method, args)
+        except Exception as exc:
+            return False, as_remote(exc)
+        finally:
+            with self._cond:
+                self._next[owner] = max(self._next.get(owner, 0), number + 1)
+                self._cond.notify_all()
+
+    def _run(self, owner: str, method: str, args: tuple):
+        if self._ended is not None:
+            raise SessionError("session_closed", "this session is closed; create a new one")
+        if method == "configure":
+            self.host.configure(*args)
+            with self._cond:
+                if owner != self._owner:  # taken over: the old owner's updates are not ours
+                    self._owner = owner
+                    self._items.clear()
+                self._last_active = time.monotonic()
+                self._cond.notify_all()  # the old owner's poll learns it at once
+            return None
+        if method == "frame":
+            if owner != self._owner:
+                self.foreign_frames += 1
+                return None
+            self._last_active = time.monotonic()
+            data, _received_at = args  # the front-end's clock: another machine's, maybe
+            return self.host.frame(data, self._last_active)
+        if method == "command":
+            if owner != self._owner:
+                raise SessionError(
+                    "session_taken_over", "another connection took this session over"
+                )
+            return self.host.command(*args)
+        if method == "stop":
+            meta = self.host.stop(*args)
+            with self._cond:
+                self._ended = "closed"
+                self._cond.notify_all()
+            return meta
+        raise ValueError(f"not an ordered method: {method}")
+
+    def query(self, method: str, args: tuple):
+        """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
+        from server.sessions.remote import as_remote
+
+        try:
+            value = getattr(self.host, method)(*args)
+        except Exception as exc:
+            return False, as_remote(exc)
+        if method == "status":
+            value = value | {
+                "out_of_order_calls": self.out_of_order,
+                "foreign_frames": self.foreign_frames,
+                "skipped_updates": self.skipped_updates,
+            }
+        return True, value
+
+    def updates(self, owner: str, timeout_s: float) -> dict:
+        """Long-poll: the updates waiting for ``owner`` (none unless it is the owner), once there
+        are any or after ``timeout_s``; with who owns the session and how long it has been idle."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._ended is None and not (owner == self._owner and self._items):
+                wait = deadline - time.monotonic()
+                if wait <= 0:
+                    break
+                self._cond.wait(wait)
+            items = []
+            if owner == self._owner:
+                items = list(self._items)
+                self._items.clear()
+            return {
+                "items": items,
+                "owner": owner == self._owner,
+                "idle_s": time.monotonic() - self._last_active,
+                "ended": self._ended,
+            }

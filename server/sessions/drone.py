@@ -1,0 +1,71 @@
+"""The drone's side of a session's set-up: its flight (server/sessions/flight.py) and flight
+log, made with the first hello, and the course's best list, carried over from a room."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from server.atomic import atomic_write_bytes
+from server.geometry import Intrinsics
+from server.sessions.config import SessionConfig
+from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
+from server.sessions.failures import SessionLog
+from server.sessions.flight import Flight
+from server.sessions.flight_log import FlightLog
+from server.sessions.store import SessionStore, StoreError
+from server.sessions.updates import Update
+
+
+def course_best_path(store: SessionStore, session_id: str) -> Path | None:
+    """Where the drone's course results are kept (None: an id the store cannot hold)."""
+    try:
+        return store.file(session_id, COURSE_BEST_FILE)
+    except StoreError:
+        return None
+
+
+def inherit_course_best(room_dir: Path, target: Path | None, log: logging.LoggerAdapter) -> bool:
+    """The best course runs flown in the room so far become the session's best list to beat
+    (``target``: pilots compete per room, not per visit); a room without any starts empty.
+    False when the disk refused (logged)."""
+    source = room_dir / COURSE_BEST_FILE
+    if target is None or not source.is_file() or target.exists():
+        return True
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(target, source.read_bytes())
+    except OSError:
+        log.exception("the room's course best list could not be carried over")
+        return False
+    return True
+
+
+def make_flight(
+    config: SessionConfig,
+    store: SessionStore,
+    session_id: str,
+    intrinsics: Intrinsics,
+    gravity: np.ndarray | None,
+    publish: Callable[[Update], None],
+) -> tuple[Flight, FlightLog]:
+    """The drone of a session (``config.simulation`` set), and the log its flights are
+    recorded into and saved from."""
+    assert config.simulation is not None
+    flight = Flight(
+        config.simulation,
+        intrinsics,
+        gravity,
+        publish,
+        config.drone_state_hz,
+        log=SessionLog(logging.getLogger("server.sessions.flight"), session_id),
+    )
+    flight_log = FlightLog(
+        store, session_id, config.drone_state_hz, config.flight_max_s, config.flights_kept
+    )
+    flight.recorder = flight_log.recorder
+    flight.course.best_path = course_best_path(store, session_id)
+    return flight, flight_log

@@ -1,0 +1,133 @@
+"""A live session's room (server/rooms/): its keyframes written into the session's ``room/``
+folder as the mapping thread fuses them, and, when the session ends, the room itself (its
+keyframes, those of the room it continued in, and its final map) for a later session."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from server.geometry import Intrinsics
+from server.registration.config import RegistrationConfig
+from server.rooms.room import (
+    MAP_FILE,
+    Room,
+    RoomKeyframe,
+    link_keyframes,
+    room_keyframe,
+    write_keyframe,
+    write_room_meta,
+)
+from server.sessions.counts import SessionCounts
+from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
+from server.sessions.loop_closing import Worlds
+
+ROOM_FOLDER = "room"  # in a session's folder: the room it leaves (server/rooms/room.py)
+
+
+class RoomWriter:
+    """The keyframes of one session's room, written into ``session_folder/room/``.
+
+    base: the saved room (in ``base_dir``) the session continues in; its keyframes come first.
+    Thread-safe: the mapping thread writes keyframes, the loop thread's corrections move their
+    poses (``carry_into``), ``save`` runs when the session stops."""
+
+    def __init__(
+        self,
+        session_folder: Path,
+        cfg: RegistrationConfig,
+        counts: SessionCounts,
+        log: logging.LoggerAdapter,
+        base: Room | None = None,
+        base_dir: Path | None = None,
+    ) -> None:
+        self.session_folder = session_folder
+        self.folder = session_folder / ROOM_FOLDER
+        self.cfg = cfg
+        self.counts = counts
+        self.log = log
+        self.base_dir = base_dir
+        keyframes = [] if base is None else base.keyframes
+        self._base_ids = [k.id for k in keyframes]
+        self._base_sessions = [] if base is None else list(base.sessions)
+        self._lock = threading.Lock()
+        # (id, frame seq, T_world_keyframe) of every keyframe so far, and the corrected world
+        # (loop closure) each pose is in (none: 0).
+        self._keyframes: list[tuple[int, int, np.ndarray]] = [
+            (k.id, k.frame_index, k.T_world_keyframe) for k in keyframes
+        ]
+        self._worlds: dict[int, int] = {}
+
+    def keep(
+        self,
+        kf_id: int,
+        seq: int,
+        T_world_keyframe: np.ndarray,
+        colour: np.ndarray,
+        depth: np.ndarray,
+        K: Intrinsics,
+        world: int,
+    ) -> RoomKeyframe | None:
+        """Write a keyframe into the room folder (its features and images cost 20-40 ms, which
+        the poses do not wait for); None when that failed (counted, logged: the session goes on
+        without that keyframe in its room)."""
+        try:
+            kf = room_keyframe(kf_id, seq, T_world_keyframe, colour, depth, K, self.cfg)
+            write_keyframe(self.folder, kf)
+        except Exception:
+            self.log.exception("keeping keyframe %d for the room failed", kf_id)
+            self.counts.failed("room_keyframes_failed")
+            return None
+        with self._lock:
+            self._keyframes.append((kf.id, kf.frame_index, kf.T_world_keyframe))
+            self._worlds[kf.id] = world
+        return kf
+
+    def carry_into(self, worlds: Worlds, world: int) -> list[tuple[int, np.ndarray]]:
+        """Move every keyframe's pose into the corrected world ``world``; returns (id,
+        T_world_keyframe) of each, in the order written."""
+        with self._lock:
+            self._keyframes = [
+                (i, seq, worlds.carry(i, T, self._worlds.get(i, 0), world))
+                for i, seq, T in self._keyframes
+            ]
+            self._worlds = {i: world for i, _, _ in self._keyframes}
+            return [(i, T) for i, _, T in self._keyframes]
+
+    def save(
+        self,
+        session_id: str,
+        K: Intrinsics,
+        worlds: Worlds | None,
+        course_best: Path | None,
+    ) -> bool:
+        """Make the session's folder a room (``room/``: the keyframes, each at its pose in the
+        latest corrected world when ``worlds``, and the session's final map); False when there
+        is no keyframe or no map. The course's best list (``course_best``) goes with it."""
+        with self._lock:
+            keyframes = list(self._keyframes)
+            kf_worlds = dict(self._worlds)
+        if worlds is not None:
+            keyframes = [(i, f, worlds.carry(i, T, kf_worlds.get(i, 0))) for i, f, T in keyframes]
+        session_map = self.session_folder / MAP_FILE
+        if not keyframes or not session_map.is_file():
+            return False
+        room = self.folder
+        room.mkdir(parents=True, exist_ok=True)
+        if self.base_dir is not None:
+            link_keyframes(self.base_dir, room, self._base_ids)
+        (room / MAP_FILE).unlink(missing_ok=True)
+        os.link(session_map, room / MAP_FILE)
+        (room / COURSE_BEST_FILE).unlink(missing_ok=True)
+        if course_best is not None and course_best.is_file():
+            os.link(course_best, room / COURSE_BEST_FILE)
+        sessions = [
+            *self._base_sessions,
+            {"session": session_id, "keyframes_after": len(keyframes)},
+        ]
+        write_room_meta(room, K, keyframes, sessions)
+        return True

@@ -1,0 +1,256 @@
+"""A live session's tracking thread: takes the newest frame from a one-frame inbox, runs the
+frame step (server/frame_step.py), publishes the pose at once, then hands the frame's fusion
+to the mapping thread (server/sessions/fusion.py). Between two frames it moves the tracker into
+each corrected world a loop closure made.
+
+Frames arrive faster than they can be processed on a busy server; the inbox holds one frame and
+the newest wins, so latency stays bounded and stale frames are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from server.evaluation.trajectory import Trajectory
+from server.frame_step import FrameStep
+from server.registration import Tracker, TrackingState, TrackResult
+from server.sessions.counts import SessionCounts
+from server.sessions.errors import SessionError
+from server.sessions.flight import Flight
+from server.sessions.fusion import FuseJob, SessionFusion
+from server.sessions.loop_closing import Correction
+from server.sessions.updates import FrameData, MapCorrected, PoseUpdate, Update
+
+
+class SessionTracking:
+    """The tracking thread (``start``) of one session: ``submit`` hands in frames, ``correct``
+    a loop closure's correction. frame_failed: answers a frame the step failed on (logged,
+    counted); failure_counts: the session's failures, for every pose."""
+
+    def __init__(
+        self,
+        step: FrameStep,
+        fusion: SessionFusion,
+        counts: SessionCounts,
+        publish: Callable[[Update], None],
+        log: logging.LoggerAdapter,
+        name: str,
+        flight: Flight | None,
+        frame_failed: Callable[[int, Exception], None],
+        failure_counts: Callable[[], dict[str, int]],
+    ) -> None:
+        self.step = step
+        self.fusion = fusion
+        self.counts = counts
+        self.publish = publish
+        self.log = log
+        self.flight = flight
+        self.frame_failed = frame_failed
+        self.failure_counts = failure_counts
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        # Under counts.lock: the poses so far (timestamp, T_world_camera), the last seq taken.
+        self._trajectory: list[tuple[float, np.ndarray]] = []
+        self._last_seq = -1
+        self._wake = threading.Condition()  # guards the inbox, _busy, _stopping, _corrections
+        self._inbox: FrameData | None = None
+        self._busy = False  # the thread holds a frame
+        self._stopping = False
+        self._corrections: list[Correction] = []
+        self._world = 0  # the corrected world the tracker is in (tracking thread)
+        self._device_world = 0  # the last frame's device_world (tracking thread)
+
+    # ------------------------------------------------------------------ other threads'
+    def start(self) -> None:
+        self._thread.start()
+
+    @property
+    def started(self) -> bool:
+        return self._thread.ident is not None
+
+    def renumber(self) -> None:
+        """A new connection numbers its frames afresh (a reloaded page)."""
+        with self.counts.lock:
+            self._last_seq = -1
+
+    def submit(self, frame: FrameData) -> None:
+        """Queue a frame; a frame still waiting is dropped in its favour."""
+        with self.counts.lock:
+            if frame.seq <= self._last_seq:
+                raise SessionError(
+                    "bad_sequence",
+                    f"sequence number {frame.seq} is not above the last one ({self._last_seq})",
+                )
+            self._last_seq = frame.seq
+            self.counts.received += 1
+        with self._wake:
+            if self._inbox is not None:
+                with self.counts.lock:
+                    self.counts.dropped += 1
+            self._inbox = frame
+            self._wake.notify()
+
+    def correct(self, correction: Correction) -> None:
+        """A verified loop corrected the world (loop thread): taken between two frames."""
+        with self._wake:
+            self._corrections.append(correction)
+            self._wake.notify()
+
+    def drain(self, timeout_s: float) -> bool:
+        """Wait until every submitted frame has been processed (or dropped); False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._wake:
+            while self._inbox is not None or self._busy:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._wake.wait(remaining)
+        return True
+
+    def stop(self) -> None:
+        """End the thread after the frame in hand (``join`` waits for it)."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+
+    def join(self, timeout_s: float) -> None:
+        if self.started:
+            self._thread.join(timeout=timeout_s)
+
+    def trajectory(self) -> Trajectory:
+        with self.counts.lock:
+            stamps = np.array([t for t, _ in self._trajectory], dtype=np.float64)
+            poses = np.array([T for _, T in self._trajectory]).reshape(-1, 4, 4)
+        return Trajectory(stamps, poses)
+
+    def pose_count(self) -> int:
+        with self.counts.lock:
+            return len(self._trajectory)
+
+    # ------------------------------------------------------------------ the tracking thread
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while self._inbox is None and not self._stopping and not self._corrections:
+                    self._wake.wait()
+                frame, self._inbox = self._inbox, None
+                corrections, self._corrections = self._corrections, []
+                self._busy = frame is not None
+                stopping = self._stopping
+            if corrections:  # between two frames: track never sees a half-corrected world
+                self._apply_corrections(corrections)
+            if frame is not None:
+                try:
+                    self._process(frame)
+                except Exception as exc:  # one bad frame must not end the session's worker
+                    self.frame_failed(frame.seq, exc)
+                with self._wake:
+                    self._busy = False
+                    self._wake.notify_all()  # for drain()
+            if stopping and frame is None:
+                return
+
+    def _apply_corrections(self, corrections: list[Correction]) -> None:
+        """Move the tracker into each corrected world in turn and tell the client
+        (map_corrected): poses already sent stay as they were; those of frames from
+        ``from_seq`` on are in the corrected world."""
+        tracker = self.step.tracker
+        for c in corrections:
+            if isinstance(tracker, Tracker):  # loops never run in a room (RoomTracker)
+                try:
+                    tracker.apply_correction(c.keyframes, c.T_correction)
+                except Exception:
+                    self.log.exception("correcting the tracker failed")
+                    self.counts.failed("loops_failed")
+                    continue
+            self._world = c.world
+            if self.flight is not None:  # the drone is shown in the corrected world at once
+                self.flight.world_corrected(c.T_correction)
+            with self.counts.lock:
+                from_seq = self.counts.last_seq_processed + 1
+            keyframes = [(i, c.seqs[i], T) for i, T in sorted(c.keyframes.items())]
+            self.publish(MapCorrected(c.loops, from_seq, c.T_correction, keyframes, c.refused))
+
+    def _process(self, frame: FrameData) -> None:
+        """Track the frame and publish its pose at once; then the keyframe work the tracker
+        deferred (a new keyframe, or a switch to an earlier one), and the frame's fusion job:
+        the client never waits for either."""
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        colour, depth = self.step.prepare(frame.colour, frame.depth)
+        result = self.step.track(
+            colour, depth, T_device_camera=frame.T_device_camera, device_world=frame.device_world
+        )
+        if result is None:  # in a room, before a frame is recognised in it: no pose yet
+            result = _not_placed(frame.seq)
+        timings = {
+            "decode": frame.decode_ms,
+            **{f"track_{k}": v for k, v in result.timings_ms.items()},
+        }
+        # This thread's own CPU time: track minus track_cpu is time spent waiting for a core
+        # (or the GIL), which tells a busy machine from slow registration. Read inside the wall
+        # interval, so that it never exceeds it.
+        timings["track_cpu"] = (time.thread_time() - cpu0) * 1e3
+        timings["track"] = (time.perf_counter() - t0) * 1e3
+        tracked = result.state is not TrackingState.LOST
+        if self.flight is not None and tracked:  # before the pose: a tap may name this frame
+            self.flight.camera_moved(frame.seq, result.T_world_camera, depth)
+        counts = self.counts
+        with counts.lock:
+            self._trajectory.append((frame.timestamp, result.T_world_camera))
+            counts.last_seq_processed = frame.seq
+            counts.processed += 1
+            counts.states[result.state.value] += 1
+            counts.repeated += result.repeated is not None
+            counts.device_pose["frames"] += frame.T_device_camera is not None
+            counts.device_pose["guesses"] += result.prior_used
+            counts.device_pose["world_changes"] += frame.device_world != self._device_world
+            self._device_world = frame.device_world
+            counts.count_recovery(result)
+            dropped, processed = counts.dropped, counts.processed
+            counts.dirty = True
+        timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
+        self.publish(
+            PoseUpdate(
+                frame.seq,
+                frame.timestamp,
+                result.T_world_camera,
+                result.state.value,
+                result.inliers,
+                result.new_keyframe or result.keyframe_due,
+                timings,
+                dropped,
+                processed,
+                self.failure_counts(),
+                result.recovery,
+            )
+        )
+        settled = self.step.settle(result, frame.seq, processed - 1, colour, depth)
+        if settled.merged:  # a merged segment's keyframes, fused between the live frames
+            self.fusion.add_merged(
+                [
+                    FuseJob(k.seq, k.colour, k.depth, T, False, world=self._world)
+                    for k, T in settled.merged
+                ]
+            )
+        if settled.fuse:
+            self.fusion.queue(
+                FuseJob(
+                    frame.seq,
+                    colour,
+                    depth,
+                    result.T_world_camera,
+                    settled.new_keyframe,
+                    result.keyframe_id,
+                    self._world,
+                )
+            )
+
+
+def _not_placed(seq: int) -> TrackResult:
+    """The answer for a frame of a session in a room before any frame was recognised in it:
+    lost, at the identity (no pose is known yet)."""
+    return TrackResult(seq, np.eye(4), TrackingState.LOST, 0, np.inf, 0.0, -1, False)

@@ -22,7 +22,8 @@ from server.sessions import DroneNotice, DroneUpdate, SessionError, SessionFaile
 from server.sessions.errors import CommandRefused
 from server.sessions.faults import inject
 from server.sessions.flight import Flight
-from server.sessions.session import Session, _FuseJob
+from server.sessions.fusion import FuseJob
+from server.sessions.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, PoseUpdate
 from server.simulation import scenes
@@ -116,10 +117,10 @@ def test_a_dead_mapping_thread_never_blocks_tracking_or_stop_and_fails_the_sessi
     assert "InjectedThreadDeath" in failed.message
 
     f = room[0]
-    keyframe = _FuseJob(99, f.colour, f.depth.astype(np.float32), np.eye(4), keyframe=True)
+    keyframe = FuseJob(99, f.colour, f.depth.astype(np.float32), np.eye(4), keyframe=True)
     t0 = time.monotonic()
     for _ in range(6):  # more than the queue holds: each would wait 10 s for a live thread
-        session._queue_fusion(keyframe)
+        session.fusion.queue(keyframe)
     assert time.monotonic() - t0 < 1.0
 
     t0 = time.monotonic()

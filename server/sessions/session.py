@@ -34,7 +34,7 @@ from server.sessions.errors import CommandRefused, SessionError
 from server.sessions.failures import SessionLog
 from server.sessions.flight import Flight
 from server.sessions.flight_log import FlightLog
-from server.sessions.fusion import FuseJob, SessionFusion
+from server.sessions.fusion import SessionFusion
 from server.sessions.loop_closing import Correction, LoopClosing
 from server.sessions.mapping import Mapper, MapperClient, MapperLost
 from server.sessions.rebuilds import MapRebuilds, RebuildFigures
@@ -46,8 +46,6 @@ from server.sessions.tracking import SessionTracking
 from server.sessions.updates import FrameData, FrameRefused, SessionFailed, Update
 
 log = logging.getLogger(__name__)
-
-_FuseJob = FuseJob  # the name tests/test_failures.py knows it by
 
 
 class Session:
@@ -284,11 +282,6 @@ class Session:
         """Wait until every submitted frame has been processed (or dropped); False on timeout.
         A client saying bye still gets the answers to the frames it sent."""
         return self.tracking is None or self.tracking.drain(timeout_s)
-
-    def _queue_fusion(self, job: FuseJob) -> None:
-        """A fusion job for the mapping thread (tests/test_failures.py's way in)."""
-        assert self.fusion is not None
-        self.fusion.queue(job)
 
     def frame_failed(self, seq: int | None, exc: Exception, stage: str = "") -> None:
         """The server failed on frame ``seq`` (a bug, raised as ``exc``): logged with its

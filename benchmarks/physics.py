@@ -56,8 +56,11 @@ from server.simulation.control import (  # noqa: E402
     ControlLimits,
     Setpoint,
 )
-from server.simulation.course import PRESETS, CourseRun, generate_course  # noqa: E402
-from server.simulation.drone import DroneEventKind, DroneSimulator  # noqa: E402
+from server.simulation.course import PRESETS  # noqa: E402
+from server.simulation.course_generation import generate_course  # noqa: E402
+from server.simulation.course_judge import CourseRun  # noqa: E402
+from server.simulation.drone import DroneSimulator  # noqa: E402
+from server.simulation.drone_types import DroneEventKind  # noqa: E402
 from server.simulation.flight_map import FlightMap  # noqa: E402
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams  # noqa: E402
 from server.simulation.scenes import room_with_door  # noqa: E402

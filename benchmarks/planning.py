@@ -60,9 +60,11 @@ from server.evaluation.plots import top_view_basis, up_direction  # noqa: E402
 from server.mapping.tsdf import TSDFMap  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.simulation.config import SimulationConfig  # noqa: E402
-from server.simulation.drone import DroneEventKind, DroneSimulator, plan_route  # noqa: E402
+from server.simulation.drone import DroneSimulator  # noqa: E402
+from server.simulation.drone_types import DroneEventKind  # noqa: E402
 from server.simulation.flight_map import FlightMap  # noqa: E402
-from server.simulation.planner import PlanningError  # noqa: E402
+from server.simulation.route import PlanningError  # noqa: E402
+from server.simulation.route_following import plan_route  # noqa: E402
 
 DATA = REPO_ROOT.parent / "shared" / "data"
 SEQUENCES = ("synthetic_room0", "7scenes_a")

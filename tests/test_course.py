@@ -21,24 +21,26 @@ from server.sessions.flight import Flight
 from server.sessions.updates import DroneNotice
 from server.simulation.config import SimulationConfig
 from server.simulation.course import (
-    FIRST_GATE_REACH_M,
     LEAD_M,
-    MAX_PITCH_DEG,
     NO_ROUTE,
     PRESETS,
-    RING_MARGIN_M,
-    SPACING_SPREAD,
     Course,
     CourseError,
-    CourseRun,
     CourseSpec,
     Gate,
     course_spec,
-    crossing,
-    generate_course,
     plan_course_route,
 )
-from server.simulation.drone import DroneEventKind, DroneSimulator
+from server.simulation.course_generation import (
+    FIRST_GATE_REACH_M,
+    MAX_PITCH_DEG,
+    RING_MARGIN_M,
+    SPACING_SPREAD,
+    generate_course,
+)
+from server.simulation.course_judge import CourseRun, crossing
+from server.simulation.drone import DroneSimulator
+from server.simulation.drone_types import DroneEventKind
 from server.simulation.flight_map import FlightMap
 from server.simulation.planner import plan_path
 

@@ -13,7 +13,8 @@ import pytest
 
 from server.errors import ConfigError
 from server.simulation.config import SimulationConfig
-from server.simulation.drone import DroneCommandError, DroneEventKind, DroneMode, DroneSimulator
+from server.simulation.drone import DroneSimulator
+from server.simulation.drone_types import DroneCommandError, DroneEventKind, DroneMode
 from server.simulation.scenes import room_with_door
 
 CONFIG = SimulationConfig()
@@ -32,7 +33,7 @@ def at_the_wall(velocity, config: SimulationConfig = CONFIG, gap_m: float = 0.00
     drone.spawn([1.5, 0.6, 1.2])
     v = np.asarray(velocity, float)
     drone.command_sticks((0.0, 0.0, v[0] / config.max_speed_m_s, -v[1] / config.max_speed_m_s))
-    q = drone._quad  # as if it had flown in at this speed, to there
+    q = drone._modes.quad  # as if it had flown in at this speed, to there
     q.px, q.py, q.pz = WALL_X - R - gap_m, 0.6, 1.2
     q.vx, q.vy, q.vz = v
     return drone

@@ -11,16 +11,12 @@ import numpy as np
 import pytest
 
 from server.simulation.config import SimulationConfig
-from server.simulation.drone import (
-    ROUTE_TOLERANCE_M,
-    DroneCommandError,
-    DroneEventKind,
-    DroneMode,
-    DroneSimulator,
-)
+from server.simulation.drone import DroneSimulator
+from server.simulation.drone_types import DroneCommandError, DroneEventKind, DroneMode
 from server.simulation.flight_map import FlightMap
-from server.simulation.planner import PlanningError
 from server.simulation.polyline import distances_to_segment, simplify
+from server.simulation.route import PlanningError
+from server.simulation.route_following import ROUTE_TOLERANCE_M
 from server.simulation.scenes import Scene, box_in_the_way, corridor, room_with_door, sealed_room
 
 CONFIG = SimulationConfig()
@@ -435,8 +431,8 @@ def test_status_route_is_the_corners_of_the_path_ahead():
     drone.command_goto(scene.goal)
     for _ in range(6):
         route = drone.status().route
-        tracker = drone._tracker
-        dense = tracker.remaining(drone._setpoint())
+        tracker = drone._modes.follower.tracker
+        dense = tracker.remaining(drone._modes.setpoint())
         assert len(route) < len(dense) / 5  # corners, not samples
         np.testing.assert_allclose(route[0], dense[0])  # where the drone is headed now
         np.testing.assert_allclose(route[-1], scene.goal, atol=1e-9)

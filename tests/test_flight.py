@@ -7,7 +7,8 @@ import pytest
 
 from server.geometry import Intrinsics, exp_se3
 from server.sessions.errors import CommandRefused
-from server.sessions.flight import Flight, flight_frame
+from server.sessions.flight import Flight
+from server.sessions.flight_view import flight_frame
 from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation import scenes
 from server.simulation.config import SimulationConfig
@@ -59,18 +60,18 @@ def test_a_tapped_pixel_is_the_surface_point_it_shows_standoff_back():
     u, v = 100.0, 400.0
     ray = np.array([(u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0])
     expected_camera = ray * 2.0 - 0.4 * ray / np.linalg.norm(ray)
-    got = flight._pixel_target((u, v), 7)
+    got = flight.frames.pixel_target((u, v), 7)
     np.testing.assert_allclose(got, T[:3, :3] @ expected_camera + T[:3, 3], atol=1e-9)
-    np.testing.assert_allclose(flight._pixel_target((u, v), None), got)  # latest frame
+    np.testing.assert_allclose(flight.frames.pixel_target((u, v), None), got)  # latest frame
 
     with pytest.raises(CommandRefused, match="not among the last"):
-        flight._pixel_target((u, v), 3)
+        flight.frames.pixel_target((u, v), 3)
     depth[380:420, 80:120] = 0.0
     flight.camera_moved(8, T, depth)
     with pytest.raises(CommandRefused, match="no depth"):
-        flight._pixel_target((u, v), 8)
+        flight.frames.pixel_target((u, v), 8)
     with pytest.raises(CommandRefused, match="outside"):
-        flight._pixel_target((700.0, 10.0), 8)
+        flight.frames.pixel_target((700.0, 10.0), 8)
 
 
 def test_commands_before_the_drone_spawns_are_refused_clearly():
@@ -219,7 +220,7 @@ def test_a_loop_correction_shows_the_drone_in_the_corrected_world_before_its_map
     np.testing.assert_allclose(flight.state().target, C[:3, :3] @ goal_world + C[:3, 3], atol=1e-9)
     # A tap on the frame from before the correction is read in its corrected pose.
     np.testing.assert_allclose(
-        flight._pixel_target((320.0, 240.0), 0), flight._pixel_target((320.0, 240.0), 1)
+        flight.frames.pixel_target((320.0, 240.0), 0), flight.frames.pixel_target((320.0, 240.0), 1)
     )
     flight.command("hold", 6)
     flight._tick(0.02)
@@ -230,7 +231,7 @@ def test_a_loop_correction_shows_the_drone_in_the_corrected_world_before_its_map
     flight._tick(0.0)
     after = flight.state()
     assert flight.corrections == 1
-    np.testing.assert_allclose(flight._T_view_sim, np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(flight.view.T_view_sim, np.eye(4), atol=1e-9)
     np.testing.assert_allclose(after.T_world_drone[:3, 3], held.T_world_drone[:3, 3], atol=1e-6)
     np.testing.assert_allclose(after.T_world_drone[:3, :3], held.T_world_drone[:3, :3], atol=1e-3)
     np.testing.assert_allclose(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.simulation import scenes
+from server.simulation import esdf, scenes
 from server.simulation.flight_map import FlightMap, FlightMapError, Region
 
 
@@ -216,13 +216,13 @@ def test_sub_box_updates_equal_a_full_rebuild_and_stay_local(unknown_is_free, mo
     incremental = FlightMap(v, unknown_is_free, max_distance_m=max_m)
     incremental.update(origin, *grid)
     windows = []  # the blocks whose field is computed from scratch
-    compute = FlightMap._signed_distance
+    compute = esdf.signed_distance
 
-    def recording(self, blocked):
+    def recording(blocked, voxel_m, max_distance_m):
         windows.append(blocked.size)
-        return compute(self, blocked)
+        return compute(blocked, voxel_m, max_distance_m)
 
-    monkeypatch.setattr(FlightMap, "_signed_distance", recording)
+    monkeypatch.setattr(esdf, "signed_distance", recording)
     reach = incremental._reach
     for step in range(10):
         # A small box somewhere in or around the grid (sometimes sticking out, growing it),

@@ -350,7 +350,7 @@ def _room_drone():
 
 
 def test_the_drone_moves_with_a_corrected_world_and_replans_its_goto():
-    from server.simulation.drone import DroneEventKind, DroneMode
+    from server.simulation.drone_types import DroneEventKind, DroneMode
 
     drone, grid = _room_drone()
     drone.advance(0.5)
@@ -388,7 +388,8 @@ def test_the_drone_moves_with_a_corrected_world_and_replans_its_goto():
 def test_a_course_route_in_flight_is_not_followed_into_a_corrected_world():
     """A route planned elsewhere (a course's autopilot, through gates laid in the old world):
     the drone holds where the correction put it, and says so (blocked)."""
-    from server.simulation.drone import DroneEventKind, DroneMode, plan_route
+    from server.simulation.drone_types import DroneEventKind, DroneMode
+    from server.simulation.route_following import plan_route
 
     drone, grid = _room_drone()
     start = drone.status().T_flight_drone[:3, 3]

@@ -12,7 +12,8 @@ import pytest
 
 from server.errors import ConfigError
 from server.simulation.config import SimulationConfig
-from server.simulation.drone import DroneCommandError, DroneEventKind, DroneMode, DroneSimulator
+from server.simulation.drone import DroneSimulator
+from server.simulation.drone_types import DroneCommandError, DroneEventKind, DroneMode
 from server.simulation.flight_map import FlightMap
 from server.simulation.pilot_modes import FlightMode, euler_from_rotation, expo
 from server.simulation.scenes import room_with_door
@@ -53,7 +54,7 @@ class Flight:
 
     @property
     def quad(self):
-        return self.drone._quad
+        return self.drone._modes.quad
 
     def fly(self, sticks, seconds: float, send: bool = True) -> np.ndarray:
         """This stretch's rows: t, roll, pitch, yaw, wx, wy, wz, x, y, z, vx, vy, vz."""
@@ -244,7 +245,7 @@ def test_switching_modes_mid_flight_never_jumps():
 def _setpoint_rotation(f: Flight):
     from server.simulation.pilot_modes import _rotation
 
-    return _rotation(f.drone._pilot.q_sp)
+    return _rotation(f.drone._modes.manual.pilot.q_sp)
 
 
 def test_taking_over_starts_from_the_attitude_flown():

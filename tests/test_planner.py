@@ -8,7 +8,8 @@ import pytest
 
 from server.simulation import scenes
 from server.simulation.flight_map import FlightMap
-from server.simulation.planner import PlanningError, Reason, plan_path, route_is_clear
+from server.simulation.planner import plan_path, route_is_clear
+from server.simulation.route import PlanningError, Reason
 
 RADIUS = 0.15
 

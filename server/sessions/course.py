@@ -4,8 +4,8 @@ go into the session's best list (``course_best.json`` beside its other files).
 
 ``Flight`` owns one ``CourseControl`` and is its ``CourseFlight``, the little a course needs of a
 flight: ``command`` comes from the worker's main thread (like a goto), ``tick`` from the flight
-thread after each physics advance, both around ``CourseFlight.lock`` as the simulator needs. What
-it hands out goes through ``CourseFlight.publish``: ``DroneNotice`` for
+thread after each physics advance, both around ``CourseFlight.lock``, the one lock over the
+simulator. What it hands out goes through ``CourseFlight.publish``: ``DroneNotice`` for
 gate_passed, gate_missed and course_finished, and ready ``course`` protocol messages (dicts,
 sent as they are).
 
@@ -33,24 +33,13 @@ from server.atomic import atomic_write_bytes
 from server.sessions.errors import CommandRefused
 from server.sessions.updates import DroneNotice
 from server.simulation.config import SimulationConfig
-from server.simulation.course import (
-    Course,
-    CourseError,
-    CourseRun,
-    GateEvent,
-    course_spec,
-    generate_course,
-    plan_course_route,
-)
-from server.simulation.drone import (
-    DroneCommandError,
-    DroneEvent,
-    DroneEventKind,
-    DroneMode,
-    DroneSimulator,
-)
+from server.simulation.course import Course, CourseError, course_spec, plan_course_route
+from server.simulation.course_generation import generate_course
+from server.simulation.course_judge import CourseRun, GateEvent
+from server.simulation.drone import DroneSimulator
+from server.simulation.drone_types import DroneCommandError, DroneEvent, DroneEventKind, DroneMode
 from server.simulation.flight_map import FlightMap
-from server.simulation.planner import PlanningError, Reason
+from server.simulation.route import PlanningError, Reason
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +58,7 @@ class CourseFlight(Protocol):
     log: logging.Logger | logging.LoggerAdapter
 
     @property
-    def lock(self) -> Any: ...  # a threading.Lock: what the simulator and its map are used under
+    def lock(self) -> Any: ...  # a threading.Lock: the one the simulator and its map are used under
 
     def to_world(self, p_flight: np.ndarray) -> np.ndarray: ...
 
@@ -214,7 +203,7 @@ class CourseControl:
 
     def _replanner(self):
         """The autopilot's replan(start): the course's route from ``start`` through the gates
-        left (called by the simulator, under its lock, when the map changes)."""
+        left (called by the simulator, under the flight's lock, when the map changes)."""
         flight = self.flight
 
         def replan(start: np.ndarray):

@@ -17,16 +17,13 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from server.geometry.arrays import FloatArray
 from server.simulation.config import SimulationConfig
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
-
-if TYPE_CHECKING:  # the planner is heavier and needs nothing from here
-    from server.simulation.planner import Route
+from server.simulation.route import Route
 
 MAX_TILT_RATE_RAD_S = 6.0  # body roll/pitch rate the attitude loop may ask for
 MIN_THRUST_G = 0.25  # never command less vertical thrust than this fraction of the weight
@@ -105,6 +102,22 @@ class Setpoint:
         self.ax = self.ay = self.az = 0.0
         self.yaw, self.yaw_rate = float(yaw), 0.0
         self.hold_xy = self.hold_z = True
+
+    def descend(self, x: float, y: float, speed_m_s: float) -> None:
+        """Sink straight down at ``speed_m_s`` over (x, y), heading kept (landing)."""
+        self.x, self.y = x, y
+        self.vx = self.vy = self.ax = self.ay = self.az = 0.0
+        self.hold_xy, self.hold_z, self.yaw_rate = True, False, 0.0
+        self.vz = -speed_m_s
+
+    def move_with_world(self, R: FloatArray, t: FloatArray, dyaw_rad: float) -> None:
+        """Carry the setpoint with a corrected world (loop closure), as
+        ``Quadrotor.move_with_world``: ``R`` (3, 3), ``t`` (3,) m, heading turned by
+        ``dyaw_rad``."""
+        self.x, self.y, self.z = (float(c) for c in R @ [self.x, self.y, self.z] + t)
+        self.vx, self.vy, self.vz = (float(c) for c in R @ [self.vx, self.vy, self.vz])
+        self.ax, self.ay, self.az = (float(c) for c in R @ [self.ax, self.ay, self.az])
+        self.yaw += dyaw_rad
 
 
 def _sqrt_controller(error: float, gain: float, accel: float) -> float:

@@ -15,28 +15,27 @@ planner keeps half a voxel beyond the radius it is given).
 
 The grid is stored with a one-cell ring around it holding the "outside" state, which makes the
 field exactly that of the infinite lattice (the ring shields the interior from everything beyond
-it), so incremental updates can be checked against a full rebuild exactly.
+it), so incremental updates can be checked against a full rebuild exactly. ``FlightMap`` keeps
+the grid and answers queries; esdf.py computes the field, whole or around what changed.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal, TypeAlias, overload
+from typing import Literal, overload
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
+from numpy.typing import ArrayLike
 
 from server.errors import ConfigError, DroneSimError
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, Int64Array
+from server.simulation.esdf import padded, reach_cells, signed_distance, slices, updated_field
 
 log = logging.getLogger(__name__)
 
 _LATTICE_TOL = 1e-3  # origins closer than this (in voxels) to the lattice count as on it
-_REBUILD_FRACTION = 0.5  # a changed region above this share of the grid triggers a full rebuild
 
 
 class FlightMapError(DroneSimError):
@@ -86,63 +85,11 @@ class Region:
         hi = np.maximum(self.occupied.shape, step + newer.occupied.shape)
         out = [np.zeros(hi - lo, dtype=bool) for _ in range(3)]
         for part, at in ((self, -lo), (newer, step - lo)):
-            box = _slices(at, at + part.occupied.shape)
+            box = slices(at, at + part.occupied.shape)
             w = part.written
             for dst, src in zip(out, (part.occupied, part.observed, part.written), strict=True):
                 dst[box][w] = src[w]
         return Region(self.origin + lo * voxel_m, *out)
-
-
-def _slices(lo: NDArray[np.integer], hi: NDArray[np.integer]) -> tuple[slice, slice, slice]:
-    """Index of the cells [lo, hi) ((3,) integer corners, hi exclusive) of a 3D array."""
-    return (
-        slice(int(lo[0]), int(hi[0])),
-        slice(int(lo[1]), int(hi[1])),
-        slice(int(lo[2]), int(hi[2])),
-    )
-
-
-CellBox: TypeAlias = tuple[Int64Array, Int64Array]
-"""An integer box of cells: (lo, hi), (3,) each, hi exclusive."""
-
-
-def _volume(box: CellBox) -> int:
-    return int(np.prod(np.maximum(box[1] - box[0], 0)))
-
-
-def _bbox(mask: BoolArray) -> CellBox | None:
-    """The integer box (lo, hi) of a mask's True cells, or None."""
-    spans = []
-    for axis in range(3):
-        hit = np.flatnonzero(np.any(mask, axis=tuple(a for a in range(3) if a != axis)))
-        if hit.size == 0:
-            return None
-        spans.append((hit[0], hit[-1] + 1))
-    lo = np.array([a for a, _ in spans], dtype=np.int64)
-    hi = np.array([b for _, b in spans], dtype=np.int64)
-    return lo, hi
-
-
-def _intersect(a: CellBox, b: CellBox) -> CellBox:
-    return np.maximum(a[0], b[0]), np.minimum(a[1], b[1])
-
-
-def _subtract(a: CellBox, b: CellBox) -> list[CellBox]:
-    """Disjoint boxes covering box a minus box b (at most six slabs)."""
-    lo, hi = np.array(a[0]), np.array(a[1])
-    pieces = []
-    for axis in range(3):
-        if lo[axis] < b[0][axis]:  # slab below b along this axis
-            top = hi.copy()
-            top[axis] = min(hi[axis], b[0][axis])
-            pieces.append((lo.copy(), top))
-            lo[axis] = min(hi[axis], b[0][axis])
-        if hi[axis] > b[1][axis]:  # slab above
-            bottom = lo.copy()
-            bottom[axis] = max(lo[axis], b[1][axis])
-            pieces.append((bottom, hi.copy()))
-            hi[axis] = max(lo[axis], b[1][axis])
-    return [p for p in pieces if _volume(p)]
 
 
 class FlightMap:
@@ -169,7 +116,7 @@ class FlightMap:
         self._field: Float32Array = np.full((2, 2, 2), self._far, dtype=np.float32)
         self._anchor: FloatArray | None = None  # first origin: the lattice every grid sits on
         self._lo: Int64Array = np.zeros(3, dtype=np.int64)  # lattice index of cell (0, 0, 0)
-        self._reach = math.ceil(self.max_distance_m / self.voxel_m) + 1  # cells a change reaches
+        self._reach = reach_cells(self.voxel_m, self.max_distance_m)
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
@@ -192,7 +139,7 @@ class FlightMap:
             # Cells whose open span overlaps the box's open interior.
             a = np.floor((np.asarray(box_lo) - lo) / voxel_m + 1e-9).astype(int)
             b = np.ceil((np.asarray(box_hi) - lo) / voxel_m - 1e-9).astype(int)
-            occupied[_slices(np.clip(a, 0, shape), np.clip(b, 0, shape))] = True
+            occupied[slices(np.clip(a, 0, shape), np.clip(b, 0, shape))] = True
         flight_map = cls(voxel_m, unknown_is_free, max_distance_m)
         flight_map.update(lo, occupied, np.ones(shape, dtype=bool))
         return flight_map
@@ -296,8 +243,8 @@ class FlightMap:
         # The merged grid: the present one grown to take the box in, then the box written.
         lo, hi = np.minimum(self._lo, box_lo), np.maximum(self._lo + self.shape, box_hi)
         merged = np.full(hi - lo, not self.unknown_is_free)
-        merged[_slices(self._lo - lo, self._lo + self.shape - lo)] = self._blocked
-        target = merged[_slices(box_lo - lo, box_hi - lo)]
+        merged[slices(self._lo - lo, self._lo + self.shape - lo)] = self._blocked
+        target = merged[slices(box_lo - lo, box_hi - lo)]
         blocked = occupied if self.unknown_is_free else occupied | ~observed
         target[written] = blocked[written]
         anchor = self._anchor
@@ -319,90 +266,39 @@ class FlightMap:
         """Replace the grid by ``blocked`` (cell (0, 0, 0) at ``origin``, metres, and at
         lattice index ``lo``) and compute its whole field."""
         self.origin, self._lo, self._blocked = origin.copy(), lo, blocked.copy()
-        self._field = self._signed_distance(self._padded(blocked))
+        ringed = padded(blocked, self.unknown_is_free)
+        self._field = signed_distance(ringed, self.voxel_m, self.max_distance_m)
         self.version += 1
         return self.bounds
-
-    def _padded(self, blocked: BoolArray) -> BoolArray:
-        outside = not self.unknown_is_free
-        return np.pad(blocked, 1, constant_values=outside)
-
-    def _signed_distance(self, blocked: BoolArray) -> Float32Array:
-        """Clipped signed distance at cell centres of a whole (padded) block, float32."""
-        v, d = self.voxel_m, self.max_distance_m
-        field = np.full(blocked.shape, d, dtype=np.float32)
-        if blocked.any() and not blocked.all():  # edt has no answer without a zero
-            outside = ndimage.distance_transform_edt(~blocked)  # free -> nearest blocked, cells
-            inside = ndimage.distance_transform_edt(blocked)  # blocked -> nearest free
-            field = np.where(blocked, -(inside - 0.5) * v, (outside - 0.5) * v)
-        elif blocked.all():
-            field[...] = -d
-        return np.clip(field, -d, d).astype(np.float32)
 
     def _update_incremental(
         self, anchor: FloatArray, origin: FloatArray, lo_new: Int64Array, blocked: BoolArray
     ) -> Box | None:
         """Replace the grid by ``blocked`` (cell (0, 0, 0) at ``origin``, metres, and at index
         ``lo_new`` of the lattice through ``anchor``), recomputing the field only near what
-        changed; returns the changed box as ``update`` does."""
-        k = self._reach
-        old_lo, new_lo = self._lo, lo_new
-        old_hi, new_hi = old_lo + self.shape, new_lo + blocked.shape
-        # A union frame holding both padded grids; everything else has outside state.
-        u_lo = np.minimum(old_lo, new_lo) - 1
-        u_hi = np.maximum(old_hi, new_hi) + 1
-        outside = not self.unknown_is_free
-        old_u = np.full(u_hi - u_lo, outside)
-        new_u = np.full(u_hi - u_lo, outside)
-        old_u[_slices(old_lo - u_lo, old_hi - u_lo)] = self._blocked
-        new_u[_slices(new_lo - u_lo, new_hi - u_lo)] = blocked
-        changed = _bbox(old_u != new_u)
-        same_frame = np.array_equal(old_lo, new_lo) and self.shape == blocked.shape
-        if changed is None and same_frame:
-            return None
-
-        # Regions to recompute (union coordinates, clipped to the new padded grid): around the
-        # changed cells, and the cells of the new padded grid the old one did not store but
-        # close enough to the old grid that their field is not simply the far value.
-        p_lo, p_hi = new_lo - 1 - u_lo, new_hi + 1 - u_lo
-        regions: list[CellBox] = []
-        changed_box = None
-        if changed is not None:
-            c_lo, c_hi = changed
-            regions.append((c_lo - k, c_hi + k))
-            changed_box = Box(
-                anchor + (c_lo + u_lo) * self.voxel_m - self.max_distance_m,
-                anchor + (c_hi + u_lo) * self.voxel_m + self.max_distance_m,
-            )
-        near_old = (old_lo - k - u_lo, old_hi + k - u_lo)
-        for box in _subtract((p_lo, p_hi), (old_lo - 1 - u_lo, old_hi + 1 - u_lo)):
-            regions.append(_intersect(box, near_old))
-        regions = [b for b in (_intersect(r, (p_lo, p_hi)) for r in regions) if _volume(b)]
-        if sum(_volume(b) for b in regions) > _REBUILD_FRACTION * _volume((p_lo, p_hi)):
-            self._rebuild(origin, new_lo, blocked)
-            return changed_box
-
-        # Old field carried into the new padded frame, far value where it was not stored.
-        field = np.full(p_hi - p_lo, self._far, dtype=np.float32)
-        ov_lo = np.maximum(old_lo - 1, new_lo - 1)
-        ov_hi = np.minimum(old_hi + 1, new_hi + 1)
-        if np.all(ov_hi > ov_lo):
-            field[_slices(ov_lo - new_lo + 1, ov_hi - new_lo + 1)] = self._field[
-                _slices(ov_lo - old_lo + 1, ov_hi - old_lo + 1)
-            ]
-        for r_lo, r_hi in regions:
-            # Recompute the region from a window grown by the reach (nothing farther matters).
-            w_lo, w_hi = np.maximum(r_lo - k, p_lo), np.minimum(r_hi + k, p_hi)
-            window = self._signed_distance(new_u[_slices(w_lo, w_hi)])
-            field[_slices(r_lo - p_lo, r_hi - p_lo)] = window[_slices(r_lo - w_lo, r_hi - w_lo)]
-        self.origin, self._lo, self._blocked, self._field = (
-            origin.copy(),
-            new_lo,
-            blocked.copy(),
-            field,
+        changed (esdf.py: updated_field); returns the changed box as ``update`` does."""
+        update = updated_field(
+            self._lo,
+            self._blocked,
+            self._field,
+            lo_new,
+            blocked,
+            self.voxel_m,
+            self.max_distance_m,
+            self.unknown_is_free,
         )
+        if update is None:
+            return None
+        self.origin, self._lo, self._blocked = origin.copy(), lo_new, blocked.copy()
+        self._field = update.field
         self.version += 1
-        return changed_box
+        if update.changed is None:
+            return None
+        c_lo, c_hi = update.changed
+        return Box(
+            anchor + c_lo * self.voxel_m - self.max_distance_m,
+            anchor + c_hi * self.voxel_m + self.max_distance_m,
+        )
 
     # --- queries -----------------------------------------------------------------------------
     @overload
@@ -500,7 +396,7 @@ class FlightMap:
         half = 4
         while True:  # grow a window around the point until the best find is provably nearest
             lo, hi = np.maximum(centre - half, 0), np.minimum(centre + half + 1, shape)
-            cells = np.argwhere(esdf[_slices(lo, hi)] >= radius_m) + lo
+            cells = np.argwhere(esdf[slices(lo, hi)] >= radius_m) + lo
             whole = np.all(lo == 0) and np.all(hi == shape)
             if len(cells):
                 centres = self.cell_centres(cells)

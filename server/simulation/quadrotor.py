@@ -270,6 +270,25 @@ class Quadrotor:
             self.f3,
         ) = state
 
+    def move_with_world(self, R: FloatArray, t: FloatArray, dyaw_rad: float) -> None:
+        """Carry the drone with a corrected world (loop closure): ``R`` (3, 3), ``t`` (3,) m map
+        old flight-frame points to new ones, and turn heading by ``dyaw_rad`` (R's yaw; the
+        drone stays as level as it was). Position, velocity and attitude move; body rates and
+        motors stay."""
+        px, py, pz = R @ self.position + t
+        vx, vy, vz = R @ self.velocity
+        # Heading turns by dyaw about flight z: the yaw quaternion times the attitude.
+        cw, sz = math.cos(0.5 * dyaw_rad), math.sin(0.5 * dyaw_rad)
+        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
+        self.px, self.py, self.pz = float(px), float(py), float(pz)
+        self.vx, self.vy, self.vz = float(vx), float(vy), float(vz)
+        self.qw, self.qx, self.qy, self.qz = (
+            cw * qw - sz * qz,
+            cw * qx - sz * qy,
+            cw * qy + sz * qx,
+            cw * qz + sz * qw,
+        )
+
     # Read-outs (numpy, for callers outside the hot loop)
 
     def rotation(self) -> tuple[float, ...]:

@@ -130,9 +130,9 @@ def test_crash_speed_and_bump_settings_are_checked():
 
 
 def test_the_drawn_drone_fits_inside_its_collision_sphere():
-    """client_web/js/drone_model.js draws the airframe the simulator flies: its rotors' tips
+    """client_web/js/views/drone_model.js draws the airframe the simulator flies: its rotors' tips
     (arm length + rotor radius) reach the collision sphere's radius and no further."""
-    source = (REPO / "client_web" / "js" / "drone_model.js").read_text()
+    source = (REPO / "client_web" / "js" / "views" / "drone_model.js").read_text()
     arm = float(re.search(r"const ARM_LENGTH = ([\d.]+)", source).group(1))
     rotor = float(re.search(r"const ROTOR_RADIUS = ([\d.]+)", source).group(1))
     assert arm == pytest.approx(CONFIG.arm_length_m)

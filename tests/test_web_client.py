@@ -111,9 +111,9 @@ def test_the_loop_demo_plays_the_demo_forward_then_back_to_its_first_frame():
 # ---- unit tests of the live mode's packing, in the browser ----------------------------------
 
 PACKING_JS = """async () => {
-  const P = await import('/app/js/packing.js');
+  const P = await import('/app/js/capture/packing.js');
   const THREE = await import('three');
-  const { Protocol } = await import('/app/js/protocol.js');
+  const { Protocol } = await import('/app/js/network/protocol.js');
   const protocol = await Protocol.load('/protocol.json');
   const out = {};
 
@@ -402,7 +402,7 @@ def _to_js(value):
 
 
 VALIDATE_JS = """async (cases) => {
-  const { Protocol } = await import('/app/js/protocol.js');
+  const { Protocol } = await import('/app/js/network/protocol.js');
   const protocol = await Protocol.load('/protocol.json');
   const revive = (v) => {
     if (v === '__nan__') return NaN;
@@ -424,7 +424,7 @@ VALIDATE_JS = """async (cases) => {
 }"""
 
 CODEC_JS = """async ([fromServer]) => {
-  const { Protocol } = await import('/app/js/protocol.js');
+  const { Protocol } = await import('/app/js/network/protocol.js');
   const protocol = await Protocol.load('/protocol.json');
   const decoded = protocol.decode(new Uint8Array(fromServer), 'server_to_client');
   const command = protocol.encode(
@@ -852,7 +852,7 @@ def _page_with_test_streamer(live_server, open_page, make_streamer_js: str):
         """async (body) => {
       const app = window.dronesim, replay = app.source;
       app.streamer.stop();
-      const { Streamer } = await import('/app/js/streamer.js');
+      const { Streamer } = await import('/app/js/capture/streamer.js');
       app.testStreamer = new Function('app', 'replay', 'Streamer', body)(app, replay, Streamer);
       app.testStreamer.start();
     }""",

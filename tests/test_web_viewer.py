@@ -87,7 +87,7 @@ def test_a_viewer_link_watches_the_drone_move_and_the_owner_replays_the_flight(
     # (else the longest), a pose between two rows is interpolated, the ghost's clock starts
     # when the live drone leaves the ground.
     out = owner.page.evaluate("""async () => {
-      const { bestFlight, poseAt, Ghost } = await import('/app/js/flight_replay.js');
+      const { bestFlight, poseAt, Ghost } = await import('/app/js/views/flight_replay.js');
       const s = Math.SQRT1_2;
       const flight = { start_time_s: 10, duration_s: 1, state_columns:
           ['t', 'x', 'y', 'z', 'vx', 'vy', 'vz', 'qx', 'qy', 'qz', 'qw', 'mode'],

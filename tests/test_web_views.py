@@ -37,7 +37,9 @@ SPAWNED = "window.dronesim.seen.events.some((e) => e.event === 'spawned')"
 # Frames of the small demo whose camera sees the table by the -y wall with free space behind
 # it (found by ray casting the synthetic room; the search below picks the point per frame).
 TABLE_FRAMES = range(80, 90)
-DRONE_PAINT_RADIUS_M = 0.17  # centre to the tips of the magenta arms (client_web/js/drone_model.js)
+DRONE_PAINT_RADIUS_M = (
+    0.17  # centre to the tips of the magenta arms (client_web/js/views/drone_model.js)
+)
 
 
 def _shot(page, path: Path) -> np.ndarray:
@@ -152,8 +154,8 @@ def _fly_to(page, target_world, timeout_s: float = 40.0) -> None:
 def _mesh_hidden_share(page, T_world_camera) -> float:
     """The share of the drone's disc (its arms' reach, DRONE_PAINT_RADIUS_M, in its own level
     body plane) that the page's map mesh hides from the camera at T_world_camera (16 numbers,
-    row-major), with the occluder's bias (client_web/js/occlusion.js OCCLUSION_BIAS: 4 cm + 2 %
-    of the distance)."""
+    row-major), with the occluder's bias (client_web/js/views/occlusion.js OCCLUSION_BIAS: 4 cm
+    + 2 % of the distance)."""
     import open3d as o3d
 
     mesh = page.page.evaluate(
@@ -395,13 +397,13 @@ def _png16(values: np.ndarray) -> bytes:
 
 
 READERS_JS = """async ([png, cvPng, ply]) => {
-  const { decodeDepthPng } = await import('/app/js/depth_png.js');
-  const { parseMeshPly } = await import('/app/js/mesh_ply.js');
+  const { decodeDepthPng } = await import('/app/js/formats/depth_png.js');
+  const { parseMeshPly } = await import('/app/js/formats/ply.js');
   const bytes = (list) => new Uint8Array(list);
   const a = await decodeDepthPng(bytes(png));
   const b = await decodeDepthPng(bytes(cvPng));
   const m = parseMeshPly(bytes(ply).buffer);
-  const { fillDepthHoles } = await import('/app/js/occlusion.js');
+  const { fillDepthHoles } = await import('/app/js/views/occlusion.js');
   const row = new Float32Array([2, 0, 0, 0, 0, 0, 3]);
   const square = new Float32Array([5, 4, 6, 7, 0, 4.5, 9, 8, 0]);
   const filled = [Array.from(fillDepthHoles(row, 7, 1, new Float32Array(7))),
@@ -452,7 +454,7 @@ def test_depth_png_mesh_ply_readers_and_hole_filling_in_the_browser(
 # swaps the axes (as a portrait phone's landscape depth buffer); and the same surface at 1.3 m,
 # behind the drone. -> drone-coloured pixels in the left and right halves of the overlay.
 OCCLUDER_JS = """async ([surfaceM, transposed]) => {
-  const { ARView } = await import('/app/js/ar_view.js');
+  const { ARView } = await import('/app/js/views/ar_view.js');
   const box = document.createElement('div');
   box.style.cssText = 'position:fixed;left:0;top:0;width:320px;height:240px;z-index:99';
   document.body.append(box);

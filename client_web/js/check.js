@@ -1,10 +1,10 @@
 // The device check page (/check): what this phone's browser offers live AR, step by step, each
 // with a pass / fail / unknown (or info) line, as one JSON report a user can download and send
 // us. Live AR fails on real phones for reasons the emulated device of the tests cannot show;
-// this page measures them where they happen. The AR session itself is check_session.js.
+// this page measures them where they happen. The AR session itself is capture/check_session.js.
 
-import { MAX_MS, MEASURE_MS, SessionProbe, sessionOptions } from "./check_session.js";
-import { LIVE_DEPTH_SENSING } from "./live_needs.js";
+import { MAX_MS, MEASURE_MS, SessionProbe, sessionOptions } from "./capture/check_session.js";
+import { LIVE_DEPTH_SENSING } from "./capture/live_needs.js";
 
 const $ = (selector) => document.querySelector(selector);
 // What live AR asks of a session (LiveSource.start): depth sensing, cpu-optimized, in one of

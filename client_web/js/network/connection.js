@@ -1,16 +1,17 @@
-// One server session: created over REST, spoken to over its WebSocket (hello -> welcome ->
+// The page's WebSocket to a session, and its one reconnect path. SocketClient decodes what the
+// server sends and, when the socket closes, does what protocol.json's close code says
+// (close_codes[].reconnect: never, retry, when_active, when_asked). SessionClient is the
+// phone's own session: created over REST, spoken to over its WebSocket (hello -> welcome ->
 // frames and commands; poses, map chunks, drone state and events back), with flow control
-// (frames in flight until a pose or error with seq >= theirs) and automatic reconnection into
-// the same session. The id, token, hello and next seq survive a reload in sessionStorage.
+// (frames in flight until a pose or error with seq >= theirs). The id, token, hello and next
+// seq survive a reload in sessionStorage. A viewer link's client (viewer.js) shares the socket.
 
 import { SERVER_TO_CLIENT } from "./protocol.js";
+import { createSession, downloadFile, sessionStatus } from "./session_rest.js";
 
 const STORE_KEY = "dronesim.session";
 const ROOM_KEY = "dronesim.room"; // the last ended session: its id and token open its room
 const BACKOFF_S = [0.5, 1, 2, 4, 8];
-// Closes (protocol.json names) after which reconnecting cannot help: the hello or the session
-// itself is refused.
-const FINAL_CLOSES = new Set(["version_mismatch", "bad_hello", "unauthorized", "session_failed"]);
 const LATENCY_WINDOW = 30;
 
 export const State = Object.freeze({
@@ -19,32 +20,138 @@ export const State = Object.freeze({
   OPEN: "open", // welcome received
   RECONNECTING: "reconnecting",
   PAUSED: "paused", // the server closed an idle socket: reopens on the next frame or command
-  ENDED: "ended", // refused for good (bad hello, unknown or closed session)
+  ENDED: "ended", // refused for good (a close whose reconnect is "never")
   TAKEN_OVER: "taken_over", // another socket with the token has the session; stays saved here
 });
 
-/** Events: "status" {state, message}, "message" (every decoded server message), and one event
- * per message type ("pose", "map_chunk", "drone_state", "drone_event", "error", "welcome"). */
-export class SessionClient extends EventTarget {
-  constructor(protocol, { storage = window.sessionStorage, roomStorage = window.localStorage,
-    baseUrl = window.location.origin } = {}) {
+/** A socket to one session. Events: "status" {state, message}, "message" (every decoded server
+ * message), and one event per message type ("welcome", "pose", "map_chunk", ...). Subclasses
+ * say where to connect (connect()), what to send on open (opened()) and what a message means to
+ * them (received()); `waits`: whether the page may wait for activity or the user before
+ * reconnecting (a viewer, which sends nothing, always retries). */
+export class SocketClient extends EventTarget {
+  constructor(protocol, { baseUrl = window.location.origin, waits = true } = {}) {
     super();
     this.protocol = protocol;
-    this.storage = storage;
-    this.roomStorage = roomStorage; // outlives the tab: a room is for coming back another day
     this.baseUrl = baseUrl;
+    this.waits = waits;
     this.state = State.IDLE;
     this.ws = null;
     this.welcome = null;
     this.inFlight = new Map(); // seq -> performance.now() when sent
-    this.latencies = [];
-    this.lastLatencyMs = NaN; // the round trip of the frame the last answer was for
-    this.pending = []; // commands waiting for the connection
     this.attempt = 0;
-    this.nextCommandId = 1;
+    this.stopping = false;
     // withDevicePose: frames sent with the device's own pose (T_device_camera).
     this.counts = { sent: 0, poses: 0, errors: 0, reconnects: 0, bytesSent: 0, maxInFlight: 0, withDevicePose: 0 };
     this.statusLog = []; // [{state, message, at}] for the HUD's history and the tests
+  }
+
+  get isOpen() {
+    return this.state === State.OPEN && this.ws?.readyState === WebSocket.OPEN;
+  }
+
+  setStatus(state, message = "") {
+    this.state = state;
+    this.statusLog.push({ state, message, at: performance.now() });
+    if (this.statusLog.length > 100) this.statusLog.shift();
+    this.dispatchEvent(new CustomEvent("status", { detail: { state, message } }));
+  }
+
+  /** Open the socket at `path` (below ws[s]://host), saying `message` meanwhile. */
+  openSocket(path, message) {
+    const scheme = this.baseUrl.startsWith("https") ? "wss" : "ws";
+    const host = this.baseUrl.replace(/^https?:\/\//, "");
+    this.setStatus(this.attempt ? State.RECONNECTING : State.CONNECTING, message);
+    const ws = new WebSocket(`${scheme}://${host}${path}`);
+    ws.binaryType = "arraybuffer";
+    this.ws = ws;
+    ws.onopen = () => this.opened();
+    ws.onmessage = (event) => this.#receive(event.data);
+    ws.onclose = (event) => this.#closed(ws, event);
+  }
+
+  connect() {
+    throw new Error("a SocketClient subclass says where to connect");
+  }
+
+  opened() {}
+
+  received() {}
+
+  /** What ENDED says, after a close that is final. */
+  endedMessage(reason) {
+    return `the server ended the session: ${reason}`;
+  }
+
+  #receive(data) {
+    let message;
+    try {
+      message = this.protocol.decode(data, SERVER_TO_CLIENT);
+    } catch (exc) {
+      console.warn("ignored a message that breaks the protocol", exc);
+      return;
+    }
+    if (message.type === "welcome") {
+      this.welcome = message;
+      this.attempt = 0;
+    } else if (message.type === "pose") {
+      this.counts.poses += 1;
+    } else if (message.type === "error") {
+      this.counts.errors += 1;
+    }
+    this.received(message);
+    this.dispatchEvent(new CustomEvent("message", { detail: message }));
+    this.dispatchEvent(new CustomEvent(message.type, { detail: message }));
+  }
+
+  /** The one reconnect path: what the close code's `reconnect` says (protocol.json). */
+  #closed(ws, event) {
+    if (ws !== this.ws) return;
+    this.ws = null;
+    this.welcome = null;
+    this.inFlight.clear(); // their answers are lost with the socket
+    const reason = this.protocol.closeReason(event.code) + (event.reason ? ` (${event.reason})` : "");
+    const then = this.protocol.reconnectAfter(event.code);
+    if (this.stopping) {
+      this.stopping = false;
+      this.setStatus(State.IDLE, "disconnected");
+    } else if (then === "never") {
+      this.setStatus(State.ENDED, this.endedMessage(reason));
+    } else if (then === "when_asked" && this.waits) {
+      this.setStatus(State.TAKEN_OVER, "another tab or device took this session over");
+    } else if (then === "when_active" && this.waits) {
+      this.setStatus(State.PAUSED, "idle: reconnects when you stream or fly");
+    } else {
+      const delay = BACKOFF_S[Math.min(this.attempt, BACKOFF_S.length - 1)];
+      this.attempt += 1;
+      this.counts.reconnects += 1;
+      this.setStatus(State.RECONNECTING, `connection lost (${reason}); reconnecting in ${delay} s`);
+      this.retryTimer = setTimeout(() => this.connect(), delay * 1000);
+    }
+  }
+
+  /** Reconnect a socket that waits (PAUSED; with `takeBack`, TAKEN_OVER too). Only the user's own
+   * act (Start, a command) may take a session back: a frame that was being captured when the
+   * session moved must not. */
+  wake({ takeBack = false } = {}) {
+    const asleep = this.state === State.PAUSED || (takeBack && this.state === State.TAKEN_OVER);
+    if (asleep) {
+      this.attempt = 0;
+      this.connect();
+    }
+  }
+}
+
+export class SessionClient extends SocketClient {
+  constructor(protocol, { storage = window.sessionStorage, roomStorage = window.localStorage,
+    baseUrl = window.location.origin } = {}) {
+    super(protocol, { baseUrl });
+    this.storage = storage;
+    this.roomStorage = roomStorage; // outlives the tab: a room is for coming back another day
+    this.latencies = [];
+    this.lastLatencyMs = NaN; // the round trip of the frame the last answer was for
+    this.pending = []; // commands waiting for the connection
+    this.nextCommandId = 1;
     this.saved = this.#load();
   }
 
@@ -58,10 +165,6 @@ export class SessionClient extends EventTarget {
 
   get busy() {
     return this.inFlight.size >= this.maxInFlight;
-  }
-
-  get isOpen() {
-    return this.state === State.OPEN && this.ws?.readyState === WebSocket.OPEN;
   }
 
   /** Median send-to-pose latency over the last frames, milliseconds (NaN before any). */
@@ -84,33 +187,6 @@ export class SessionClient extends EventTarget {
     else this.storage.removeItem(STORE_KEY);
   }
 
-  #status(state, message = "") {
-    this.state = state;
-    this.statusLog.push({ state, message, at: performance.now() });
-    if (this.statusLog.length > 100) this.statusLog.shift();
-    this.dispatchEvent(new CustomEvent("status", { detail: { state, message } }));
-  }
-
-  async #request(method, path, token, json = undefined) {
-    const headers = token ? { Authorization: `Bearer ${token}` } : {};
-    if (json !== undefined) headers["Content-Type"] = "application/json";
-    const body = json === undefined ? undefined : JSON.stringify(json);
-    const response = await fetch(`${this.baseUrl}${path}`, { method, headers, body });
-    let answer = null;
-    try {
-      answer = await response.json();
-    } catch {
-      /* no body */
-    }
-    if (!response.ok) {
-      const why = answer?.error?.message ?? answer?.detail ?? response.statusText;
-      const error = new Error(`${method} ${path}: HTTP ${response.status} ${why}`);
-      error.status = response.status;
-      throw error;
-    }
-    return answer;
-  }
-
   /**
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
@@ -127,74 +203,52 @@ export class SessionClient extends EventTarget {
       // The room of the last session ended here, else of the session still remembered.
       const last = JSON.parse(this.roomStorage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
       if (!last) throw new Error("no earlier session on this device to continue the room of");
-      const created = await this.#request("POST", "/api/sessions", last.token, { room: last.id, loop_closure: loopClosure });
+      const created = await createSession(this.baseUrl, { token: last.token, room: last.id, loopClosure });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     } else if (!fresh && same) {
       try {
-        const status = await this.#request("GET", `/api/sessions/${this.saved.id}`, this.saved.token);
-        resumed = !status.closed;
+        resumed = !(await sessionStatus(this.baseUrl, this.saved)).closed;
       } catch {
         resumed = false;
       }
     }
     if (!resumed && !room) {
-      const created = await this.#request("POST", "/api/sessions", null, { loop_closure: loopClosure });
+      const created = await createSession(this.baseUrl, { loopClosure });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     }
     this.saved.hello = hello;
     this.#save();
     this.attempt = 0;
-    this.#connect();
+    this.connect();
     return { ...this.session, resumed };
   }
 
-  #connect() {
+  connect() {
+    if (!this.saved) return;
     const { id, token } = this.saved;
-    const scheme = this.baseUrl.startsWith("https") ? "wss" : "ws";
-    const host = this.baseUrl.replace(/^https?:\/\//, "");
-    this.#status(this.attempt ? State.RECONNECTING : State.CONNECTING,
+    this.openSocket(`/ws/sessions/${encodeURIComponent(id)}?token=${encodeURIComponent(token)}`,
       this.attempt ? `reconnecting (attempt ${this.attempt})` : "connecting");
-    const ws = new WebSocket(`${scheme}://${host}/ws/sessions/${encodeURIComponent(id)}?token=${encodeURIComponent(token)}`);
-    ws.binaryType = "arraybuffer";
-    this.ws = ws;
-    ws.onopen = () => this.#send(this.saved.hello);
-    ws.onmessage = (event) => this.#receive(event.data);
-    ws.onclose = (event) => this.#closed(ws, event);
+  }
+
+  opened() {
+    this.#send(this.saved.hello);
+  }
+
+  received(message) {
+    if (message.type === "welcome") {
+      this.setStatus(State.OPEN, `session ${this.saved.id}`);
+      for (const pendingMessage of this.pending.splice(0)) this.#send(pendingMessage);
+    } else if (message.type === "pose") {
+      this.#acknowledge(message.seq, true);
+    } else if (message.type === "error" && message.seq !== undefined) {
+      this.#acknowledge(message.seq, false);
+    }
   }
 
   #send(message) {
     const data = this.protocol.encode(message, this.welcome?.max_message_bytes);
     this.ws.send(data);
     this.counts.bytesSent += data.byteLength;
-  }
-
-  #receive(data) {
-    let message;
-    try {
-      message = this.protocol.decode(data, SERVER_TO_CLIENT);
-    } catch (exc) {
-      console.warn("ignored a message that breaks the protocol", exc);
-      return;
-    }
-    switch (message.type) {
-      case "welcome":
-        this.welcome = message;
-        this.attempt = 0;
-        this.#status(State.OPEN, `session ${this.saved.id}`);
-        for (const pendingMessage of this.pending.splice(0)) this.#send(pendingMessage);
-        break;
-      case "pose":
-        this.counts.poses += 1;
-        this.#acknowledge(message.seq, true);
-        break;
-      case "error":
-        this.counts.errors += 1;
-        if (message.seq !== undefined) this.#acknowledge(message.seq, false);
-        break;
-      default:
-    }
-    this.dispatchEvent(new CustomEvent("message", { detail: message }));
-    this.dispatchEvent(new CustomEvent(message.type, { detail: message }));
   }
 
   /** One answer acknowledges every frame with seq <= its own. */
@@ -207,44 +261,6 @@ export class SessionClient extends EventTarget {
       if (this.latencies.length > LATENCY_WINDOW) this.latencies.shift();
     }
     for (const s of this.inFlight.keys()) if (s <= seq) this.inFlight.delete(s);
-  }
-
-  #closed(ws, event) {
-    if (ws !== this.ws) return;
-    this.ws = null;
-    this.welcome = null;
-    this.inFlight.clear(); // their answers are lost with the socket
-    const reason = this.protocol.closeReason(event.code) + (event.reason ? ` (${event.reason})` : "");
-    const close = this.protocol.closeCodes[event.code]?.name;
-    if (this.stopping) {
-      this.stopping = false;
-      this.#status(State.IDLE, "disconnected");
-    } else if (close === "session_taken_over") {
-      // Reconnecting by itself would take the session back, and two tabs would take it from
-      // each other forever: only the user's Start or a command takes it back (wake).
-      this.#status(State.TAKEN_OVER, "another tab or device took this session over");
-    } else if (FINAL_CLOSES.has(close)) {
-      this.#status(State.ENDED, `the server ended the session: ${reason}`);
-    } else if (close === "idle_timeout") {
-      this.#status(State.PAUSED, "idle: reconnects when you stream or fly");
-    } else {
-      const delay = BACKOFF_S[Math.min(this.attempt, BACKOFF_S.length - 1)];
-      this.attempt += 1;
-      this.counts.reconnects += 1;
-      this.#status(State.RECONNECTING, `connection lost (${reason}); reconnecting in ${delay} s`);
-      this.retryTimer = setTimeout(() => this.saved && this.#connect(), delay * 1000);
-    }
-  }
-
-  /** Reconnect a session that the server paused for idleness; with `takeBack`, also one that
-   * another tab took over. Only the user's own act (Start, a command) may take it back: a frame
-   * that was being captured when the session moved must not. */
-  wake({ takeBack = false } = {}) {
-    const asleep = this.state === State.PAUSED || (takeBack && this.state === State.TAKEN_OVER);
-    if (asleep && this.saved) {
-      this.attempt = 0;
-      this.#connect();
-    }
   }
 
   /**
@@ -312,7 +328,7 @@ export class SessionClient extends EventTarget {
       ws.onclose = ws.onmessage = ws.onopen = null;
       ws.close(1000, "client closed");
     }
-    if (this.state !== State.IDLE) this.#status(State.IDLE, "disconnected");
+    if (this.state !== State.IDLE) this.setStatus(State.IDLE, "disconnected");
   }
 
   /** Forget the saved session (the next open creates a new one). */
@@ -326,22 +342,8 @@ export class SessionClient extends EventTarget {
 
   /** A session download (map.ply, mesh.ply, trajectory.tum) as a Blob, with the token as
    * Authorization header. */
-  async download(name) {
-    const { id, token } = this.saved ?? {};
-    if (!id) throw new Error("no session yet: start streaming first");
-    const response = await fetch(`${this.baseUrl}/api/sessions/${id}/${name}`, {
-      headers: { Authorization: `Bearer ${token}` },
-    });
-    if (!response.ok) {
-      let why = response.statusText;
-      try {
-        why = (await response.json())?.error?.message ?? why;
-      } catch {
-        /* not json */
-      }
-      throw new Error(`${name} download failed: HTTP ${response.status} ${why}`);
-    }
-    return { blob: await response.blob(), filename: `${id}-${name}` };
+  download(name) {
+    return downloadFile(this.baseUrl, this.saved ?? {}, name);
   }
 
   /** The fused map as a PLY file. */

@@ -2,7 +2,7 @@
 // thread, where the stream's sends and poses are handled: {id, bytes, depthScale} in,
 // {id, width, height, metres} (Float32Array, transferred) or {id, error} out.
 
-import { decodeDepthPng, depthMetres } from "./depth_png.js";
+import { decodeDepthPng, depthMetres } from "../formats/depth_png.js";
 
 self.onmessage = async ({ data: { id, bytes, depthScale } }) => {
   try {

@@ -2,7 +2,7 @@
 // its ghost), the ghost of the best flight during a new one, and the "share viewer link" button
 // (a read-only link another phone opens to watch this session live).
 
-import { bestFlight, FlightLibrary, FlightReplay, Ghost } from "./flight_replay.js";
+import { bestFlight, FlightLibrary, FlightReplay, Ghost } from "../views/flight_replay.js";
 
 const $ = (selector) => document.querySelector(selector);
 
@@ -117,8 +117,9 @@ export class FlightsPanel {
     }
   }
 
-  droneState(state) {
-    this.ghost.droneState(state);
+  /** The ghost starts and stops with the session state's drone (session/state.js). */
+  follow(state) {
+    state.addEventListener("drone", ({ detail }) => this.ghost.droneState(detail));
   }
 
   tick(now) {

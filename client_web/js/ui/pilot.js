@@ -16,7 +16,7 @@ const IDLE_STREAM_MS = 30000; // angle and acro: centred sticks stream this long
 
 export class Pilot extends EventTarget {
   /**
-   * @param {import("./connection.js").SessionClient} client
+   * @param {import("../network/connection.js").SessionClient} client
    * @param {{left: HTMLElement, right: HTMLElement, modes?: HTMLElement}} controls the two
    *   joystick elements, and the mode switch: buttons with data-flight-mode inside `modes`
    */
@@ -93,6 +93,11 @@ export class Pilot extends EventTarget {
     this.asked = { mode, at: performance.now() };
     this.#adopt(mode);
     return id;
+  }
+
+  /** Take the flight mode the session state's drone reports (session/state.js). */
+  follow(state) {
+    state.addEventListener("drone", ({ detail }) => this.serverMode(detail.flight_mode));
   }
 
   /** The mode drone_state reports: the server's word wins (a reload, another device), except

@@ -5,16 +5,16 @@
 // Frames: the overlay's objects live in `root`, the three.js camera frame of the shown frame
 // (CV_TO_GL * camera frame). Replay: the three camera sits at the origin with the intrinsics'
 // projection. Live WebXR: root is anchored at the XR pose the frame was captured at, and the
-// live source draws it over the live camera from each XR view's pose (sources/live.js).
+// live source draws it over the live camera from each XR view's pose (capture/sources/live.js).
 
 import * as THREE from "three";
 import { Line2 } from "three/addons/lines/Line2.js";
 import { LineGeometry } from "three/addons/lines/LineGeometry.js";
 import { LineMaterial } from "three/addons/lines/LineMaterial.js";
 import { createDrone, createGroundMarker, createTargetMarker } from "./drone_model.js";
-import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint } from "./geometry.js";
+import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint, upFromGravity } from "./geometry.js";
 import { Occlusion } from "./occlusion.js";
-import { projectionFromIntrinsics } from "./packing.js";
+import { projectionFromIntrinsics } from "../capture/packing.js";
 import { RENDER_BUDGET, fitRenderer } from "./render_budget.js";
 
 const TAP_MAX_MOVE_PX = 12;
@@ -48,7 +48,7 @@ export class ARView {
     this.segmentHint.className = "segment-hint";
     this.segmentHint.textContent = "Placed roughly: map paused until the camera sees a mapped place";
     this.stage.append(this.image, this.renderer.domElement, this.tapMarker, this.lostHint, this.segmentHint);
-    // Live AR's line for the user (move the phone, tracking lost, no depth): sources/live.js.
+    // Live AR's line for the user (move the phone, tracking lost, no depth): capture/sources/live.js.
     this.xrHint = document.createElement("div");
     this.xrHint.className = "xr-hint";
     this.xrHint.setAttribute("role", "status");
@@ -103,6 +103,32 @@ export class ARView {
   }
 
   /** The colour camera: [fx, fy, cx, cy] pixels for an image of colourSize [w, h]. */
+  /**
+   * Draw what the session state says (session/state.js): each pose's frame with its picture,
+   * the drone, and the floor height of the map; the fused mesh (map_mesh.js) for occlusion.
+   * @param {{imageFor: (seq: number) => ImageBitmap|null, groundHeight: () => number|null,
+   *   mesh: EventTarget}} sources the picture of a sent frame (taken, then closed here); the
+   *   map's floor height, read after each map update; the map's mesh ("mesh" events)
+   */
+  follow(state, { imageFor, groundHeight, mesh }) {
+    state.addEventListener("camera", ({ detail: { intrinsics, colourSize, gravity } }) => {
+      this.setCamera(intrinsics, colourSize);
+      this.setUp(upFromGravity(gravity));
+    });
+    state.addEventListener("pose", ({ detail: pose }) => {
+      const bitmap = imageFor(pose.seq);
+      this.showFrame(bitmap, pose.seq, pose.T_world_camera, pose.state, pose.recovery);
+      bitmap?.close?.();
+    });
+    state.addEventListener("map", () => this.setGroundHeight(groundHeight()));
+    state.addEventListener("drone", ({ detail }) => this.setDroneState(detail));
+    state.addEventListener("reset", () => this.clearDrone());
+    mesh.addEventListener("mesh", ({ detail: geometry }) => {
+      this.occlusion.setMesh(geometry);
+      this.dirty = true;
+    });
+  }
+
   setCamera(intrinsics, colourSize) {
     this.intrinsics = [...intrinsics];
     this.colourSize = [...colourSize];
@@ -192,7 +218,7 @@ export class ARView {
   }
 
   /** Update the overlay's objects and draw. dt: seconds since the last call (rotor spin);
-   * camera: the XR view's camera in live AR (sources/live.js), this view's own otherwise. */
+   * camera: the XR view's camera in live AR (capture/sources/live.js), this view's own otherwise. */
   render(dt = 0, camera = this.camera) {
     const s = this.droneState;
     const frame = this.frame;

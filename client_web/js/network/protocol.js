@@ -1,6 +1,6 @@
 // The wire protocol, read from the server's /protocol.json (shared/protocol.json, the one
 // definition the Python server uses too): validate, encode and decode msgpack messages, build
-// the client's messages. Mirrors server/transport/protocol.py; see shared/PROTOCOL.md.
+// the client's messages. Mirrors server/protocol/; see shared/PROTOCOL.md.
 
 import { decode as msgpackDecode, encode as msgpackEncode } from "@msgpack/msgpack";
 
@@ -262,6 +262,13 @@ export class Protocol {
   /** Whether an error name is fatal, and the close code that follows it. */
   errorInfo(name) {
     return this.errors[name] ?? { name, fatal: false, close: null, meaning: "unknown error" };
+  }
+
+  /** What a client does after a close with this code (protocol.json's close_codes[].reconnect):
+   * "never" (final), "retry" (with back-off), "when_active" (on its next frame or command) or
+   * "when_asked" (on the user's own request). Codes it does not list (1006...) are "retry". */
+  reconnectAfter(code) {
+    return this.closeCodes[code]?.reconnect ?? "retry";
   }
 
   /** The name and meaning of a WebSocket close code (protocol's or the standard ones). */

@@ -34,11 +34,14 @@ function gateMesh(radius, tube) {
 
 export class CourseView {
   /**
-   * @param {{client: import("./connection.js").SessionClient, ar: import("./ar_view.js").ARView,
-   *   map: import("./map_view.js").MapView, hud: import("./hud.js").Hud}} parts
+   * @param {{client: import("../network/connection.js").SessionClient,
+   *   state: import("../session/state.js").SessionState, ar: import("./ar_view.js").ARView,
+   *   map: import("./map_view.js").MapView, hud: import("../ui/hud.js").Hud}} parts
+   *   client: sends the course commands; state: what the server says of the course and the drone
    */
-  constructor({ client, ar, map, hud }) {
+  constructor({ client, state, ar, map, hud }) {
     this.client = client;
+    this.state = state;
     this.ar = ar;
     this.map = map;
     this.hud = hud;
@@ -59,8 +62,9 @@ export class CourseView {
   // ---- the server's side ----------------------------------------------------------------------
 
   #listen() {
-    this.client.addEventListener("course", ({ detail }) => this.setCourse(detail));
-    this.client.addEventListener("drone_state", ({ detail }) => {
+    this.state.addEventListener("course", ({ detail }) => this.setCourse(detail));
+    this.state.addEventListener("reset", () => this.clear());
+    this.state.addEventListener("drone", ({ detail }) => {
       const damage = detail.damage ?? 0;
       const crashed = detail.mode === "crashed";
       if (damage !== this.damage || crashed !== this.crashed) {
@@ -69,7 +73,7 @@ export class CourseView {
         this.#updateHud();
       }
     });
-    this.client.addEventListener("drone_event", ({ detail: e }) => {
+    this.state.addEventListener("drone_event", ({ detail: e }) => {
       if (!(e.event in EVENT_TEXT)) return;
       this.log.push({ event: e.event, message: e.message });
       if (this.log.length > 100) this.log.shift();

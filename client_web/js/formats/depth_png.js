@@ -4,7 +4,7 @@
 // stream (inflated with DecompressionStream), then each row's filter is undone (PNG spec,
 // section 9). Only what depth images use: 16-bit greyscale, not interlaced.
 
-import { zlibDecompress } from "./packing.js";
+import { zlibDecompress } from "../capture/packing.js";
 
 const SIGNATURE = [0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a];
 

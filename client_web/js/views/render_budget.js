@@ -11,7 +11,7 @@
 //   step again (each change reallocates every view's drawing buffer: not on one slow window).
 // - Draw interval: RENDER_BUDGET.drawMs between draws normally (softwareDrawMs in software:
 //   each draw also recomposites the page on the CPU); slowDrawMs while the stream runs behind
-//   its rate, whatever it waits for (hud.js): a phone's camera and a server on the same
+//   its rate, whatever it waits for (ui/hud.js): a phone's camera and a server on the same
 //   machine come before the rotors' spin.
 // - Resizing a view's drawing buffer reallocates it (tens to hundreds of milliseconds in
 //   software): a view keeps drawing into the old buffer, stretched by CSS, until its size has
@@ -50,7 +50,7 @@ export class RenderBudget {
     this.maxRatio = Math.min(devicePixelRatio, 2, software ? RENDER_BUDGET.softwareMaxRatio : 2);
     this.pixelRatio = this.maxRatio;
     this.software = software;
-    this.streamBehind = false; // set by the app: the stream runs behind its rate (hud.js)
+    this.streamBehind = false; // set by the app: the stream runs behind its rate (ui/hud.js)
     this.windowStart = performance.now();
     this.drawMsSum = 0;
     this.draws = 0;

@@ -127,7 +127,7 @@ export async function liveSupport() {
 
 export class LiveSource {
   /**
-   * @param {import("../ar_view.js").ARView} arView its renderer draws the XR overlay
+   * @param {import("../../views/ar_view.js").ARView} arView its renderer draws the XR overlay
    * @param {HTMLElement} overlayRoot shown over the camera (dom-overlay): HUD and controls
    */
   constructor(arView, overlayRoot) {

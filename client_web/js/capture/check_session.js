@@ -1,5 +1,5 @@
 // The device check's AR session (check.html): a few seconds of immersive-ar measured the way
-// live AR uses it (js/sources/live.js): the page's own XRWebGLLayer as the session's baseLayer
+// live AR uses it (sources/live.js): the page's own XRWebGLLayer as the session's baseLayer
 // (never the WebXR Layers path, where getCameraImage crashes Chrome 147+ on some phones), its
 // own XRWebGLBinding, the camera texture read back through a framebuffer blit, depth from
 // getDepthInformation. Plain WebGL2, no three.js: what fails here fails in this browser, not

@@ -7,7 +7,7 @@
 // has that many.
 
 import * as THREE from "three";
-import { parseMeshPly } from "./mesh_ply.js";
+import { parseMeshPly } from "../formats/ply.js";
 
 export const MESH_REFRESH = Object.freeze({
   minIntervalMs: 8000, // between the end of one download and the start of the next
@@ -30,6 +30,12 @@ export class MapMesh extends EventTarget {
     this.failures = 0;
     this.lastError = null;
     this.lastDownload = null; // {ms, bytes} of the last mesh that came
+  }
+
+  /** Track the map's size in the session state (session/state.js); a new session drops the mesh. */
+  follow(state) {
+    state.addEventListener("map", ({ detail: { total, reset } }) => this.noteMapPoints(total, reset));
+    state.addEventListener("reset", () => this.clear());
   }
 
   /** The map's size in preview points (after each map_chunk); a reset map drops the mesh. */

@@ -85,6 +85,13 @@ export class FPVView {
   }
 
   /** The fused map's mesh (world frame) or null; shared with other views, never disposed here. */
+  /** Fly with the drone of the session state (session/state.js) through the map's mesh
+   * (map_mesh.js "mesh" events). */
+  follow(state, { mesh }) {
+    state.addEventListener("drone", ({ detail }) => this.setDroneState(detail));
+    mesh.addEventListener("mesh", ({ detail: geometry }) => this.setMesh(geometry));
+  }
+
   setMesh(geometry) {
     this.room.geometry = geometry ?? new THREE.BufferGeometry();
     this.room.visible = geometry !== null;

@@ -12,9 +12,9 @@ const HOLD_POLL_MS = 10; // how often a held-back recording looks for room again
 
 export class Streamer extends EventTarget {
   /**
-   * @param {import("./connection.js").SessionClient} client
+   * @param {import("../network/connection.js").SessionClient} client
    * @param {{capture: (tick: number, timestamp: number) => Promise<object|null>, keep?: Function}} source
-   * @param {{fps?: number, holdBack?: boolean, meter?: import("./page_load.js").PageLoad}} options
+   * @param {{fps?: number, holdBack?: boolean, meter?: import("../network/page_load.js").PageLoad}} options
    *   meter: counts the main thread's time to send each frame as "send"
    */
   constructor(client, source, { fps = 15, holdBack = false, meter = null } = {}) {

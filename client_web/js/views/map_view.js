@@ -5,7 +5,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { DRONE_COLOUR, createDrone, createTargetMarker } from "./drone_model.js";
-import { matrixFromRowMajor, pointsFromFlat, turbo } from "./geometry.js";
+import { matrixFromRowMajor, pointsFromFlat, turbo, upFromGravity } from "./geometry.js";
 import { fitRenderer } from "./render_budget.js";
 
 const TAP_MAX_MOVE_PX = 10;
@@ -96,6 +96,22 @@ export class MapView {
     this.#listen();
     new ResizeObserver(() => this.layout()).observe(container);
     this.layout();
+  }
+
+  /** Draw what the session state says (session/state.js): the camera's poses and trail, the
+   * map's points, loop corrections and the drone; a new session clears it all. */
+  follow(state) {
+    state.addEventListener("camera", ({ detail: { gravity } }) => this.setUp(upFromGravity(gravity)));
+    state.addEventListener("pose", ({ detail: pose }) => this.addCameraPose(pose.T_world_camera));
+    state.addEventListener("map", ({ detail: { points, colours, reset } }) => this.addPoints(points, colours, reset));
+    state.addEventListener("trail", ({ detail: { positions } }) => positions.forEach((p) => this.addTrajectoryPoint(p)));
+    // The trail through the corrected keyframes: the poses before the correction are not resent.
+    state.addEventListener("corrected", ({ detail }) => this.replaceTrajectory(detail.keyframes.map((k) => k.T_world_keyframe)));
+    state.addEventListener("drone", ({ detail }) => this.setDroneState(detail));
+    state.addEventListener("reset", () => {
+      this.clear();
+      this.setDroneState(null);
+    });
   }
 
   get pointCount() {

@@ -1,11 +1,11 @@
 // The depth of the frames a replay sent, kept until the frame is shown, for occlusion in the AR
 // view (occlusion.js): the depth PNG is decoded when the frame goes out, so that it is ready by
 // the time its pose comes back and the AR view shows the frame. Live capture needs none of this:
-// its overlay is drawn over the current XR frame, whose own depth sources/live.js hands over.
+// its overlay is drawn over the current XR frame, whose own depth capture/sources/live.js hands over.
 // The PNG is read in a worker (depth_worker.js) where the browser has module workers, so that
 // the main thread, which sends the frames and handles their poses, only fills the depth's holes.
 
-import { decodeDepthPng, depthMetres } from "./depth_png.js";
+import { decodeDepthPng, depthMetres } from "../formats/depth_png.js";
 
 const KEPT = 8; // frames in flight are at most max_in_flight (2); a few more for late poses
 
@@ -55,6 +55,11 @@ export class FrameDepths {
     } catch {
       this.worker = null; // no module workers: read on the main thread
     }
+  }
+
+  /** A frame is shown when its pose comes (the session state's "pose", session/state.js). */
+  follow(state) {
+    state.addEventListener("pose", ({ detail: pose }) => this.shown(pose.seq));
   }
 
   /** A frame went out with these message fields (depth, depthFormat, depthScale). */

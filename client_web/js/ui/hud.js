@@ -1,8 +1,9 @@
 // Heads-up line, banner and toasts: tracking, fps, latency, dropped frames, what a stream that
-// runs behind its rate waits for (server, page or network, from measured times: page_load.js),
+// runs behind its rate waits for (server, page or network, from measured times: network/page_load.js),
 // drone mode and clearance, connection state, collision warnings and errors with their message.
 
-import { mean, waitsFor } from "./page_load.js";
+import { State } from "../network/connection.js";
+import { mean, waitsFor } from "../network/page_load.js";
 
 const FPS_WINDOW_MS = 2000;
 const BEHIND = 0.85; // poses per second under this share of the asked rate: the stream is behind
@@ -13,6 +14,9 @@ const CLEARANCE_BAD_M = 0.15;
 
 // While tracking recovers (PROTOCOL.md, "Tracking recovery"): how, said beside the state.
 const RECOVERY = Object.freeze({ relocalised: "found again", segment: "placed roughly", merged: "back in the map" });
+const EVENT_KINDS = Object.freeze({ spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn",
+  collision: "warn", crash: "error" });
+const COURSE_EVENTS = new Set(["gate_passed", "gate_missed", "course_finished"]); // views/course_view.js shows them
 
 export class Hud {
   constructor(root = document) {
@@ -25,6 +29,49 @@ export class Hud {
     // Banner and toasts sit just below the HUD, whose height changes with the screen.
     const hud = root.querySelector("#hud");
     new ResizeObserver(() => document.documentElement.style.setProperty("--hud-h", `${hud.offsetHeight}px`)).observe(hud);
+  }
+
+  /** Show what the session state says (session/state.js): the connection, poses, the map's
+   * size, the drone, its events, loop closures and the server's errors. An error a listener
+   * before this one handled (preventDefault) is not shown. */
+  follow(state) {
+    state.addEventListener("status", ({ detail }) => this.#status(detail));
+    state.addEventListener("pose", ({ detail: pose }) => this.pose(pose, state.lastLatencyMs));
+    state.addEventListener("map", ({ detail }) => this.points(detail.total));
+    state.addEventListener("drone", ({ detail }) => this.drone(detail));
+    state.addEventListener("reset", () => this.drone(null));
+    state.addEventListener("drone_event", ({ detail }) => this.#droneEvent(detail));
+    state.addEventListener("corrected", ({ detail: c }) => {
+      const shift = Math.hypot(c.T_correction[3], c.T_correction[7], c.T_correction[11]);
+      this.toast(`loop closed (${c.loops}): map corrected by ${(100 * shift).toFixed(1)} cm here`, "ok", 5000);
+    });
+    state.addEventListener("error", (event) => {
+      if (event.defaultPrevented) return;
+      const error = event.detail;
+      const text = `${error.name} (${error.code}): ${error.message}`;
+      if (error.fatal) this.showBanner(text, "error", 10000);
+      else this.toast(text, "error", 6000);
+    });
+  }
+
+  #status({ state, message }) {
+    this.connection(state, message);
+    const banners = {
+      [State.RECONNECTING]: [`Connection lost: ${message}`, "warn"],
+      [State.TAKEN_OVER]: ["Another tab or device took this session over. Start takes it back.", "warn"],
+      [State.ENDED]: [`${message}. Start again for a new session.`, "error"],
+    };
+    if (state in banners) this.showBanner(...banners[state], 0); // until the state changes
+    else if (state === State.OPEN) this.hideBanner();
+  }
+
+  #droneEvent(event) {
+    if (COURSE_EVENTS.has(event.event)) return;
+    const where = event.position.map((v) => v.toFixed(2)).join(", ");
+    if (event.event === "crash") this.showBanner(`Crash! ${event.message} (at ${where} m)`, "error", 6000);
+    else if (event.event === "collision") this.showBanner(`Bump! ${event.message} (at ${where} m)`, "warn", 3000);
+    else if (event.event === "blocked") this.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
+    this.toast(`${event.event}: ${event.message}`, EVENT_KINDS[event.event] ?? "info");
   }
 
   #set(name, text, state) {

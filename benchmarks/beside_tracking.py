@@ -2,7 +2,7 @@
 a thread of the tracking process or in another process.
 
 Why each session's map and loop closer live in processes of their own
-(server/sessions/mapping.py, server/sessions/loop_process.py): Open3D's
+(server/sessions/processes/mapper.py, server/sessions/processes/loop_process.py): Open3D's
 ``VoxelBlockGrid.integrate`` holds the GIL for its whole call, and a loop closer's look-ups are
 numpy, OpenCV and Open3D calls with much Python between them; in a thread of the tracking
 process either stalls tracking. Tracks the first frames of a sequence at 15 fps (sleeping out
@@ -45,7 +45,7 @@ from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.loops import LoopCloser  # noqa: E402
 from server.registration.place import describe_place  # noqa: E402
 from server.registration.preprocess import clean_depth, to_grey  # noqa: E402
-from server.sessions.priority import (  # noqa: E402
+from server.sessions.processes.priority import (  # noqa: E402
     LOOPS_NICE,
     MAPPING_NICE,
     lower_this_threads_priority,

@@ -1,7 +1,8 @@
-"""Online loop closure's costs (server/sessions/loop_closing.py, server/registration/loops.py):
-what a live session's loop thread spends per keyframe (its cloud, odometry edge, place lookup
-and verification), per pose-graph optimisation (over the real keyframes, and over a few hundred),
-and what its mapper spends re-fusing N keyframes from their files after a loop.
+"""Online loop closure's costs (server/sessions/runtime/loop_closing.py,
+server/registration/loops.py): what a live session's loop thread spends per keyframe (its cloud,
+odometry edge, place lookup and verification), per pose-graph optimisation (over the real keyframes,
+and over a few hundred), and what its mapper spends re-fusing N keyframes from their files after a
+loop.
 
 A sequence is played forward then back (server/datasets/there_and_back.py), tracked offline as
 a live session tracks it, its keyframes written as a session's room writes them; then the loop
@@ -46,7 +47,7 @@ from server.registration.config import RegistrationConfig  # noqa: E402
 from server.registration.loops import LoopCloser  # noqa: E402
 from server.registration.preprocess import clean_depth  # noqa: E402
 from server.rooms.room import room_keyframe, write_keyframe  # noqa: E402
-from server.sessions.mapping import Mapper  # noqa: E402
+from server.sessions.processes.mapper import Mapper  # noqa: E402
 
 
 def main() -> None:

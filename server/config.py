@@ -88,7 +88,7 @@ class ServerConfig(BaseModel):
     # mapping thread) and leaves a room when it closes; false: no rooms, no such work.
     save_rooms: bool = True
     drone_state_hz: float = Field(default=20.0, gt=0, le=60)  # drone_state messages per second
-    # Flight recordings (server/sessions/flight_log.py): the longest stretch of one flight kept,
+    # Flight recordings (server/sessions/flight_store.py): the longest stretch of one flight kept,
     # seconds (beyond it the flight is marked truncated), and the newest flights a session keeps.
     flight_max_s: float = Field(default=600.0, gt=0, le=3600)
     flights_kept: int = Field(default=20, ge=1, le=1000)
@@ -113,7 +113,7 @@ class ServerConfig(BaseModel):
     # Run each session as a Ray actor on this cluster instead of a local worker process:
     # "auto" (the cluster this machine is part of), "ray://head:10001" (Ray Client), "host:6379",
     # or "local" (start a local instance). None: local processes, Ray not imported. Needs the
-    # [ray] extra; see server/sessions/ray_workers.py and docs/SCALING.md.
+    # [ray] extra; see server/sessions/processes/ray_workers.py and docs/SCALING.md.
     ray: str | None = None
 
     @field_validator("data_dir")

@@ -1,5 +1,5 @@
-"""One frame's step, the same offline (``track``: server/pipeline.py) and live (a session's
-tracking thread: server/sessions/tracking.py), so that both register, key and fuse frames alike.
+"""One frame's step, the same offline (``track``: server/pipeline.py) and live (a session's tracking
+thread: server/sessions/runtime/tracking.py), so that both register, key and fuse frames alike.
 
 1. ``prepare``: depth resampled to the camera's size, colour registered to depth.
 2. ``track``: the pose (``Tracker.track``); the caller reports it at once.

@@ -3,9 +3,9 @@
 Two causes made a long-running server grow (``benchmarks/soak.py``: +488 MB/min with 2 phones and
 a new session every minute, although every session was closed on time):
 
-- A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer
-  to one another, so reference counting never frees them. Sessions now run in worker processes
-  of their own (``server/sessions/worker.py``): a closed session's memory leaves with its
+- A closed session's objects (its threads' targets, the drone's callbacks, the simulator) refer to
+  one another, so reference counting never frees them. Sessions now run in worker processes of their
+  own (``server/sessions/processes/session_process.py``): a closed session's memory leaves with its
   process, whatever cycles it held.
 - Each session's tracking, mapping and flight threads free tens of MB of images, point clouds and
   TSDF blocks a second, and glibc's malloc keeps a fragmented per-thread arena's pages: with the

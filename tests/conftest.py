@@ -53,6 +53,81 @@ def pytest_make_collect_report(collector):
     _fail_skip_in_ci(outcome.get_result())
 
 
+# ---- tiers --------------------------------------------------------------------------------------
+# Every test is in one tier, by what it needs; `pytest -m unit` (or server, browser, packaging)
+# runs one, `pytest -m fast` the unit tests that take a second or two each (under two minutes in
+# all on a 2-core machine), plain `pytest` everything:
+#   browser    a real Chromium (the chromium / open_page fixtures)
+#   server     a real server or session process (live_server, or a test that starts one)
+#   packaging  builds and installs the wheel, or checks the deployment files
+#   unit       the rest: numerical stages, formats, the protocol, on slices of real data
+# A unit module in SLOW_UNIT_MODULES tracks or fuses whole sequences: unit, not fast.
+_BROWSER_FIXTURES = {"chromium", "open_page"}
+_PACKAGING_MODULES = {"test_packaging", "test_deployment"}
+# Modules whose tests start a server, a session's worker, mapper or loop process, Ray, or the
+# command line in a subprocess, through their own helpers (a fixture whose name says "server"
+# is caught without being listed).
+SERVER_MODULES = {
+    "test_bad_input",
+    "test_cli",
+    "test_failures",
+    "test_faults",
+    "test_iphone_track",
+    "test_loadtest",
+    "test_memory",
+    "test_online_loops",
+    "test_ray",
+    "test_replay",
+    "test_session_worker",
+    "test_spec_client",
+}
+SLOW_UNIT_MODULES = {
+    "test_tracker_prior",
+    "test_tracker_phases",
+    "test_relocalise",
+    "test_loops",
+    "test_rooms",
+    "test_iphone_datasets",
+    "test_overlap",
+    "test_verify",
+    "test_ground_truth_check",
+    "test_webxr_live",
+}
+
+
+def tier_of(item) -> str:
+    """The tier a collected test belongs to (see above)."""
+    module = item.module.__name__.rpartition(".")[2]
+    fixtures = set(getattr(item, "fixturenames", ()))
+    if fixtures & _BROWSER_FIXTURES:
+        return "browser"
+    if module in _PACKAGING_MODULES:
+        return "packaging"
+    if module in SERVER_MODULES or any("server" in name for name in fixtures):
+        return "server"
+    return "unit"
+
+
+def pytest_configure(config):
+    for name, what in (
+        ("unit", "numerical stages, formats and the protocol, in this process"),
+        ("fast", "the unit tests that take a second or two (under two minutes in all)"),
+        ("server", "a real server or session process on loopback"),
+        ("browser", "a real Chromium driving the page"),
+        ("packaging", "the wheel and the deployment files"),
+    ):
+        config.addinivalue_line("markers", f"{name}: {what}")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        tier = tier_of(item)
+        item.add_marker(getattr(pytest.mark, tier))
+        module = item.module.__name__.rpartition(".")[2]
+        if tier == "unit" and module not in SLOW_UNIT_MODULES:
+            item.add_marker(pytest.mark.fast)
+
+
 def auth(token: str) -> dict:
     """The header that opens a session's REST resources."""
     return {"Authorization": f"Bearer {token}"}

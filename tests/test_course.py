@@ -1,8 +1,8 @@
 """Courses (server.simulation.course): the judge (gates passed, missed, the wrong way, score),
-generation in the demo room (clearance, seen space only, reachable in order, reproducible, a
-clear refusal when the room is too small) and the autopilot flying a course without collision;
-then the session's side (server.sessions.course through Flight): course messages, gate events,
-the best list on disk."""
+generation in the demo room (clearance, seen space only, reachable in order, reproducible, a clear
+refusal when the room is too small) and the autopilot flying a course without collision; then the
+session's side (server.sessions.runtime.course_control through Flight): course messages, gate
+events, the best list on disk."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ import pytest
 from server import protocol as proto
 from server.datasets.demo import DemoSpec, _room_boxes
 from server.geometry import Intrinsics
-from server.sessions.course import BEST_KEPT, read_best
 from server.sessions.errors import CommandRefused
-from server.sessions.flight import Flight
+from server.sessions.runtime.course_control import BEST_KEPT, read_best
+from server.sessions.runtime.flight import Flight
 from server.sessions.updates import DroneNotice
 from server.simulation.config import SimulationConfig
 from server.simulation.course import (

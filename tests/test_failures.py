@@ -1,7 +1,7 @@
-"""Failures that show (server/sessions/failures.py, faults.py): each is injected, and the test
-checks that it is counted (status and every pose), said on the wire, and that the session
-either goes on or ends cleanly (saved, with its documented close). The worker and socket deaths
-of whole servers are in test_faults.py."""
+"""Failures that show (server/sessions/failures.py, runtime/faults.py): each is injected, and the
+test checks that it is counted (status and every pose), said on the wire, and that the session
+either goes on or ends cleanly (saved, with its documented close). The worker and socket deaths of
+whole servers are in test_faults.py."""
 
 from __future__ import annotations
 
@@ -20,10 +20,10 @@ from server.evaluation.trajectory import read_tum
 from server.geometry import Intrinsics
 from server.sessions import DroneNotice, DroneUpdate, SessionError, SessionFailed
 from server.sessions.errors import CommandRefused
-from server.sessions.faults import inject
-from server.sessions.flight import Flight
-from server.sessions.fusion import FuseJob
-from server.sessions.session import Session
+from server.sessions.runtime.faults import inject
+from server.sessions.runtime.flight import Flight
+from server.sessions.runtime.fusion import FuseJob
+from server.sessions.runtime.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, PoseUpdate
 from server.simulation import scenes
@@ -139,7 +139,7 @@ def test_a_killed_mapping_process_ends_the_session_saved_with_every_pose(tmp_pat
     is told (SessionFailed, saved), and nothing blocks."""
     import os
 
-    from server.sessions.manager import SessionManager
+    from server.sessions.web.manager import SessionManager
 
     manager = SessionManager(SessionStore(tmp_path / "data"))
     try:

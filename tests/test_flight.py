@@ -1,4 +1,5 @@
-"""The session's drone (server.sessions.flight): frames, tapped pixels, commands, spawning."""
+"""The session's drone (server.sessions.runtime.flight): frames, tapped pixels, commands,
+spawning."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import pytest
 
 from server.geometry import Intrinsics, exp_se3
 from server.sessions.errors import CommandRefused
-from server.sessions.flight import Flight
-from server.sessions.flight_view import flight_frame
+from server.sessions.runtime.flight import Flight
+from server.sessions.runtime.flight_view import flight_frame
 from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation import scenes
 from server.simulation.config import SimulationConfig

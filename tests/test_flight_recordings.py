@@ -18,7 +18,7 @@ from test_openapi import strictly
 from server import protocol as proto
 from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
-from server.sessions.flight_log import FlightLog, read_flight, read_index
+from server.sessions.flight_store import FlightLog, read_flight, read_index
 from server.sessions.store import SessionStore
 from server.simulation.flight_recording import STATE_COLUMNS, FlightRecorder, states_csv
 from server.transport.schemas import FlightList, FlightRecordingBody, FlightSummary

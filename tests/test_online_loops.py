@@ -1,4 +1,4 @@
-"""Online loop closure in live sessions (server/sessions/loop_closing.py): a real server on
+"""Online loop closure in live sessions (server/sessions/runtime/loop_closing.py): a real server on
 loopback, a real WebSocket client replaying a sequence played forward then back; the loop back
 to the start is found while the session runs, the client gets map_corrected and the rebuilt
 map's preview (reset), the corrected keyframes are no further from the ground truth than the
@@ -272,7 +272,7 @@ def test_a_rebuild_replaces_the_map_with_the_keyframes_at_their_corrected_poses(
     frame fused during the rebuild goes into both), swapped in at once with a fresh preview."""
     from server.mapping.tsdf import MapError
     from server.rooms.room import room_keyframe, write_keyframe
-    from server.sessions.mapping import Mapper
+    from server.sessions.processes.mapper import Mapper
 
     ds = open_dataset(shared_data / "synthetic_room0")
     K, gt = ds.intrinsics, ds.ground_truth
@@ -409,7 +409,7 @@ def test_a_course_route_in_flight_is_not_followed_into_a_corrected_world():
 
 def test_a_viewers_map_backlog_restarts_at_a_rebuilt_maps_preview():
     from server.sessions.updates import MapCorrected, MapUpdate
-    from server.sessions.viewers import Viewers, ViewerSocket
+    from server.sessions.web.viewers import Viewers, ViewerSocket
 
     viewers = Viewers()
     got: list = []
@@ -436,9 +436,9 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
     from server.config import Config
     from server.geometry import Intrinsics
     from server.sessions.config import SessionConfig
-    from server.sessions.faults import inject
-    from server.sessions.loop_closing import Correction
-    from server.sessions.session import Session
+    from server.sessions.runtime.faults import inject
+    from server.sessions.runtime.loop_closing import Correction
+    from server.sessions.runtime.session import Session
     from server.sessions.store import SessionStore
     from server.sessions.updates import FrameData, MapCorrected, MapUpdate, PoseUpdate
     from tests.conftest import Updates
@@ -493,7 +493,7 @@ def test_loop_closure_runs_only_where_configured_with_rooms_kept_and_not_in_a_ro
     keep the room's world)."""
     from server.config import Config
     from server.sessions.config import SessionConfig
-    from server.sessions.session import Session
+    from server.sessions.runtime.session import Session
     from server.sessions.store import SessionStore
 
     store = SessionStore(tmp_path / "data")
@@ -534,7 +534,7 @@ def _feed(loops, frames: dict, count: int, seed: int = 7) -> None:
     from the previous keyframe's pose carried into the latest world (the graph's own estimate
     once a correction named it), with an odometry error (0.2 deg, 3 mm) on the true motion."""
     from server.geometry import invert, orthonormalize
-    from server.sessions.loop_closing import LoopKeyframe
+    from server.sessions.runtime.loop_closing import LoopKeyframe
 
     views = sorted(frames)
     order = ((views + views[-2:0:-1]) * 3)[:count]
@@ -567,7 +567,7 @@ def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_th
     rotations' departure from it: the corrections grew from millimetres to metres within ~90
     keyframes, and live sessions lost tracking for good."""
     from server.geometry import rotation_angle_deg
-    from server.sessions.loop_closing import LoopClosing
+    from server.sessions.runtime.loop_closing import LoopClosing
 
     cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
     K, frames = _views(shared_data, cfg)
@@ -589,10 +589,10 @@ def test_corrections_stay_rigid_and_small_when_every_keyframe_is_chained_from_th
 
 
 def _loop_process():
-    """A loop process (server/sessions/loop_process.py) from the workers' forkserver, as a
+    """A loop process (server/sessions/processes/loop_process.py) from the workers' forkserver, as a
     worker process's session has one: (the process, this end of its pipe)."""
-    from server.sessions.loop_process import loops_main
-    from server.sessions.worker import _context
+    from server.sessions.processes.loop_process import loops_main
+    from server.sessions.processes.session_process import _context
 
     ctx = _context()
     here, there = ctx.Pipe(duplex=True)
@@ -606,7 +606,7 @@ def test_the_loop_process_closes_the_same_loops_as_the_loop_thread(shared_data):
     """The loop closer in a process of its own (a live session in a worker process has it
     there, off the tracker's GIL) gives the corrections it gives in the loop thread, counts
     the process's CPU, and the process ends when the session's loop thread stops."""
-    from server.sessions.loop_closing import LoopClosing
+    from server.sessions.runtime.loop_closing import LoopClosing
 
     cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
     K, frames = _views(shared_data, cfg)
@@ -649,8 +649,8 @@ def test_a_lost_loop_process_fails_each_keyframe_after_it_counted_and_the_thread
     import os
     import signal
 
-    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
-    from server.sessions.loop_process import LoopProcessError
+    from server.sessions.processes.loop_process import LoopProcessError
+    from server.sessions.runtime.loop_closing import LoopClosing, LoopKeyframe
 
     cfg = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 4})
     K, frames = _views(shared_data, cfg)
@@ -686,8 +686,8 @@ def test_a_loop_process_gone_before_the_first_keyframe_fails_that_keyframe_not_t
     import os
     import signal
 
-    from server.sessions.loop_closing import LoopClosing, LoopKeyframe
-    from server.sessions.loop_process import LoopProcessError
+    from server.sessions.processes.loop_process import LoopProcessError
+    from server.sessions.runtime.loop_closing import LoopClosing, LoopKeyframe
 
     cfg = RegistrationConfig().with_overrides(loops={"live": True})
     K, frames = _views(shared_data, cfg)

@@ -7,12 +7,13 @@ import asyncio
 
 import numpy as np
 
+from server.registration.results import TrackingState
 from server.sessions import DroneUpdate, MapCorrected, MapUpdate, PoseUpdate, SessionFailed
 from server.transport.outbox import Outbox, must_deliver
 
 
 def pose(seq: int) -> PoseUpdate:
-    return PoseUpdate(seq, seq / 15, np.eye(4), "ok", 100, False, {}, 0, seq)
+    return PoseUpdate(seq, seq / 15, np.eye(4), TrackingState.OK, 100, False, {}, 0, seq)
 
 
 def chunk(seq: int, reset: bool = False) -> MapUpdate:

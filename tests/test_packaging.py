@@ -322,7 +322,7 @@ def test_serve_from_the_wheel_serves_the_page_its_modules_and_the_protocol(insta
             served[url] = body
             for match in IMPORT.finditer(body.decode()):
                 todo.append(_resolve(match.group(1) or match.group(2), url, page.import_map))
-        assert "/app/js/protocol.js" in served  # one of the page's own modules
+        assert "/app/js/network/protocol.js" in served  # one of the page's own modules
         assert "/vendor/three/build/three.module.js" in served
         assert "/vendor/@msgpack/msgpack/dist.esm/index.mjs" in served
 

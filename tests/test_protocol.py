@@ -151,6 +151,27 @@ def test_a_rebuilt_maps_preview_starts_with_a_reset_chunk_even_when_empty():
     assert plain == []
 
 
+def test_the_updates_enums_are_the_protocols_and_go_out_as_their_values():
+    """PoseUpdate.state is a TrackingState and DroneNotice.event a DroneEventKind: each enum
+    holds exactly the protocol's values, and an update sends the value, not the member's name."""
+    from server.registration.results import TrackingState
+    from server.sessions.updates import DroneNotice, PoseUpdate
+    from server.simulation.drone_types import DroneEventKind
+    from server.transport.websocket import update_messages
+
+    def enum(message: str, field: str) -> set[str]:
+        return next(set(f["enum"]) for f in P.MESSAGES[message]["fields"] if f["name"] == field)
+
+    assert {s.value for s in TrackingState} == enum("pose", "state")
+    assert {k.value for k in DroneEventKind} == enum("drone_event", "event")
+    pose = PoseUpdate(3, 0.2, np.eye(4), TrackingState.WEAK, 40, False, {}, 0, 4)
+    notice = DroneNotice(DroneEventKind.GATE_PASSED, 1.5, np.zeros(3), "gate 1 of 5", None)
+    for update, field, value in ((pose, "state", "weak"), (notice, "event", "gate_passed")):
+        [message], _ = update_messages(update, 2, 0)
+        sent = P.decode(P.encode(message))
+        assert type(sent[field]) is str and sent[field] == value
+
+
 @pytest.mark.parametrize("depth_format", ["png", "zlib"])
 def test_real_frame_round_trip_is_exact_for_depth(room_frame, hello, depth_format):
     colour, depth = room_frame
@@ -506,3 +527,13 @@ def test_a_refused_command_names_its_id_when_it_can_be_read(command, named):
     error = refused.value.to_message()
     assert error.get("command_id") == named, error
     P.validate(error, P.SERVER_TO_CLIENT)  # what the client gets is itself valid
+
+
+def test_every_close_code_says_whether_a_client_reconnects():
+    """protocol.json tells clients (the page reads it) after which close codes to reconnect:
+    never (final: a new session or a fix is needed), when active (on the next frame or command),
+    when asked (the user's own action) or retry (with back-off)."""
+    ways = {c["name"]: c.get("reconnect") for c in P.SPEC["close_codes"]}
+    assert set(ways.values()) <= {"never", "when_active", "when_asked", "retry"}, ways
+    assert ways["version_mismatch"] == ways["unauthorized"] == ways["session_failed"] == "never"
+    assert ways["idle_timeout"] == "when_active" and ways["session_taken_over"] == "when_asked"

@@ -24,10 +24,10 @@ from pydantic import ValidationError
 from server import protocol as P
 from server.client.connection import Socket
 from server.config import Config, ServerConfig
-from server.sessions import manager as manager_module
 from server.sessions.errors import SessionError
-from server.sessions.manager import SessionManager
 from server.sessions.store import SessionStore, StoreError, hash_token
+from server.sessions.web import manager as manager_module
+from server.sessions.web.manager import SessionManager
 from server.transport.app import RedactTokens
 from server.transport.deps import RateLimiter
 

@@ -1,7 +1,8 @@
-"""Sessions in worker processes (server/sessions/worker.py, host.py, live.py, manager.py): what
-crosses the pipe, errors as their own types, thread pools shared among sessions, and a frame the
-tracker fails on answered, not lost. The end-to-end paths (crash, takeover, SIGTERM) are in
-test_faults.py against real servers; failures counted and a dead map in test_failures.py."""
+"""Sessions in worker processes (server/sessions/processes/session_process.py,
+runtime/host.py, web/live.py, web/manager.py): what crosses the pipe, errors as their own types,
+thread pools shared among sessions, and a frame the tracker fails on answered, not lost. The
+end-to-end paths (crash, takeover, SIGTERM) are in test_faults.py against real servers; failures
+counted and a dead map in test_failures.py."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from conftest import Updates
 from server import protocol as P
 from server.geometry import Intrinsics
 from server.sessions import CommandRefused, FrameRefused, PoseUpdate, SessionError
-from server.sessions.manager import SessionManager
-from server.sessions.session import Session
+from server.sessions.runtime.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData
+from server.sessions.web.manager import SessionManager
 
 
 @pytest.fixture

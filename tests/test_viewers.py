@@ -195,14 +195,16 @@ def test_a_viewer_watches_live_cannot_command_and_is_closed_when_revoked(live_se
 def test_a_slow_viewers_queue_keeps_the_newest_state_and_drops_its_oldest_updates():
     """What a viewer that stopped reading holds: at most OUTBOX items, the newest pose and
     drone state in place of older ones, the oldest events and chunks dropped (counted)."""
+    from server.registration.results import TrackingState
     from server.sessions import DroneNotice, DroneUpdate, PoseUpdate
+    from server.simulation.drone_types import DroneEventKind
     from server.transport.viewer_socket import OUTBOX, viewer_outbox
 
     def state(t: float) -> DroneUpdate:
         return DroneUpdate(t, np.eye(4), None, None, np.zeros(3), "hover", 1.0, None, None, None)
 
     def pose(seq: int) -> PoseUpdate:
-        return PoseUpdate(seq, seq / 15, np.eye(4), "ok", 100, False, {}, 0, seq)
+        return PoseUpdate(seq, seq / 15, np.eye(4), TrackingState.OK, 100, False, {}, 0, seq)
 
     async def run() -> list:
         outbox = viewer_outbox()
@@ -211,7 +213,7 @@ def test_a_slow_viewers_queue_keeps_the_newest_state_and_drops_its_oldest_update
             if k % 2 == 0:
                 outbox.put(pose(k // 2))
             if k % 10 == 0:
-                outbox.put(DroneNotice("replanned", k * 0.05, np.zeros(3), "", None))
+                outbox.put(DroneNotice(DroneEventKind.REPLANNED, k * 0.05, np.zeros(3), "", None))
         assert len(outbox.items) <= OUTBOX and outbox.dropped > 0
         return [await outbox.get() for _ in range(len(outbox.items))]
 

@@ -64,8 +64,9 @@ class MappingConfig:
     # costs ~0.3 s of CPU on a room (extraction + distance transform), so 1 s would take a third
     # of a core per session.
     flight_map_interval_s: float = 3.0
-    # After a loop closure the map is re-fused from the keyframes (server/sessions/session.py)
-    # this many at a time between two fusions (30-50 ms each): new frames wait at most that.
+    # After a loop closure the map is re-fused from the keyframes
+    # (server/sessions/runtime/session.py) this many at a time between two fusions (30-50 ms each):
+    # new frames wait at most that.
     rebuild_keyframes_per_step: int = 2
     # A loop correction re-fuses the map only once it moves some keyframe by more than this
     # since the map was last fused (metres, at a point 2 m in front of the keyframe's camera:

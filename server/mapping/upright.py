@@ -1,10 +1,10 @@
 """Which way is up in a map: the rotation from the world frame into an upright frame.
 
-The world frame is that of the poses (``T_world_camera``, metres); a live session's is its
-first camera's (x right, y down, z forward), an offline run's may be a ground truth's. The
-upright frame has the same origin, z up against gravity and x the first camera's optical axis
-made level (so y is to its left): the drone's flight frame (server/sessions/flight.py), and the
-convention of Blender, MeshLab and ROS. ``R_upright_world`` (3x3) maps world coordinates into it.
+The world frame is that of the poses (``T_world_camera``, metres); a live session's is its first
+camera's (x right, y down, z forward), an offline run's may be a ground truth's. The upright frame
+has the same origin, z up against gravity and x the first camera's optical axis made level (so y is
+to its left): the drone's flight frame (server/sessions/runtime/flight.py), and the convention of
+Blender, MeshLab and ROS. ``R_upright_world`` (3x3) maps world coordinates into it.
 
 Up comes from the best source there is (``UpSource``): gravity, when a phone measured it; else
 the map's horizontal surfaces (floors, desk and table tops, whose normals dominate those near the

@@ -270,15 +270,15 @@ class RelocaliseConfig:
 @dataclass(frozen=True)
 class LoopConfig:
     """Loop closure over keyframes (server/registration/loops.py). ``enabled``: offline, in
-    ``track`` (keyframes looked up behind tracking, the graph optimised at the end), on by
-    default: on 7scenes_a it costs ``track`` 1-3 s of its 23-25 s and takes the ATE from 2.71 to
-    2.51 cm (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live
-    session that keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a
-    session continuing in a saved room has none: server/sessions/loop_closing.py says why); off
-    by default: on 2 cores it costs each phone's session 14-36 ms more server CPU per frame (a
-    third of it re-fusing the map, a seventh the look-ups), and two phones at 15 fps then miss
-    capacity's target (10 % of frames without a pose against 3 % with it off;
-    ``benchmarks/live_loops.py``, benchmarks/README.md, "Online, in live sessions")."""
+    ``track`` (keyframes looked up behind tracking, the graph optimised at the end), on by default:
+    on 7scenes_a it costs ``track`` 1-3 s of its 23-25 s and takes the ATE from 2.71 to 2.51 cm
+    (benchmarks/README.md, "Loop closure"). ``live``: in the background of every live session that
+    keeps its room's keyframes (``server.save_rooms``) and starts an empty world (a session
+    continuing in a saved room has none: server/sessions/runtime/loop_closing.py says why); off by
+    default: on 2 cores it costs each phone's session 14-36 ms more server CPU per frame (a third of
+    it re-fusing the map, a seventh the look-ups), and two phones at 15 fps then miss capacity's
+    target (10 % of frames without a pose against 3 % with it off; ``benchmarks/live_loops.py``,
+    benchmarks/README.md, "Online, in live sessions")."""
 
     enabled: bool = True
     live: bool = False

@@ -29,7 +29,7 @@ class SessionConfig:
         """Online loop closure runs in a session of this configuration: configured
         (registration.loops.live), the room's keyframes kept on disk (the rebuild reads them),
         and not continuing in a saved room (its keyframes would have to stay fixed:
-        server/sessions/loop_closing.py)."""
+        server/sessions/runtime/loop_closing.py)."""
         return self.registration.loops.live and self.save_room and not in_room
 
     def with_loop_closure(self, live: bool | None) -> SessionConfig:

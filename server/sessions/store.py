@@ -1,9 +1,9 @@
 """Session files under the data directory, every write atomic (temp file + rename).
 
 Layout: ``<data_dir>/sessions/<id>/`` with ``meta.json``, ``trajectory.tum``, ``map.npz`` (the
-TSDF), ``map.ply`` (its surface points, ready to download), ``course_best.json`` (the drone's
-best course runs, written by the session as runs finish: ``server/sessions/course.py``) and
-``flights/`` (the drone's flight recordings, written by ``server/sessions/flight_log.py``).
+TSDF), ``map.ply`` (its surface points, ready to download), ``course_best.json`` (the drone's best
+course runs, written by the session as runs finish: ``server/sessions/runtime/course_control.py``)
+and ``flights/`` (the drone's flight recordings, written by ``server/sessions/flight_store.py``).
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ class SessionStore:
             for p in self.folder(session_id).iterdir()
             if p.is_file() and p.name.startswith(prefixes)
         ]
-        flights = self.folder(session_id) / "flights"  # server/sessions/flight_log.py
+        flights = self.folder(session_id) / "flights"  # server/sessions/flight_store.py
         if flights.is_dir():  # its writes' temporary files start with a dot too
             partial += [p for p in flights.iterdir() if p.is_file() and p.name.startswith(".")]
         for path in partial:

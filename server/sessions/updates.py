@@ -8,6 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from server.registration.results import TrackingState
+from server.simulation.drone_types import DroneEventKind
+
 
 @dataclass
 class DroneUpdate:
@@ -32,7 +35,7 @@ class DroneUpdate:
 class DroneNotice:
     """Something that happened to the drone (collision, arrival, ...), world frame."""
 
-    event: str
+    event: DroneEventKind
     timestamp: float
     position: np.ndarray
     message: str
@@ -62,7 +65,7 @@ class PoseUpdate:
     seq: int
     timestamp: float
     T_world_camera: np.ndarray  # 4x4, metres
-    state: str
+    state: TrackingState
     inliers: int
     keyframe: bool
     timings_ms: dict[str, float]
@@ -123,7 +126,7 @@ class SessionFailed:
 
 
 # What a session hands its client, from its worker threads; a dict is a protocol message built
-# already (a course's, server/sessions/course.py), sent as it is.
+# already (a course's, server/sessions/runtime/course_control.py), sent as it is.
 Update = (
     PoseUpdate
     | MapUpdate

@@ -12,8 +12,8 @@ physics steps (the remainder carries over to the next call).
 - contact.py checks every physics step against the map and judges a touch (bump or crash);
 - manual_flight.py and pilot_modes.py fly the sticks, control.py the setpoints.
 
-Not thread-safe: one caller at a time. ``server.sessions.flight.Flight`` calls it only under its
-lock, the one lock over the simulator and its map (commands come from one thread, ``advance``
+Not thread-safe: one caller at a time. ``server.sessions.runtime.flight.Flight`` calls it only under
+its lock, the one lock over the simulator and its map (commands come from one thread, ``advance``
 from another).
 """
 

@@ -30,7 +30,7 @@ class DroneMode(str, Enum):
 
 
 class DroneEventKind(str, Enum):
-    """Kinds of drone_event."""
+    """Kinds of drone_event (shared/protocol.json's enum for its ``event``)."""
 
     SPAWNED = "spawned"
     COLLISION = "collision"
@@ -39,6 +39,12 @@ class DroneEventKind(str, Enum):
     BLOCKED = "blocked"
     LANDED = "landed"
     CRASH = "crash"
+    # Said by the session around the simulator, never emitted by it: the flight's fault and
+    # the running course's judgement (course_judge.GateEvent.kind).
+    FAULTED = "faulted"
+    GATE_PASSED = "gate_passed"
+    GATE_MISSED = "gate_missed"
+    COURSE_FINISHED = "course_finished"
 
 
 class DroneCommandError(DroneSimError):

@@ -26,8 +26,8 @@ from server.mapping.tsdf import MapError
 from server.memory import this_process_allocator
 from server.sessions import SessionError, SessionManager
 from server.sessions.config import SessionConfig
+from server.sessions.processes.session_process import warm_up
 from server.sessions.store import SessionStore, StoreError
-from server.sessions.worker import warm_up
 from server.transport import (
     routes_client,
     routes_flights,
@@ -82,7 +82,7 @@ def create_app(config: Config | None = None) -> FastAPI:
     settings = config.server
     workers = None
     if settings.ray:  # sessions as Ray actors on a cluster (the optional extra [ray])
-        from server.sessions.ray_workers import RayWorkers
+        from server.sessions.processes.ray_workers import RayWorkers
 
         workers = RayWorkers(settings.ray)
     manager = SessionManager(

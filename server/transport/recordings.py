@@ -28,8 +28,8 @@ from server.datasets.archives import UnknownRecording, open_recording_archive
 from server.datasets.bounds import DecodeLimits
 from server.datasets.replay_export import export_replay
 from server.errors import DatasetError, DroneSimError
+from server.sessions.processes.session_process import process_context
 from server.sessions.store import hash_token
-from server.sessions.worker import process_context
 
 log = logging.getLogger(__name__)
 

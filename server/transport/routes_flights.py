@@ -1,7 +1,7 @@
 """REST API for a session's flight recordings: the list, one flight as JSON, its states as CSV
 and its path as a TUM trajectory.
 
-The worker saves each flight under the session's folder (``server/sessions/flight_log.py``);
+The worker saves each flight under the session's folder (``server/sessions/flight_store.py``);
 these routes read the files there, so a closed session's flights, and those of a session saved
 before a restart, download as a live one's do. The session's token opens them (401 / 404 as
 every session route).
@@ -15,7 +15,7 @@ from fastapi import APIRouter, Response
 from fastapi.responses import JSONResponse
 
 from server.sessions import SessionError
-from server.sessions.flight_log import FlightNotFound, read_flight, read_index
+from server.sessions.flight_store import FlightNotFound, read_flight, read_index
 from server.simulation.flight_recording import states_csv, states_tum
 from server.transport.deps import ManagerDep, SessionDep
 from server.transport.schemas import FlightList, FlightRecordingBody, error_response

@@ -22,7 +22,7 @@ from server.mapping.mesh_files import ply_bytes, read_ply, rotated, upright_glb
 from server.mapping.tsdf import MapError, TSDFMap
 from server.mapping.upright import upright_frame
 from server.sessions import LiveSession
-from server.sessions.course import BEST_FILE, read_best
+from server.sessions.runtime.course_control import BEST_FILE, read_best
 from server.transport.connections import end_connection
 from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
 from server.transport.schemas import (

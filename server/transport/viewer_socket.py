@@ -22,7 +22,7 @@ from server import protocol as proto
 from server.sessions import DroneUpdate, LiveSession, MapUpdate, PoseUpdate
 from server.sessions.failures import SessionLog
 from server.sessions.store import SESSION_ID
-from server.sessions.viewers import ViewerSocket, merged_map
+from server.sessions.web.viewers import ViewerSocket, merged_map
 from server.transport.outbox import Outbox
 from server.transport.websocket import _refuse, _send, update_messages
 

@@ -1,5 +1,5 @@
-"""What a session's Ray actor does (server/sessions/ray_workers.py ``SessionActor`` is its Ray
-shell): hosts one SessionHost, runs the ordered calls strictly by each front-end's numbering,
+"""What a session's Ray actor does (server/sessions/processes/ray_workers.py ``SessionActor`` is its
+Ray shell): hosts one SessionHost, runs the ordered calls strictly by each front-end's numbering,
 and keeps the updates for the owner's long-poll. No Ray here: Ray stays in ray_workers.py."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ class ActorHost:
 
     def __init__(self, args, owner: str) -> None:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-        from server.sessions.host import SessionHost
+        from server.sessions.runtime.host import SessionHost
 
         self._cond = threading.Condition()
         self._turn = threading.Lock()  # one ordered call at a time
@@ -55,7 +55,7 @@ class ActorHost:
 
     def ordered(self, owner: str, number: int, method: str, args: tuple):
         """The hello, frames, commands and the stop: run strictly in each front-end's order."""
-        from server.sessions.remote import as_remote
+        from server.sessions.processes.remote import as_remote
 
         with self._cond:
             deadline = time.monotonic() + 10.0
@@ -108,7 +108,7 @@ class ActorHost:
 
     def query(self, method: str, args: tuple):
         """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
-        from server.sessions.remote import as_remote
+        from server.sessions.processes.remote import as_remote
 
         try:
             value = getattr(self.host, method)(*args)

@@ -14,9 +14,9 @@ from collections.abc import Callable
 from typing import Any, Literal, Protocol, overload
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.session_process import WorkerLost
 from server.sessions.updates import FrameRefused, PoseUpdate, SessionFailed
-from server.sessions.viewers import Viewers
-from server.sessions.worker import WorkerLost
+from server.sessions.web.viewers import Viewers
 
 _RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)
 
@@ -32,8 +32,9 @@ class SessionTakenOver:
 
 
 class SessionWorker(Protocol):
-    """What a live session asks of its worker: ``server.sessions.worker.ProcessWorker``, or
-    ``server.sessions.ray_workers.RayWorker`` (the Ray actor's handle)."""
+    """What a live session asks of its worker:
+    ``server.sessions.processes.session_process.ProcessWorker``, or
+    ``server.sessions.processes.ray_workers.RayWorker`` (the Ray actor's handle)."""
 
     dropped: int  # frames dropped before the worker saw them
 

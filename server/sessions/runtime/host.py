@@ -1,10 +1,10 @@
 """A session's host: the side of a live session that runs in its worker (a process of its own,
 or a Ray actor), apart from the web process.
 
-The web process forwards what the client sent: the hello as a dict, frames as the bytes that
-arrived (decoded here, so image decoding never costs the event loop), pilot commands. The host
-answers calls with plain values and hands updates (poses, map points, drone states and events,
-refused frames) to ``publish``. Errors cross as ``RemoteError`` values (server/sessions/remote.py).
+The web process forwards what the client sent: the hello as a dict, frames as the bytes that arrived
+(decoded here, so image decoding never costs the event loop), pilot commands. The host answers calls
+with plain values and hands updates (poses, map points, drone states and events, refused frames) to
+``publish``. Errors cross as ``RemoteError`` values (server/sessions/processes/remote.py).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
 from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError
-from server.sessions.faults import inject
-from server.sessions.mapping import MapperClient
-from server.sessions.session import Session
+from server.sessions.processes.mapper import MapperClient
+from server.sessions.runtime.faults import inject
+from server.sessions.runtime.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, FrameRefused
 
@@ -57,7 +57,7 @@ class HostArgs:
     config: SessionConfig
     created_at: float
     threads: int  # native threads for this session's libraries
-    # Tests only: stage -> the calls that fail (server/sessions/faults.py); None in service.
+    # Tests only: stage -> the calls that fail (server/sessions/runtime/faults.py); None in service.
     faults: dict[str, list[int]] | None = None
     room_dir: str | None = None  # a saved room the session continues in (server/rooms/)
 

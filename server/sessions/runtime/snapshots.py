@@ -9,8 +9,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from server.mapping.tsdf import MapError
-from server.sessions.counts import SessionCounts
 from server.sessions.errors import SnapshotError
+from server.sessions.runtime.counts import SessionCounts
 from server.sessions.store import SessionStore
 
 

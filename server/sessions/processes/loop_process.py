@@ -9,7 +9,7 @@ with keyframes back to back (a scratch run) the tracker's mean went from 31 to 4
 the thread, and stayed at 32 ms beside the process.
 
 ``loops_main`` serves one ``LoopCloser`` over a pipe, a call at a time; ``LoopCloserClient``
-is the session's handle on it (``server/sessions/loop_closing.py``'s thread calls it as it
+is the session's handle on it (``server/sessions/runtime/loop_closing.py``'s thread calls it as it
 would the ``LoopCloser`` itself). The process ends when its pipe closes.
 """
 
@@ -21,15 +21,16 @@ import time
 
 import numpy as np
 
+from server.errors import DroneSimError
 from server.geometry import Intrinsics
 from server.geometry.arrays import Float32Array, FloatArray
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser, LoopEdge
 from server.registration.place import PlaceFeatures
-from server.sessions.priority import LOOPS_NICE, lower_this_threads_priority
+from server.sessions.processes.priority import LOOPS_NICE, lower_this_threads_priority
 
 
-class LoopProcessError(RuntimeError):
+class LoopProcessError(DroneSimError):
     """A call failed inside the loop process (the keyframe is left out; the process goes on),
     or the process is gone (every later call fails the same way)."""
 

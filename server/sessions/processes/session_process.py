@@ -37,7 +37,11 @@ log = logging.getLogger(__name__)
 
 _INLINE = {"configure", "frame", "command", "drain", "stop"}  # in order, on the main thread
 # Imported once in the forkserver, shared by every worker and mapper it forks.
-_PRELOAD = ["server.sessions.host", "server.sessions.mapping", "server.sessions.loop_process"]
+_PRELOAD = [
+    "server.sessions.runtime.host",
+    "server.sessions.processes.mapper",
+    "server.sessions.processes.loop_process",
+]
 
 
 class WorkerLost(SessionError):
@@ -60,9 +64,9 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from server.sessions.failures import SessionLog
-    from server.sessions.host import SessionHost
-    from server.sessions.mapping import MapperClient
-    from server.sessions.remote import as_remote
+    from server.sessions.processes.mapper import MapperClient
+    from server.sessions.processes.remote import as_remote
+    from server.sessions.runtime.host import SessionHost
 
     session_log = SessionLog(log, args.session_id)
 
@@ -144,14 +148,15 @@ class ProcessWorker:
         start_timeout_s: float = 60.0,
         max_waiting_frames: int = 4,
     ) -> None:
-        from server.sessions.loop_process import loops_main
-        from server.sessions.mapping import mapper_main
+        from server.sessions.processes.loop_process import loops_main
+        from server.sessions.processes.mapper import mapper_main
 
         ctx = _context()
         self._conn, child = ctx.Pipe(duplex=True)
         to_mapper, mapper_end = ctx.Pipe(duplex=True)
-        # The loop closer apart from tracking too: in the worker it would share the tracker's
-        # GIL (server/sessions/loop_process.py). Siblings, as a worker (a daemon) may not fork.
+        # The loop closer apart from tracking too: in the worker it would share the tracker's GIL
+        # (server/sessions/processes/loop_process.py). Siblings, as a worker (a daemon) may not
+        # fork.
         self.loops_process = None
         to_loops = loops_end = None
         if args.config.closes_loops(in_room=args.room_dir is not None):
@@ -163,7 +168,7 @@ class ProcessWorker:
                 args=(loops_end,),
             )
         # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
-        # call, which in one process would stall tracking (server/sessions/mapping.py).
+        # call, which in one process would stall tracking (server/sessions/processes/mapper.py).
         self.mapper_process = ctx.Process(
             target=mapper_main,
             daemon=True,
@@ -234,7 +239,7 @@ class ProcessWorker:
         return self._wait(future, timeout_s, method, call_id)
 
     def _wait(self, future: Future, timeout_s: float, method: str, call_id: int = 0):
-        from server.sessions.remote import raise_remote
+        from server.sessions.processes.remote import raise_remote
 
         try:
             ok, value = future.result(timeout_s)

@@ -1,4 +1,4 @@
-"""The map's rebuilds after a loop closure (server/sessions/loop_closing.py), on the mapping
+"""The map's rebuilds after a loop closure (server/sessions/runtime/loop_closing.py), on the mapping
 thread: the map re-fused from every keyframe of the session's room at its corrected pose, a few
 keyframes at a time between fusions (docs/ARCHITECTURE.md, step 10)."""
 
@@ -14,10 +14,10 @@ import numpy as np
 
 from server.geometry import Intrinsics
 from server.mapping.config import MappingConfig
-from server.sessions.counts import SessionCounts
-from server.sessions.loop_closing import Correction, LoopClosing, pose_move_m
-from server.sessions.mapping import Mapper, MapperClient, MapperLost, Rebuilt
-from server.sessions.room_writer import RoomWriter
+from server.sessions.processes.mapper import Mapper, MapperClient, MapperLost, Rebuilt
+from server.sessions.runtime.counts import SessionCounts
+from server.sessions.runtime.loop_closing import Correction, LoopClosing, pose_move_m
+from server.sessions.runtime.room_writer import RoomWriter
 
 # (the rebuilt map, T_map: what moves the old map's world into the new one, the last seq)
 OnRebuilt = Callable[[Rebuilt, np.ndarray, int], None]

@@ -1,9 +1,9 @@
 """The pilot's drone commands, given in the client's world, carried out by the simulator in the
 flight frame; its refusals are told back in the client's world (``CommandRefused``).
 
-The caller holds the flight's lock (server/sessions/flight.py) and has checked what a command
-needs of the flight (a drone that spawned, no fault); a tapped pixel arrives as the world point
-it shows (camera_frames.py).
+The caller holds the flight's lock (server/sessions/runtime/flight.py) and has checked what a
+command needs of the flight (a drone that spawned, no fault); a tapped pixel arrives as the world
+point it shows (camera_frames.py).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from server.sessions.errors import CommandRefused
-from server.sessions.flight_view import FlightView
+from server.sessions.runtime.flight_view import FlightView
 from server.simulation.drone import DroneSimulator
 from server.simulation.drone_types import DroneCommandError
 from server.simulation.route import PlanningError

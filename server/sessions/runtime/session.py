@@ -1,12 +1,12 @@
 """One live session: the orchestrator of its parts, which run on threads of their own.
 
-- tracking (server/sessions/tracking.py): the newest frame through the frame step
+- tracking (server/sessions/runtime/tracking.py): the newest frame through the frame step
   (server/frame_step.py), its pose published at once;
-- fusion (server/sessions/fusion.py): the mapping thread, behind it: the map, its preview, the
-  drone's map, the room's keyframes (server/sessions/room_writer.py), the periodic snapshots,
-  and, with online loop closure (server/sessions/loop_closing.py), the map's rebuilds
-  (server/sessions/rebuilds.py);
-- the drone (server/sessions/flight.py), on its own thread.
+- fusion (server/sessions/runtime/fusion.py): the mapping thread, behind it: the map, its preview,
+  the drone's map, the room's keyframes (server/sessions/runtime/room_writer.py), the periodic
+  snapshots, and, with online loop closure (server/sessions/runtime/loop_closing.py), the map's
+  rebuilds (server/sessions/runtime/rebuilds.py);
+- the drone (server/sessions/runtime/flight.py), on its own thread.
 
 The parts are made with the first hello, when the camera is known; this object wires them, and
 answers for the session as a whole: status, snapshots, the end.
@@ -28,21 +28,21 @@ from server.registration import Tracker
 from server.rooms.continuation import RoomTracker
 from server.rooms.room import MAP_FILE, Room, RoomError, load_room
 from server.sessions.config import SessionConfig
-from server.sessions.counts import SessionCounts
-from server.sessions.drone import course_best_path, inherit_course_best, make_flight
 from server.sessions.errors import CommandRefused, SessionError
 from server.sessions.failures import SessionLog
-from server.sessions.flight import Flight
-from server.sessions.flight_log import FlightLog
-from server.sessions.fusion import SessionFusion
-from server.sessions.loop_closing import Correction, LoopClosing
-from server.sessions.mapping import Mapper, MapperClient, MapperLost
-from server.sessions.rebuilds import MapRebuilds, RebuildFigures
-from server.sessions.room_writer import ROOM_FOLDER as ROOM_FOLDER
-from server.sessions.room_writer import RoomWriter
-from server.sessions.snapshots import Snapshots
+from server.sessions.flight_store import FlightLog
+from server.sessions.processes.mapper import Mapper, MapperClient, MapperLost
+from server.sessions.runtime.counts import SessionCounts
+from server.sessions.runtime.drone_setup import course_best_path, inherit_course_best, make_flight
+from server.sessions.runtime.flight import Flight
+from server.sessions.runtime.fusion import SessionFusion
+from server.sessions.runtime.loop_closing import Correction, LoopClosing
+from server.sessions.runtime.rebuilds import MapRebuilds, RebuildFigures
+from server.sessions.runtime.room_writer import ROOM_FOLDER as ROOM_FOLDER
+from server.sessions.runtime.room_writer import RoomWriter
+from server.sessions.runtime.snapshots import Snapshots
+from server.sessions.runtime.tracking import SessionTracking
 from server.sessions.store import SessionStore
-from server.sessions.tracking import SessionTracking
 from server.sessions.updates import FrameData, FrameRefused, SessionFailed, Update
 
 log = logging.getLogger(__name__)
@@ -76,8 +76,9 @@ class Session:
     ) -> None:
         """room_dir: a saved room (server/rooms/) to continue in: the tracker relocalises the
         first frames in it and the map starts as the room's; None starts an empty world.
-        loops_conn: a pipe to a loop process (server/sessions/loop_process.py) for the loop
-        closer, when this session closes loops; None closes them in a thread of this process."""
+        loops_conn: a pipe to a loop process (server/sessions/processes/loop_process.py) for the
+        loop closer, when this session closes loops; None closes them in a thread of this
+        process."""
         self.id = session_id
         self.log = SessionLog(log, session_id)
         self.token_hash = token_hash
@@ -91,7 +92,7 @@ class Session:
         # mesh's down (server/mapping/upright.py); None when the client measured none.
         self.gravity: list[float] | None = None
         self.room_dir = room_dir
-        # The map, in a process of its own when given one (server/sessions/mapping.py says why).
+        # The map, in a process of its own when given one (processes/mapper.py says why).
         self.mapper = mapper or Mapper(self.config.mapping)
         self._map_closed = False
         self.on_update: Callable[[Update], None] | None = None

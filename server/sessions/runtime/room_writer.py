@@ -22,9 +22,9 @@ from server.rooms.room import (
     write_keyframe,
     write_room_meta,
 )
-from server.sessions.counts import SessionCounts
-from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
-from server.sessions.loop_closing import Worlds
+from server.sessions.runtime.counts import SessionCounts
+from server.sessions.runtime.course_control import BEST_FILE as COURSE_BEST_FILE
+from server.sessions.runtime.loop_closing import Worlds
 
 ROOM_FOLDER = "room"  # in a session's folder: the room it leaves (server/rooms/room.py)
 

@@ -3,11 +3,11 @@ among the older ones, and on a verified loop optimises the pose graph and hands 
 corrected world (``Correction``).
 
 The numerical work is ``server/registration/loops.py``'s ``LoopCloser``, in a process of its own
-when the session has one (``server/sessions/loop_process.py``: in the tracking process it would
-share the tracker's GIL), else in this thread; this module only feeds it from a queue (every
+when the session has one (``server/sessions/processes/loop_process.py``: in the tracking process it
+would share the tracker's GIL), else in this thread; this module only feeds it from a queue (every
 keyframe, none dropped), at a priority below the mapping's (when cores are short the loops fall
-behind the map, never the poses), and keeps the sequence of corrected worlds (``Worlds``), so
-that a pose tracked in one world can be carried into a later one exactly as the tracker was.
+behind the map, never the poses), and keeps the sequence of corrected worlds (``Worlds``), so that a
+pose tracked in one world can be carried into a later one exactly as the tracker was.
 
 Not for a session continuing in a saved room: the room's keyframes would have to stay fixed
 nodes of the graph (their poses are the room's world, shared with the map on disk and with
@@ -30,8 +30,8 @@ from server.geometry import Intrinsics, invert, orthonormalize, rotation_angle_d
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser
 from server.registration.place import PlaceFeatures
-from server.sessions.loop_process import LoopCloserClient
-from server.sessions.priority import LOOPS_NICE, lower_this_threads_priority
+from server.sessions.processes.loop_process import LoopCloserClient
+from server.sessions.processes.priority import LOOPS_NICE, lower_this_threads_priority
 
 log = logging.getLogger(__name__)
 

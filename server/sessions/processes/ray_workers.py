@@ -49,10 +49,10 @@ from dataclasses import replace
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 
-from server.sessions.actor_host import ActorHost
 from server.sessions.errors import SessionError
-from server.sessions.live import SessionTakenOver
-from server.sessions.worker import WorkerLost
+from server.sessions.processes.actor_host import ActorHost
+from server.sessions.processes.session_process import WorkerLost
+from server.sessions.web.live import SessionTakenOver
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def actor_name(session_id: str) -> str:
 )
 class SessionActor:
     """The Ray actor of one session: each entry point in its concurrency group, the work done
-    by an ActorHost (server/sessions/actor_host.py)."""
+    by an ActorHost (server/sessions/processes/actor_host.py)."""
 
     def __init__(self, args, owner: str) -> None:
         self.core = ActorHost(args, owner)
@@ -184,7 +184,7 @@ class RayWorker:
         return self._get(ref, timeout_s, method)
 
     def _get(self, ref, timeout_s: float, method: str):
-        from server.sessions.remote import raise_remote
+        from server.sessions.processes.remote import raise_remote
 
         try:
             ok, value = ray.get(ref, timeout=timeout_s)
@@ -465,7 +465,7 @@ class RayWorkers:
 
     def find(self, session_id: str):
         """The live session ``session_id`` on the cluster (any front-end's), or None."""
-        from server.sessions.manager import FoundSession
+        from server.sessions.web.manager import FoundSession
 
         if not _ID.fullmatch(session_id):
             return None

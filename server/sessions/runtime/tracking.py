@@ -1,6 +1,6 @@
-"""A live session's tracking thread: takes the newest frame from a one-frame inbox, runs the
-frame step (server/frame_step.py), publishes the pose at once, then hands the frame's fusion
-to the mapping thread (server/sessions/fusion.py). Between two frames it moves the tracker into
+"""A live session's tracking thread: takes the newest frame from a one-frame inbox, runs the frame
+step (server/frame_step.py), publishes the pose at once, then hands the frame's fusion to the
+mapping thread (server/sessions/runtime/fusion.py). Between two frames it moves the tracker into
 each corrected world a loop closure made.
 
 Frames arrive faster than they can be processed on a busy server; the inbox holds one frame and
@@ -19,11 +19,11 @@ import numpy as np
 from server.evaluation.trajectory import Trajectory
 from server.frame_step import FrameStep
 from server.registration import Tracker, TrackingState, TrackResult
-from server.sessions.counts import SessionCounts
 from server.sessions.errors import SessionError
-from server.sessions.flight import Flight
-from server.sessions.fusion import FuseJob, SessionFusion
-from server.sessions.loop_closing import Correction
+from server.sessions.runtime.counts import SessionCounts
+from server.sessions.runtime.flight import Flight
+from server.sessions.runtime.fusion import FuseJob, SessionFusion
+from server.sessions.runtime.loop_closing import Correction
 from server.sessions.updates import FrameData, MapCorrected, PoseUpdate, Update
 
 
@@ -218,7 +218,7 @@ class SessionTracking:
                 frame.seq,
                 frame.timestamp,
                 result.T_world_camera,
-                result.state.value,
+                result.state,
                 result.inliers,
                 result.new_keyframe or result.keyframe_due,
                 timings,

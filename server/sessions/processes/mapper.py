@@ -27,8 +27,8 @@ from server.mapping.tsdf import MapError, TSDFMap
 from server.rooms.room import read_keyframe_images
 from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
-from server.sessions.priority import MAPPING_NICE, lower_this_threads_priority
-from server.sessions.remote import as_remote, raise_remote
+from server.sessions.processes.priority import MAPPING_NICE, lower_this_threads_priority
+from server.sessions.processes.remote import as_remote, raise_remote
 
 log = logging.getLogger(__name__)
 

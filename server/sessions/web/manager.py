@@ -17,11 +17,11 @@ from typing import Protocol
 
 from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError, SnapshotError
-from server.sessions.host import HostArgs
-from server.sessions.live import LiveSession, SessionWorker
-from server.sessions.session import ROOM_FOLDER
+from server.sessions.processes.session_process import ProcessWorker
+from server.sessions.runtime.host import HostArgs
+from server.sessions.runtime.session import ROOM_FOLDER
 from server.sessions.store import SessionStore, StoreError, hash_token
-from server.sessions.worker import ProcessWorker
+from server.sessions.web.live import LiveSession, SessionWorker
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ class FoundSession:
 
 
 class WorkerBackend(Protocol):
-    """Where sessions' workers run: ``ProcessWorkers`` or ``server.sessions.ray_workers``'
+    """Where sessions' workers run: ``ProcessWorkers`` or ``server.sessions.processes.ray_workers``'
     ``RayWorkers``."""
 
     kind: str
@@ -60,9 +60,9 @@ class WorkerBackend(Protocol):
 
 
 class ProcessWorkers:
-    """Runs each session in a local worker process (the default; ``server.sessions.ray_workers``
-    runs them as Ray actors instead). Its workers are ``server.sessions.worker.ProcessWorker``s
-    (a ``SessionWorker``)."""
+    """Runs each session in a local worker process (the default;
+    ``server.sessions.processes.ray_workers`` runs them as Ray actors instead). Its workers are
+    ``server.sessions.processes.session_process.ProcessWorker``s (a ``SessionWorker``)."""
 
     kind = "process"
 

@@ -22,6 +22,7 @@ import numpy as np
 from server.sessions.errors import SessionError
 from server.sessions.store import hash_token
 from server.sessions.updates import DroneNotice, DroneUpdate, MapCorrected, MapUpdate, PoseUpdate
+from server.simulation.drone_types import DroneEventKind
 
 # What a viewer is shown; refused frames (the owner's errors) and failures are not for it.
 VIEWED = (PoseUpdate, MapUpdate, MapCorrected, DroneUpdate, DroneNotice)
@@ -131,7 +132,7 @@ class Viewers:
                 self._latest_pose = item
             elif isinstance(item, DroneUpdate):
                 self._latest_drone = item
-            elif isinstance(item, DroneNotice) and item.event == "spawned":
+            elif isinstance(item, DroneNotice) and item.event is DroneEventKind.SPAWNED:
                 self._spawned = item
             sockets = list(self._sockets)
         for socket in sockets:

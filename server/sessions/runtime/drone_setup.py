@@ -1,4 +1,4 @@
-"""The drone's side of a session's set-up: its flight (server/sessions/flight.py) and flight
+"""The drone's side of a session's set-up: its flight (server/sessions/runtime/flight.py) and flight
 log, made with the first hello, and the course's best list, carried over from a room."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import numpy as np
 from server.atomic import atomic_write_bytes
 from server.geometry import Intrinsics
 from server.sessions.config import SessionConfig
-from server.sessions.course import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.failures import SessionLog
-from server.sessions.flight import Flight
-from server.sessions.flight_log import FlightLog
+from server.sessions.flight_store import FlightLog
+from server.sessions.runtime.course_control import BEST_FILE as COURSE_BEST_FILE
+from server.sessions.runtime.flight import Flight
 from server.sessions.store import SessionStore, StoreError
 from server.sessions.updates import Update
 
@@ -61,7 +61,7 @@ def make_flight(
         gravity,
         publish,
         config.drone_state_hz,
-        log=SessionLog(logging.getLogger("server.sessions.flight"), session_id),
+        log=SessionLog(logging.getLogger("server.sessions.runtime.flight"), session_id),
     )
     flight_log = FlightLog(
         store, session_id, config.drone_state_hz, config.flight_max_s, config.flights_kept

@@ -26,18 +26,18 @@ from dataclasses import replace
 import numpy as np
 
 from server.geometry import Intrinsics, invert
-from server.sessions.camera_frames import CameraFrames
-from server.sessions.course import COURSE_COMMANDS, CourseControl
 from server.sessions.errors import CommandRefused
 from server.sessions.failures import RateLimitedLog
-from server.sessions.flight_records import FlightRecords
-from server.sessions.flight_view import FlightView
-from server.sessions.pending_map import PendingMap
-from server.sessions.pilot_commands import carry_out
+from server.sessions.runtime.camera_frames import CameraFrames
+from server.sessions.runtime.course_control import COURSE_COMMANDS, CourseControl
+from server.sessions.runtime.flight_records import FlightRecords
+from server.sessions.runtime.flight_view import FlightView
+from server.sessions.runtime.pending_map import PendingMap
+from server.sessions.runtime.pilot_commands import carry_out
 from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneSimulator
-from server.simulation.drone_types import DroneCommandError
+from server.simulation.drone_types import DroneCommandError, DroneEventKind
 from server.simulation.flight_map import FlightMap, Region
 from server.simulation.flight_recording import FlightRecorder
 from server.simulation.pilot_modes import euler_from_rotation
@@ -50,10 +50,11 @@ _MAX_FAILING_STEPS = 10
 
 
 class Flight:
-    """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come
-    from the session's workers, ``command`` from the transport; a thread of its own advances the
+    """One session's drone. ``camera_moved`` and ``feed_from_map`` (or ``map_changed``) come from
+    the session's workers, ``command`` from the transport; a thread of its own advances the
     simulation in real time and hands ``DroneUpdate``/``DroneNotice`` objects (and the course's
-    ``course`` messages, dicts: ``course``, server/sessions/course.py) to ``publish``.
+    ``course`` messages, dicts: ``course``, server/sessions/runtime/course_control.py) to
+    ``publish``.
 
     A flight step that raises is counted (``errors``) and logged, the first with its traceback,
     then at most one line per 10 s; after _MAX_FAILING_STEPS in a row the drone is stopped for
@@ -81,7 +82,7 @@ class Flight:
         self.spawn_ahead_m = spawn_ahead_m
         self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
         self.sim = DroneSimulator(config, self.flight_map)
-        self.course = CourseControl(self)  # courses: server/sessions/course.py
+        self.course = CourseControl(self)  # courses: server/sessions/runtime/course_control.py
         # The one lock over the simulator, its flight map and the course (module docstring).
         # DroneSimulator takes none of its own: it is used only under this one.
         self._lock = threading.Lock()
@@ -317,7 +318,7 @@ class Flight:
         if final is None:
             return  # never spawned: the client has no drone to hear about
         notice = DroneNotice(
-            "faulted",
+            DroneEventKind.FAULTED,
             final.timestamp,
             final.T_world_drone[:3, 3],
             f"the drone's simulation failed and the drone is stopped ({reason}); "
@@ -357,7 +358,8 @@ class Flight:
         notices = [self._notice(e) for e in events] + course
         for n in notices:
             if isinstance(n, DroneNotice):
-                self.event_counts[n.event] = self.event_counts.get(n.event, 0) + 1
+                kind = n.event.value  # counted by the protocol's name (status: flight.events)
+                self.event_counts[kind] = self.event_counts.get(kind, 0) + 1
         return notices
 
     def _spawn(self, T: np.ndarray) -> None:
@@ -374,7 +376,7 @@ class Flight:
 
     def _notice(self, event) -> DroneNotice:
         return DroneNotice(
-            event.kind.value,
+            event.kind,
             event.time_s,
             self.to_world(event.position),
             event.text(self.to_world),  # the pilot's frame, as the event's other fields

@@ -1,5 +1,6 @@
 """What a flight's recording is given: the pilot's commands, each flight step's events and state,
-and the course being flown (server/simulation/flight_recording.py records, flight_log.py saves).
+and the course being flown (server/simulation/flight_recording.py records, sessions/flight_store.py
+saves).
 
 A recording that fails must not stop the drone or the course: each failure goes to
 ``on_failure`` (the flight counts and logs it, from the ``except`` block) and the flight goes on.
@@ -70,7 +71,7 @@ class FlightRecords:
                     if n.get("type") == "course":
                         self.course(n)
                     continue
-                self.recorder.event(n.timestamp, n.event, n.position, n.message, n.command_id)
+                self.recorder.event(n.timestamp, n.event.value, n.position, n.message, n.command_id)
             if state is not None:
                 self.recorder.state(
                     state.timestamp, state.T_world_drone, state.velocity, state.mode

@@ -1,7 +1,7 @@
-"""A live session's mapping thread: fuses the frames the tracking thread hands it into the map
-(in the mapper: server/sessions/mapping.py), sends the map's preview, feeds the drone's map,
-writes the room's keyframes and hands them to the loop closer, runs the map's rebuilds after a
-loop closure and triggers the periodic snapshots, so that none of it ever delays a pose."""
+"""A live session's mapping thread: fuses the frames the tracking thread hands it into the map (in
+the mapper: server/sessions/processes/mapper.py), sends the map's preview, feeds the drone's map,
+writes the room's keyframes and hands them to the loop closer, runs the map's rebuilds after a loop
+closure and triggers the periodic snapshots, so that none of it ever delays a pose."""
 
 from __future__ import annotations
 
@@ -19,13 +19,13 @@ from server.geometry import Intrinsics
 from server.mapping.config import MappingConfig
 from server.registration.config import RegistrationConfig
 from server.registration.preprocess import clean_depth
-from server.sessions.counts import SessionCounts
-from server.sessions.flight import Flight
-from server.sessions.loop_closing import LoopClosing, LoopKeyframe
-from server.sessions.mapping import Mapper, MapperClient, MapperLost, Rebuilt
-from server.sessions.priority import MAPPING_NICE, lower_this_threads_priority
-from server.sessions.rebuilds import MapRebuilds
-from server.sessions.room_writer import RoomWriter
+from server.sessions.processes.mapper import Mapper, MapperClient, MapperLost, Rebuilt
+from server.sessions.processes.priority import MAPPING_NICE, lower_this_threads_priority
+from server.sessions.runtime.counts import SessionCounts
+from server.sessions.runtime.flight import Flight
+from server.sessions.runtime.loop_closing import LoopClosing, LoopKeyframe
+from server.sessions.runtime.rebuilds import MapRebuilds
+from server.sessions.runtime.room_writer import RoomWriter
 from server.sessions.updates import MapUpdate, Update
 
 _KEYFRAME_WAIT_S = 10.0  # a keyframe waits this long for room in a mapper that is behind

@@ -6,9 +6,13 @@ from __future__ import annotations
 import functools
 from collections.abc import Collection, Mapping
 
+from server.errors import DroneSimError
 
-class InjectedFault(RuntimeError):
-    """A failure a test asked for."""
+
+class InjectedFault(DroneSimError):
+    """A failure a test asked for. None of the errors a session answers with a code of its own
+    (``SessionError``, ``ProtocolError``, ``SnapshotError``, ``MapError``): each stage meets it
+    as the unexpected failure it stands for."""
 
 
 class InjectedThreadDeath(BaseException):

@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 
 class CourseFlight(Protocol):
-    """What a course needs of the flight it runs in (``server.sessions.flight.Flight``): the
+    """What a course needs of the flight it runs in (``server.sessions.runtime.flight.Flight``): the
     simulator and its map (used under ``lock``), the flight's settings and log, its frames
     (``to_world``: flight-frame points (3,) or (N, 3) in the client's world, metres;
     ``direction_to_world``: directions the same way), and its way out (``publish`` sends a
@@ -275,7 +275,7 @@ class CourseControl:
         for ge in gate_events:
             out.append(
                 DroneNotice(
-                    ge.kind,
+                    DroneEventKind(ge.kind),
                     ge.time_s,
                     self.flight.to_world(ge.point),
                     self._message(ge),

@@ -35,18 +35,11 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from page_fps import CHROMIUM, CHROMIUM_ARGS  # noqa: E402  (the same browser, as the tests')
 from provenance import run_heading, utc_stamp  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "page_stream.md"
-CHROMIUM = Path(os.environ.get("DRONESIM_CHROMIUM", "/usr/bin/chromium"))
-CHROMIUM_ARGS = [  # as tests/browser.py: software WebGL, no GPU on these machines
-    "--no-sandbox",
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-    "--ignore-gpu-blocklist",
-    "--disable-dev-shm-usage",
-]
 TARGET_FPS = 12.0
 CLOCK_HZ = os.sysconf("SC_CLK_TCK")
 

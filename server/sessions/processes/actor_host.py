@@ -10,6 +10,9 @@ import time
 from collections import deque
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.ipc import attempt
+
+log = logging.getLogger(__name__)
 
 _UPDATES_KEPT = 256  # updates waiting for the owner's poll; beyond, the oldest are skipped
 
@@ -54,9 +57,8 @@ class ActorHost:
         }
 
     def ordered(self, owner: str, number: int, method: str, args: tuple):
-        """The hello, frames, commands and the stop: run strictly in each front-end's order."""
-        from server.sessions.processes.remote import as_remote
-
+        """The hello, frames, commands and the stop: run strictly in each front-end's order.
+        Answers as ``ipc.attempt`` does: (True, value) or (False, a RemoteError)."""
         with self._cond:
             deadline = time.monotonic() + 10.0
             while self._next.get(owner, 0) < number and (wait := deadline - time.monotonic()) > 0:
@@ -65,9 +67,7 @@ class ActorHost:
                 self.out_of_order += 1
         try:
             with self._turn:
-                return True, self._run(owner, method, args)
-        except Exception as exc:
-            return False, as_remote(exc)
+                return attempt(self, "_run", (owner, method, args), log)
         finally:
             with self._cond:
                 self._next[owner] = max(self._next.get(owner, 0), number + 1)
@@ -108,19 +108,14 @@ class ActorHost:
 
     def query(self, method: str, args: tuple):
         """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
-        from server.sessions.processes.remote import as_remote
-
-        try:
-            value = getattr(self.host, method)(*args)
-        except Exception as exc:
-            return False, as_remote(exc)
-        if method == "status":
+        ok, value = attempt(self.host, method, args, log)
+        if ok and method == "status":
             value = value | {
                 "out_of_order_calls": self.out_of_order,
                 "foreign_frames": self.foreign_frames,
                 "skipped_updates": self.skipped_updates,
             }
-        return True, value
+        return ok, value
 
     def updates(self, owner: str, timeout_s: float) -> dict:
         """Long-poll: the updates waiting for ``owner`` (none unless it is the owner), once there

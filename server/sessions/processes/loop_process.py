@@ -15,8 +15,7 @@ would the ``LoopCloser`` itself). The process ends when its pipe closes.
 
 from __future__ import annotations
 
-import signal
-import threading
+import logging
 import time
 
 import numpy as np
@@ -27,55 +26,59 @@ from server.geometry.arrays import Float32Array, FloatArray
 from server.registration.config import RegistrationConfig
 from server.registration.loops import LoopCloser, LoopEdge
 from server.registration.place import PlaceFeatures
-from server.sessions.processes.priority import LOOPS_NICE, lower_this_threads_priority
+from server.sessions.failures import SessionLog
+from server.sessions.processes.ipc import Proxy, prepare_child, serve
+from server.sessions.processes.priority import LOOPS_NICE
+
+log = logging.getLogger(__name__)
 
 
 class LoopProcessError(DroneSimError):
-    """A call failed inside the loop process (the keyframe is left out; the process goes on),
-    or the process is gone (every later call fails the same way)."""
+    """The loop process is gone: this call and every later one fail the same way (the keyframe
+    is left out; the session goes on without loop closure). A call that fails inside the process
+    raises its own error (``ipc.raise_remote``)."""
 
 
-def loops_main(conn) -> None:
-    """Entry point of a session's loop process: ``("start", (K, cfg))`` makes its LoopCloser,
-    then ``("add_keyframe", args)`` and ``("optimise", ())`` are answered with ``(ok, value,
-    cpu_s)`` (value: the call's result, or the error's text) until the pipe closes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session's worker decides when it ends
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+class _Loops:
+    """What the loop process serves: the session's LoopCloser, made by ``start``; each answer
+    comes as (the value, the CPU seconds the process has spent on the calls so far)."""
+
+    def __init__(self) -> None:
+        self.closer: LoopCloser | None = None
+        self._cpu0 = time.process_time()
+
+    def start(self, K: Intrinsics, cfg: RegistrationConfig) -> float:
+        self.closer = LoopCloser(K, cfg)
+        return self._cpu_s()
+
+    def add_keyframe(self, *args) -> tuple[tuple[LoopEdge | None, int], float]:
+        closer = self._closer()
+        loop = closer.add_keyframe(*args)
+        return (loop, closer.refused), self._cpu_s()
+
+    def optimise(self) -> tuple[dict[int, np.ndarray], float]:
+        return self._closer().optimise(), self._cpu_s()
+
+    def _closer(self) -> LoopCloser:
+        if self.closer is None:
+            raise RuntimeError("a loop closer call before start")
+        return self.closer
+
+    def _cpu_s(self) -> float:
+        return time.process_time() - self._cpu0
+
+
+def loops_main(conn, session_id: str = "") -> None:
+    """Entry point of a session's loop process: serve ``start(K, cfg)`` (which makes its
+    LoopCloser), then ``add_keyframe`` and ``optimise``, until the pipe closes."""
+    prepare_child(LOOPS_NICE)  # the session's worker decides when it ends
     import cv2
     import open3d as o3d
 
     # One native thread each: the loops must never crowd out tracking on a small machine.
     cv2.setNumThreads(1)
     o3d.utility.set_max_threads(1)
-    lower_this_threads_priority(LOOPS_NICE)
-    closer: LoopCloser | None = None
-    while True:
-        try:
-            method, args = conn.recv()
-        except (EOFError, OSError):
-            return
-        cpu0 = time.process_time()
-        value: object
-        reply: tuple[bool, object, float]
-        try:
-            if method == "start":
-                closer, value = LoopCloser(*args), None
-            elif closer is None:
-                raise LoopProcessError(f"{method} before start")
-            elif method == "add_keyframe":
-                loop = closer.add_keyframe(*args)
-                value = (loop, closer.refused)
-            elif method == "optimise":
-                value = closer.optimise()
-            else:
-                raise LoopProcessError(f"unknown call {method!r}")
-            reply = (True, value, time.process_time() - cpu0)
-        except Exception as exc:
-            reply = (False, f"{type(exc).__name__}: {exc}", time.process_time() - cpu0)
-        try:
-            conn.send(reply)
-        except (OSError, ValueError):
-            return
+    serve(_Loops(), conn, SessionLog(log, session_id))
 
 
 class LoopCloserClient:
@@ -84,8 +87,7 @@ class LoopCloserClient:
     ``cpu_s``, what the process spent on the calls so far (seconds)."""
 
     def __init__(self, conn, K: Intrinsics, cfg: RegistrationConfig) -> None:
-        self._conn = conn
-        self._lock = threading.Lock()
+        self._proxy = Proxy(conn, LoopProcessError, "the session's loop process")
         # Sent with the first keyframe, not here: the session's hello (which makes this) must
         # neither wait for the loop process nor fail with it.
         self._start: tuple | None = (K, cfg)
@@ -116,24 +118,13 @@ class LoopCloserClient:
 
     def close(self) -> None:
         """Let the process end (it exits when its pipe closes)."""
-        with self._lock:
-            self._conn.close()
+        self._proxy.close()
 
     def _call(self, method: str, *args):
-        with self._lock:
-            if self._start is not None:
-                self._exchange("start", self._start)
-                self._start = None
-            return self._exchange(method, args)
-
-    def _exchange(self, method: str, args: tuple):
-        """One call and its answer (under the lock)."""
-        try:
-            self._conn.send((method, args))
-            ok, value, cpu_s = self._conn.recv()
-        except (EOFError, OSError, ValueError) as exc:
-            raise LoopProcessError(f"the session's loop process is gone ({exc})") from None
-        self.cpu_s += cpu_s
-        if not ok:
-            raise LoopProcessError(f"loop process: {method} failed: {value}")
+        """One call; the process's LoopCloser is made first, with the first keyframe. Returns
+        the call's value, and counts the process's CPU."""
+        if self._start is not None:
+            self.cpu_s = self._proxy.call("start", *self._start)
+            self._start = None
+        value, self.cpu_s = self._proxy.call(method, *args)
         return value

@@ -11,7 +11,6 @@ another process.
 from __future__ import annotations
 
 import logging
-import signal
 import tempfile
 import threading
 import time
@@ -27,8 +26,8 @@ from server.mapping.tsdf import MapError, TSDFMap
 from server.rooms.room import read_keyframe_images
 from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
-from server.sessions.processes.priority import MAPPING_NICE, lower_this_threads_priority
-from server.sessions.processes.remote import as_remote, raise_remote
+from server.sessions.processes.ipc import Proxy, prepare_child, serve
+from server.sessions.processes.priority import MAPPING_NICE
 
 log = logging.getLogger(__name__)
 
@@ -278,29 +277,11 @@ class MapperLost(SessionError):
 def mapper_main(conn, config: MappingConfig, threads: int, session_id: str = "") -> None:
     """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
     closes (its session stopped, or died)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session's worker decides when it ends
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    prepare_child(MAPPING_NICE)  # the session's worker decides when it ends
     import open3d as o3d
 
     o3d.utility.set_max_threads(threads)
-    lower_this_threads_priority(MAPPING_NICE)
-    mapper = Mapper(config)
-    session_log = SessionLog(log, session_id)
-    while True:
-        try:
-            method, args = conn.recv()
-        except (EOFError, OSError):
-            return
-        try:
-            reply = (True, getattr(mapper, method)(*args))
-        except Exception as exc:
-            if not isinstance(exc, MapError):
-                session_log.exception("mapping: %s failed", method)
-            reply = (False, as_remote(exc))
-        try:
-            conn.send(reply)
-        except (OSError, ValueError):
-            return
+    serve(Mapper(config), conn, SessionLog(log, session_id))
 
 
 class MapperClient:
@@ -309,19 +290,8 @@ class MapperClient:
     the session decides how it ends (``Session.fail``)."""
 
     def __init__(self, conn) -> None:
-        self._conn = conn
-        self._lock = threading.Lock()
-
-    def _call(self, method: str, *args):
-        with self._lock:
-            try:
-                self._conn.send((method, args))
-                ok, value = self._conn.recv()
-            except (EOFError, OSError, ValueError) as exc:
-                raise MapperLost(f"the session's mapping process is gone ({exc})") from None
-        if not ok:
-            raise_remote(value)
-        return value
+        self._proxy = Proxy(conn, MapperLost, "the session's mapping process")
+        self._call = self._proxy.call
 
     def fuse(self, colour, depth, K, T_world_camera, occupancy=None, rebuild_pose=None) -> Fused:
         return self._call("fuse", colour, depth, K, T_world_camera, occupancy, rebuild_pose)
@@ -348,7 +318,7 @@ class MapperClient:
     def stats(self, wait: bool = True) -> dict | None:
         """As ``Mapper.stats``: None at once when a call (a fusion) is in progress and ``wait``
         is False, since the mapping process answers one call at a time."""
-        if not wait and self._lock.locked():
+        if not wait and self._proxy.busy:
             return None
         return self._call("stats")
 
@@ -363,5 +333,4 @@ class MapperClient:
 
     def close(self) -> None:
         """Let the mapping process end (it exits when its pipe closes)."""
-        with self._lock:
-            self._conn.close()
+        self._proxy.close()

@@ -184,7 +184,7 @@ class RayWorker:
         return self._get(ref, timeout_s, method)
 
     def _get(self, ref, timeout_s: float, method: str):
-        from server.sessions.processes.remote import raise_remote
+        from server.sessions.processes.ipc import result
 
         try:
             ok, value = ray.get(ref, timeout=timeout_s)
@@ -194,9 +194,7 @@ class RayWorker:
             ) from None
         except RayActorError as exc:
             raise WorkerLost(self._lost or _death(exc)) from None
-        if not ok:
-            raise_remote(value)
-        return value
+        return result(ok, value, "the session's Ray actor")
 
     def _enqueue(self, method: str, args: tuple, future: Future | None) -> None:
         with self._cond:

@@ -6,7 +6,7 @@ Why processes: the web process's event loop then only moves bytes; a session's n
 share of the cores. Processes come from a forkserver that has already imported the numerical
 stack, so starting one takes tens of milliseconds, not the seconds of a fresh interpreter.
 
-The two sides talk over one duplex pipe:
+The two sides talk over one duplex pipe, in the shape of ``ipc`` (the worker runs ``ipc.serve``):
 - web -> worker: ``(call_id, method, args)``; call_id None for a message that wants no answer
   (frames, which arrive at camera rate and are answered by poses);
 - worker -> web: ``("reply", call_id, ok, value)`` and ``("update", item)``.
@@ -28,7 +28,7 @@ import threading
 import weakref
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 
 from server.sessions.errors import SessionError
@@ -59,16 +59,13 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     the other end of ``mapper_conn``, its loop closer in the loop process at the other end of
     ``loops_conn`` when it closes loops) and serve the pipe until told to stop or until the web
     process goes away."""
-    # A Ctrl-C or SIGTERM meant for the server reaches the whole process group; the web process
-    # then stops each session with a final save, which must find its worker alive.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from server.sessions.processes.ipc import as_remote, prepare_child, reply, serve
+
+    # The web process stops each session with a final save, which must find its worker alive.
+    prepare_child()
     from server.sessions.failures import SessionLog
     from server.sessions.processes.mapper import MapperClient
-    from server.sessions.processes.remote import as_remote
     from server.sessions.runtime.host import SessionHost
-
-    session_log = SessionLog(log, args.session_id)
 
     # Everything the worker says goes through one queue and one thread, in order: a reply (to
     # a drain, say) never overtakes the poses published before it.
@@ -89,37 +86,18 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
         mapper = MapperClient(mapper_conn)
         host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper, loops_conn)
     except Exception as exc:
-        outgoing.put(("reply", 0, False, as_remote(exc)))
+        outgoing.put(reply(0, False, as_remote(exc)))
         outgoing.put(None)
         sender.join()
         return
-    outgoing.put(("reply", 0, True, host.describe()))
-    side = ThreadPoolExecutor(max_workers=2, thread_name_prefix="query")
-
-    def answer(call_id, method, call_args) -> bool:
-        try:
-            value, ok = getattr(host, method)(*call_args), True
-        except Exception as exc:
-            value, ok = as_remote(exc), False
-            if value.kind == "internal":  # a bug, not an answer: keep its traceback
-                session_log.exception("%s failed", method)
-        if call_id is not None:
-            outgoing.put(("reply", call_id, ok, value))
-        return ok
-
-    while True:
-        try:
-            call_id, method, call_args = conn.recv()
-        except (EOFError, OSError):
-            # The web process is gone (killed): its snapshots on disk are whole; end at once, so
-            # that a restarted server does not find this process still writing beside it.
-            os._exit(0)
-        if method in _INLINE:
-            if answer(call_id, method, call_args) and method == "stop":
-                break
-        else:
-            side.submit(answer, call_id, method, call_args)
-    side.shutdown(wait=True)
+    outgoing.put(reply(0, True, host.describe()))
+    session_log = SessionLog(log, args.session_id)
+    if not serve(
+        host, conn, session_log, send=outgoing.put, ordered=_INLINE, beside=2, last="stop"
+    ):
+        # The web process is gone (killed): its snapshots on disk are whole; end at once, so
+        # that a restarted server does not find this process still writing beside it.
+        os._exit(0)
     outgoing.put(None)
     sender.join()
 
@@ -165,7 +143,7 @@ class ProcessWorker:
                 target=loops_main,
                 daemon=True,
                 name=f"session-{args.session_id}-loops",
-                args=(loops_end,),
+                args=(loops_end, args.session_id),
             )
         # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
         # call, which in one process would stall tracking (server/sessions/processes/mapper.py).
@@ -239,7 +217,7 @@ class ProcessWorker:
         return self._wait(future, timeout_s, method, call_id)
 
     def _wait(self, future: Future, timeout_s: float, method: str, call_id: int = 0):
-        from server.sessions.processes.remote import raise_remote
+        from server.sessions.processes.ipc import result
 
         try:
             ok, value = future.result(timeout_s)
@@ -249,9 +227,7 @@ class ProcessWorker:
             raise WorkerLost(
                 f"the session's worker did not answer {method} within {timeout_s:.0f} s"
             ) from None
-        if not ok:
-            raise_remote(value)
-        return value
+        return result(ok, value)
 
     def _send(self, message) -> None:
         with self._wake:

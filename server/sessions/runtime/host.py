@@ -4,7 +4,7 @@ or a Ray actor), apart from the web process.
 The web process forwards what the client sent: the hello as a dict, frames as the bytes that arrived
 (decoded here, so image decoding never costs the event loop), pilot commands. The host answers calls
 with plain values and hands updates (poses, map points, drone states and events, refused frames) to
-``publish``. Errors cross as ``RemoteError`` values (server/sessions/processes/remote.py).
+``publish``. Errors cross as ``RemoteError`` values (server/sessions/processes/ipc.py).
 """
 
 from __future__ import annotations

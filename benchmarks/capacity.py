@@ -66,7 +66,13 @@ from rich import box  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from server.client.loadtest import EncodedSequence, LoadTestConfig, live_line, run_loadtest  # noqa: E402
+from server.client.loadtest import (  # noqa: E402
+    FRAME_PROFILES,
+    EncodedSequence,
+    LoadTestConfig,
+    live_line,
+    run_loadtest,
+)
 from server.client.server_process import ServerProcess  # noqa: E402
 from server.config import Config  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
@@ -585,6 +591,12 @@ def _target_cell(r: dict) -> str:
     )
 
 
+def _size(meta: dict) -> str:
+    """The depth's size in a report's meta (reports before profiles: the colour's)."""
+    w, h = meta.get("depth_size") or meta["size"]
+    return f"{w}x{h}"
+
+
 def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
     quick = meta["quick"]
     lines = [f"# Server capacity{' — SMOKE RUN, not a measurement' if quick else ''}", ""]
@@ -605,7 +617,8 @@ def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
     lines += [
         f"{meta['date']}; commit {meta['commit']}; machine: {meta['machine']}, {meta['cores']} "
         f"cores, load average {meta['load_before']:.2f} before / {meta['load_after']:.2f} after; "
-        f"sequence {meta['dataset']} {meta['size'][0]}x{meta['size'][1]} ({meta['frames']} "
+        f"sequence {meta['dataset']} as {meta.get('profile', 'kinect')} sends it: colour "
+        f"{meta['size'][0]}x{meta['size'][1]}, depth {_size(meta)} ({meta['frames']} "
         f"frames, played back and forth, {meta['mean_frame_kb']:.0f} kB per frame); map fusion "
         f"on (one frame in {meta['fuse_every']} + keyframes); drone simulation: {meta['drone']}; "
         f"idle server (no session, {idle['wall_s']:.0f} s): {100 * idle['cores']:.1f} % of one "
@@ -768,6 +781,13 @@ def main() -> None:
         action="store_true",
         help="smoke run: 5 s per row on 30 frames, 2 s idle, labelled as such",
     )
+    parser.add_argument(
+        "--profile",
+        choices=sorted(FRAME_PROFILES),
+        default="kinect",
+        help="the frames the phones send: kinect (as recorded, 640x480), arcore (live AR on a "
+        "20:9 phone: colour 640x288, depth 160x72), iphone (a recording: 640x480, depth 256x192)",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     args = parser.parse_args()
     if args.quick:
@@ -777,7 +797,7 @@ def main() -> None:
     commit = git_commit()
     dataset = open_dataset(args.sequence)
     with console.status(f"encoding {dataset.name} ..."):
-        seq = EncodedSequence.from_dataset(dataset, args.frames)
+        seq = EncodedSequence.from_dataset(dataset, args.frames, profile=args.profile)
     load_before = os.getloadavg()[0]
     rows: list[dict] = []
     idle: dict | None = None
@@ -820,6 +840,8 @@ def main() -> None:
         "load_after": os.getloadavg()[0],
         "dataset": seq.name,
         "size": list(seq.size),
+        "depth_size": list(seq.depth_size or seq.size),
+        "profile": seq.profile,
         "frames": len(seq.frames),
         "mean_frame_kb": seq.mean_bytes / 1e3,
         "fuse_every": Config().mapping.fuse_every,
@@ -840,7 +862,9 @@ def main() -> None:
     )
     console.print(analysis)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "capacity.md").write_text(markdown(rows, meta, idle, analysis))
+    # The Kinect-sized run is the report; a phone profile's goes beside it.
+    stem = "capacity" if args.profile == "kinect" else f"capacity_{args.profile}"
+    (args.out / f"{stem}.md").write_text(markdown(rows, meta, idle, analysis))
     report = {
         "meta": meta,
         "target": TARGET,
@@ -849,8 +873,8 @@ def main() -> None:
         "rows": rows,
         "analysis": analysis,
     }
-    (args.out / "capacity.json").write_text(json.dumps(report, indent=1))
-    console.print(f"wrote {args.out / 'capacity.md'} and capacity.json")
+    (args.out / f"{stem}.json").write_text(json.dumps(report, indent=1))
+    console.print(f"wrote {args.out / (stem + '.md')} and {stem}.json")
     if any(r["failures"] for r in rows):
         for r in rows:
             for message in r["failure_messages"]:

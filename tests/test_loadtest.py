@@ -117,3 +117,31 @@ def test_a_loop_correction_moves_the_drone_target_with_the_world():
     assert np.allclose(client.spawn, [0.0, 1.1, 0.5])
     goto = [client._next_command() for _ in range(2)][1]
     assert goto["name"] == "goto" and np.allclose(goto["target"], [0.0, 1.1, 0.5])
+
+
+def test_phone_profiles_send_the_frames_a_phone_sends_with_the_same_camera(shared_data):
+    """`capacity.py --profile`: ARCore in live AR sends colour 640x288 (a 20:9 screen's crop)
+    with depth 160x72, an iPhone recording 640x480 with LiDAR's 256x192; the intrinsics follow
+    the crop and the scale, so a 3D point lands on the same scene pixel, and the frames decode
+    at the sizes their hello announces."""
+    from server.datasets import open_dataset
+
+    ds = open_dataset(shared_data / "7scenes_a")
+    K = ds.intrinsics
+    point = np.array([0.21, -0.13, 1.7])  # camera frame, metres
+    u0, v0 = K.fx * point[0] / point[2] + K.cx, K.fy * point[1] / point[2] + K.cy
+    expected = {"kinect": ((640, 480), (640, 480)), "arcore": ((640, 288), (160, 72)),
+                "iphone": ((640, 480), (256, 192))}  # fmt: skip
+    for name, (colour_size, depth_size) in expected.items():
+        seq = EncodedSequence.from_dataset(ds, max_frames=2, profile=name)
+        assert (seq.size, seq.depth_size, seq.profile) == (colour_size, depth_size, name)
+        fx, fy, cx, cy = seq.intrinsics
+        u, v = fx * point[0] / point[2] + cx, fy * point[1] / point[2] + cy
+        y0 = (480 - colour_size[1] * 640 / colour_size[0]) / 2  # the rows the crop left out
+        assert abs(u - u0) < 1e-6 and abs(v - (v0 - y0)) < 1e-6, (name, u, v)
+        hello = P.make_hello("t", seq.intrinsics, seq.size, seq.depth_size)
+        colour, depth = P.decode_frame_images({**seq.frames[1], "seq": 0, "timestamp": 0.0}, hello)
+        assert colour.shape[:2] == colour_size[::-1] and depth.shape[:2] == depth_size[::-1]
+        # The depth is the colour's view: its centre reads the recording's centre (metres).
+        recorded = ds[1].depth[240, 320]
+        assert abs(float(depth[depth_size[1] // 2, depth_size[0] // 2]) - recorded) < 0.05

@@ -24,11 +24,19 @@ from server.client.loadtest.client import run_loadtest
 from server.client.loadtest.plot import write_plot
 from server.client.loadtest.report import build_report, live_line
 from server.client.loadtest.results import LoadTestConfig, SessionResult
-from server.client.loadtest.sequence import EncodedSequence, LoadTestError, ping_pong_index
+from server.client.loadtest.sequence import (
+    FRAME_PROFILES,
+    EncodedSequence,
+    FrameProfile,
+    LoadTestError,
+    ping_pong_index,
+)
 from server.client.loadtest.table import report_footer, report_table
 
 __all__ = [
+    "FRAME_PROFILES",
     "EncodedSequence",
+    "FrameProfile",
     "LoadTestConfig",
     "LoadTestError",
     "SessionResult",

@@ -124,7 +124,11 @@ class _Client:
     async def _stream(self, conn: Connection, phase_s: float) -> None:
         r, cfg, seq = self.result, self.cfg, self.seq
         hello = proto.make_hello(
-            f"{cfg.client_name}/{r.index}", seq.intrinsics, seq.size, depth_scale=1000.0
+            f"{cfg.client_name}/{r.index}",
+            seq.intrinsics,
+            seq.size,
+            seq.depth_size,
+            depth_scale=1000.0,
         )
         welcome = await conn.hello(hello, cfg.grace_s)
         max_in_flight = min(cfg.max_in_flight, welcome["max_in_flight"])

@@ -16,7 +16,6 @@ import logging
 import threading
 import zipfile
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import cast
 
@@ -24,14 +23,13 @@ import cv2
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from server.atomic import atomic_write
 from server.errors import ConfigError, DroneSimError
 from server.geometry import Intrinsics
 from server.geometry.arrays import (
     BoolArray,
-    Float32Array,
     FloatArray,
     GreyImage,
     Int64Array,
@@ -50,13 +48,17 @@ from server.mapping.occupancy import (
     voxel_cells,
 )
 from server.mapping.tsdf_files import StoredTSDF, read_tsdf, write_tsdf
+from server.mapping.voxel_blocks import (
+    ATTRIBUTES,
+    BYTES_PER_VOXEL,
+    HOST,
+    active_keys,
+    grid_from_blocks,
+    new_grid,
+    read_blocks,
+)
 
 log = logging.getLogger(__name__)
-
-_BYTES_PER_VOXEL = 4 * (1 + 1 + 3)  # float32 tsdf, weight, RGB
-# The device numpy arrays become tensors on: Open3D's default, passed (with the dtype) because
-# open3d's stubs declare no defaults for Tensor(np_array, dtype, device).
-_HOST = o3c.Device("CPU:0")
 
 
 class MapError(DroneSimError):
@@ -73,45 +75,6 @@ def _open3d_write(path: str | Path, writer: Callable[..., bool], geometry: objec
     atomic_write(path, write, suffix=".ply", mode=0o644)
 
 
-_ATTRIBUTES = ("tsdf", "weight", "color")  # per voxel: signed distance, weight, RGB
-
-
-def _new_grid(config: TSDFConfig, block_count: int) -> o3d.t.geometry.VoxelBlockGrid:
-    f32 = o3c.float32
-    return o3d.t.geometry.VoxelBlockGrid(
-        list(_ATTRIBUTES),
-        [f32, f32, f32],
-        [o3c.SizeVector([1]), o3c.SizeVector([1]), o3c.SizeVector([3])],
-        config.voxel_m,
-        config.block_resolution,
-        block_count,
-        o3c.Device(config.device),
-    )
-
-
-def _grid_from_blocks(
-    config: TSDFConfig, keys: NDArray[np.int32], values: dict[str, Float32Array]
-) -> o3d.t.geometry.VoxelBlockGrid:
-    """A grid holding the given blocks: keys (N, 3) block coordinates, values per attribute
-    (N, R, R, R, channels), on the CPU (``load`` moves it to the configured device)."""
-    n = len(keys)
-    r = config.block_resolution
-    for name, channels in zip(_ATTRIBUTES, (1, 1, 3), strict=True):
-        if values[name].shape != (n, r, r, r, channels):
-            raise ValueError(
-                f"map {name} has shape {values[name].shape}, not {(n, r, r, r, channels)}"
-            )
-    grid = _new_grid(replace(config, device="CPU:0"), max(config.block_count, n))
-    if n == 0:
-        return grid
-    coords = o3c.Tensor(np.ascontiguousarray(keys, np.int32), o3c.int32, _HOST)
-    buf, _ = grid.hashmap().activate(coords)
-    index = buf.to(o3c.int64).numpy()
-    for name in _ATTRIBUTES:
-        grid.attribute(name).numpy()[index] = values[name]  # a view of the grid's own buffer
-    return grid
-
-
 class TSDFMap:
     """The fused map of one session. All methods may be called from different threads."""
 
@@ -126,7 +89,7 @@ class TSDFMap:
         self.config = config = config or TSDFConfig()
         self._device = o3c.Device(config.device)
         if grid is None:
-            grid = _new_grid(config, config.block_count)
+            grid = new_grid(config, config.block_count)
         self._grid = grid
         self._lock = threading.Lock()
         # Where each fused frame's camera was: known free space, even just behind the camera.
@@ -134,7 +97,7 @@ class TSDFMap:
             np.reshape([] if camera_positions is None else camera_positions, (-1, 3))
         )
         self._dirty = np.sort(
-            pack_keys(self._active_keys())
+            pack_keys(active_keys(self._grid))
         )  # blocks touched since the last preview
         # Blocks touched, and cameras added, since the last occupancy_update (all at first, so
         # that the first update is the whole grid).
@@ -177,12 +140,12 @@ class TSDFMap:
             # cv2.resize keeps the dtype; its stubs do not say so.
             colour = cast(GreyImage, cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA))
         K = self._intrinsics_for(K, w, h)
-        intrinsic = o3c.Tensor(K.matrix, o3c.float64, _HOST)
+        intrinsic = o3c.Tensor(K.matrix, o3c.float64, HOST)
         # T_camera_world, as Open3D wants.
-        extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64, _HOST)
-        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth, o3c.float32, _HOST)).to(self._device)
+        extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64, HOST)
+        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth, o3c.float32, HOST)).to(self._device)
         colour_img = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0, o3c.float32, _HOST)
+            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0, o3c.float32, HOST)
         ).to(self._device)
 
         with self._lock:
@@ -201,7 +164,7 @@ class TSDFMap:
                 return 0
             hashmap = self._grid.hashmap()
             before = hashmap.size()
-            coords = o3c.Tensor(unpack_keys(keys).astype(np.int32), o3c.int32, _HOST).to(
+            coords = o3c.Tensor(unpack_keys(keys).astype(np.int32), o3c.int32, HOST).to(
                 self._device
             )
             self._grid.integrate(
@@ -227,13 +190,6 @@ class TSDFMap:
         return K.scaled(factor)
 
     # --- extraction --------------------------------------------------------------------------
-    def _active_keys(self) -> NDArray[np.int32]:
-        """(B, 3) integer keys of the allocated blocks (Open3D keeps them as int32)."""
-        hashmap = self._grid.hashmap()
-        idx = hashmap.active_buf_indices().to(o3c.int64)
-        keys: NDArray[np.int32] = hashmap.key_tensor()[idx].cpu().numpy().reshape(-1, 3)
-        return keys
-
     def _extract(self) -> tuple[FloatArray, FloatArray]:
         empty = np.empty((0, 3)), np.empty((0, 3))
         if self._grid.hashmap().size() == 0:  # Open3D raises on an empty grid
@@ -299,7 +255,7 @@ class TSDFMap:
         """
         check_cell(voxel_m)
         with self._lock:
-            keys, tsdf, weight = self._read_blocks()
+            keys, tsdf, weight = read_blocks(self._grid)
             cameras = np.array(self._cameras).reshape(-1, 3)
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, self.config)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
@@ -350,30 +306,13 @@ class TSDFMap:
                 hit: BoolArray = np.all((lo < box_hi) & (hi >= box_lo), axis=1)
                 return hit
 
-            keys, tsdf, weight = self._read_blocks(overlapping)
+            keys, tsdf, weight = read_blocks(self._grid, overlapping)
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, cfg)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
         seen, surface = in_box(seen, box_lo, box_hi), in_box(surface, box_lo, box_hi)
         at_camera = in_box(at_camera, box_lo, box_hi)
         # Cropped to what is observed: the rest of the box was unobserved before too.
         return grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
-
-    def _read_blocks(
-        self, select: Callable[[Int64Array], BoolArray] | None = None
-    ) -> tuple[Int64Array, Float32Array, Float32Array]:
-        """Keys (B, 3) of the active blocks (those ``select(keys)`` -> (N,) bool keeps), and
-        copies of their tsdf and weight (B, z, y, x). Call with the lock held."""
-        hashmap = self._grid.hashmap()
-        idx = hashmap.active_buf_indices().cpu().numpy().astype(np.int64)
-        keys = hashmap.key_tensor().cpu().numpy()[idx].astype(np.int64).reshape(-1, 3)
-        if select is not None:
-            keep = select(keys)
-            idx, keys = idx[keep], keys[keep]
-        # .numpy() views the grid's memory; fancy indexing copies it while the lock is held
-        # (Open3D's own tensor indexing is ~20x slower here).
-        tsdf: Float32Array = self._grid.attribute("tsdf").numpy()[idx, ..., 0]
-        weight: Float32Array = self._grid.attribute("weight").numpy()[idx, ..., 0]
-        return keys, tsdf, weight
 
     # --- files -------------------------------------------------------------------------------
     def write_point_cloud_ply(self, path: str | Path) -> None:
@@ -400,7 +339,7 @@ class TSDFMap:
             hashmap = self._grid.hashmap()
             active = hashmap.active_buf_indices().to(o3c.int64).numpy()
             keys = hashmap.key_tensor().numpy()[active]
-            values = {name: self._grid.attribute(name).numpy()[active] for name in _ATTRIBUTES}
+            values = {name: self._grid.attribute(name).numpy()[active] for name in ATTRIBUTES}
             cameras = np.array(self._cameras).reshape(-1, 3)
         cfg = self.config
         write_tsdf(path, StoredTSDF(cfg.voxel_m, cfg.block_resolution, cameras, keys, values))
@@ -425,7 +364,7 @@ class TSDFMap:
                     f"asks for {config.voxel_m} m in {config.block_resolution}^3"
                 )
             if stored.keys is not None and stored.values is not None:
-                grid = _grid_from_blocks(config, stored.keys, stored.values)
+                grid = grid_from_blocks(config, stored.keys, stored.values)
             else:
                 grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
         except (OSError, RuntimeError, KeyError, ValueError, zipfile.BadZipFile) as exc:
@@ -442,7 +381,7 @@ class TSDFMap:
             hashmap = self._grid.hashmap()
             active, capacity = hashmap.size(), hashmap.capacity()
             frames = len(self._cameras)
-        per_block = self.config.block_resolution**3 * _BYTES_PER_VOXEL + 3 * 4
+        per_block = self.config.block_resolution**3 * BYTES_PER_VOXEL + 3 * 4
         return {
             "frames_integrated": frames,
             "active_blocks": active,

@@ -4,7 +4,9 @@ Read ``Tracker.track`` top to bottom: it follows the paper's section III with th
 make it hold up on real hand-held data (keyframes, robust weights, a tracking state, recovery).
 Each stage is its own module: the device's prior (``prior``), registration against a keyframe
 (``frame_to_keyframe``), the keyframes and their changes (``keyframes``), recovery after a loss
-(``recovery``); the tracker holds the state that passes from frame to frame.
+(``recovery``). The state that passes from frame to frame, and its changes besides a registered
+frame (the first frame, a frame made a keyframe at a pose from elsewhere, a lost frame, a saved
+map, a corrected world), is the tracker's base, ``TrackerMemory`` (``tracker_memory``).
 
 A frame is registered in two phases, so that a live session can publish the pose before the
 slower keyframe work: :meth:`Tracker.track` returns the pose and says whether a keyframe change
@@ -13,16 +15,13 @@ is due; :meth:`Tracker.update_keyframe` then switches to an old keyframe or buil
 
 from __future__ import annotations
 
-import logging
 import time
-from collections import deque
 from functools import partial
 
 import numpy as np
 
-from server.geometry import Intrinsics, invert, orthonormalize
+from server.geometry import invert, orthonormalize
 from server.geometry.arrays import Float32Array, FloatArray, GreyImage
-from server.registration.config import RegistrationConfig
 from server.registration.frame_to_keyframe import (
     Registration,
     Tracks,
@@ -32,26 +31,16 @@ from server.registration.frame_to_keyframe import (
     track_keyframe,
 )
 from server.registration.keyframe import Keyframe
-from server.registration.keyframes import (
-    Keyframes,
-    PendingKeyframe,
-    needs_keyframe,
-    refine_in_window,
-)
-from server.registration.place import KeyframeDatabase
+from server.registration.keyframes import PendingKeyframe, needs_keyframe, refine_in_window
 from server.registration.preprocess import clean_depth, to_grey
-from server.registration.prior import DevicePrior
-from server.registration.recovery import Recovery
 from server.registration.relocalise import Relocalisation
-from server.registration.repeats import Repeats
 from server.registration.results import TrackingState, TrackResult
+from server.registration.tracker_memory import TrackerMemory, elapsed_ms
 
 __all__ = ["Tracker", "TrackingState", "TrackResult"]
 
-log = logging.getLogger(__name__)
 
-
-class Tracker:
+class Tracker(TrackerMemory):
     """Frame-to-keyframe RGB-D odometry (FAST + pyramidal LK + Gauss-Newton on SE(3)).
 
     Feed frames in order to :meth:`track`; poses are T_world_camera with the first frame at
@@ -59,95 +48,10 @@ class Tracker:
     after each ``track`` (once the pose is sent): otherwise the next ``track`` does it first,
     which gives the same trajectory but leaves the earlier result's ``new_keyframe`` unknown to
     its caller. A frame may carry the device's own pose as a prior (see ``track``);
-    ``T_world_device`` then says where the device's world lies in the map.
+    ``T_world_device`` then says where the device's world lies in the map. The constructor,
+    the state and the moves into a saved map (``resume_in_map``) or a corrected world
+    (``apply_correction``) are ``TrackerMemory``'s.
     """
-
-    def __init__(
-        self,
-        intrinsics: Intrinsics,
-        config: RegistrationConfig | None = None,
-        T_world_first: FloatArray | None = None,
-    ) -> None:
-        self.K = intrinsics
-        self.cfg = config or RegistrationConfig()
-        self.T_world_first: FloatArray = (
-            np.eye(4) if T_world_first is None else T_world_first.copy()
-        )
-        self.keyframes = Keyframes(intrinsics, self.cfg)
-        self.tracks: Tracks | None = None
-        self.T_world_last: FloatArray = self.T_world_first.copy()
-        self.velocity: FloatArray = np.eye(4)  # T_previous_last: motion over the last frame
-        self.lost = False
-        self.frame_count = 0
-        self.pending: PendingKeyframe | None = None
-        self.device = DevicePrior(self.cfg.prior)
-        self.repeats = Repeats()  # repeated frames held, and the last result not held
-        self.recovery = Recovery(intrinsics, self.cfg, self.keyframes)
-
-    @property
-    def keyframe(self) -> Keyframe | None:
-        """The keyframe the next frame is tracked against (None before the first)."""
-        return self.keyframes.current
-
-    @property
-    def recent(self) -> deque[Keyframe]:
-        """The recent keyframes, newest last."""
-        return self.keyframes.recent
-
-    @property
-    def keyframe_count(self) -> int:
-        """Keyframes made so far (and a saved map's): the next keyframe's id."""
-        return self.keyframes.count
-
-    @property
-    def T_world_device(self) -> FloatArray | None:
-        """The device's world frame in the map (4x4, metres), once a frame with a prior tracked
-        ok; None before. Maps a device-world point into the map: p_world = T @ p_device."""
-        T = self.device.alignment.T_world_device
-        return None if T is None else T.copy()
-
-    def resume_in_map(
-        self,
-        T_world_camera: FloatArray,
-        keyframe: Keyframe,
-        map_keyframes: list[Keyframe],
-        places: KeyframeDatabase | None = None,
-    ) -> None:
-        """Continue in a saved map: the next frame is tracked against ``keyframe`` (one of
-        ``map_keyframes``, in the map's world frame) from ``T_world_camera`` (4x4, metres; e.g.
-        from place recognition), with its corners followed straight from the keyframe image.
-        ``map_keyframes`` stay candidates for keyframe switches; new keyframes get ids above
-        theirs. ``places``: the map's place database, which a later loss looks up too. Whatever
-        was tracked before is dropped."""
-        self.keyframes.resume(keyframe, map_keyframes)
-        self.recovery.reset(places)
-        self.tracks = None
-        self.pending = None
-        self.T_world_last = orthonormalize(np.asarray(T_world_camera, dtype=np.float64))
-        self.velocity = np.eye(4)
-        self.repeats.held = 0
-        self.lost = False
-        self.device.reset()
-
-    def apply_correction(
-        self, keyframe_poses: dict[int, FloatArray], T_correction: FloatArray
-    ) -> None:
-        """Move the tracker into a corrected world (loop closure), between two frames.
-
-        ``keyframe_poses``: corrected T_world_keyframe (4x4, metres) per keyframe id, for the
-        keyframes the pose graph knows; every other keyframe held here (newer than the graph)
-        and the last pose move by ``T_correction`` (old world to new world, 4x4:
-        T_new = T_correction @ T_old). The velocity is a motion in the camera's own frame
-        (T_previous_last), the same in either world. The device prior's alignment to the map
-        is void and starts again; the corners followed stay as they are (they live in images).
-        """
-        T_correction = np.asarray(T_correction, dtype=np.float64)
-        self.recovery.correct(keyframe_poses, T_correction)
-        self.T_world_last = orthonormalize(T_correction @ self.T_world_last)
-        self.T_world_first = orthonormalize(T_correction @ self.T_world_first)
-        if self.pending is not None:  # a keyframe change found due and not yet made
-            self.pending.T_world_camera = orthonormalize(T_correction @ self.pending.T_world_camera)
-        self.device.alignment.reset()
 
     # ------------------------------------------------------------------ per frame
     def track(
@@ -186,7 +90,7 @@ class Tracker:
         if repeated is not None and self.repeats.last is not None and not self.lost:
             # Not tracked: held at the last tracked pose, or where the device says it moved
             # since (its camera did move, and AR draws on this frame).
-            timings = {"preprocess": _ms(t0)}
+            timings = {"preprocess": elapsed_ms(t0)}
             self.repeats.held += 1
             T_prior = self.device.guess(prior, self.T_world_last)
             T_world = self.T_world_last.copy() if T_prior is None else T_prior
@@ -208,7 +112,7 @@ class Tracker:
     ) -> TrackResult:
         """Steps 1-6 for a frame that is not a held repeat (``track``): depth as given, metres."""
         depth = clean_depth(depth, self.cfg.depth)
-        timings = {"preprocess": _ms(t0)}
+        timings = {"preprocess": elapsed_ms(t0)}
 
         if self.keyframe is None:
             return self._start(index, grey, depth, timings, prior)
@@ -236,7 +140,7 @@ class Tracker:
                     found.guess_from_prior = True
             if found is None:
                 found = self._track_keyframe(self.keyframe, grey, depth, T_world_pred)
-        timings["sparse"] = _ms(t)
+        timings["sparse"] = elapsed_ms(t)
         state = None if found is None else self._judge(found)
         relocalised = False
         # 3b-3d. Flow found nothing: recovery makes the frame a keyframe where it places it.
@@ -245,7 +149,7 @@ class Tracker:
             # 3b. Look the frame up among every keyframe, in this frame.
             t = time.perf_counter()
             recovered = self.recovery.recover(grey, depth, self.tracks, self.T_world_last)
-            timings["relocalise"] = _ms(t)
+            timings["relocalise"] = elapsed_ms(t)
             if isinstance(recovered, Relocalisation):  # found, but flow cannot follow
                 restarted = self.recovery.restart_at_place(recovered, depth, anchor)
                 if restarted is not None:
@@ -271,7 +175,7 @@ class Tracker:
         if self.cfg.solver.dense and kf.dense is not None:
             t = time.perf_counter()
             T_kf_cur = refine_on_surface(found, kf.dense, depth, grey, self.K, self.cfg)
-            timings["dense"] = _ms(t)
+            timings["dense"] = elapsed_ms(t)
 
         # 5. Accept the pose, keep the surviving tracks, and note whether a keyframe change is due.
         T_world_cur = orthonormalize(kf.T_world_keyframe @ T_kf_cur)
@@ -285,7 +189,7 @@ class Tracker:
         if self.recovery.merge_due(index):
             t = time.perf_counter()
             merged = self.recovery.merge(grey, depth, T_world_cur)
-            timings["merge"] = _ms(t)
+            timings["merge"] = elapsed_ms(t)
             if merged is not None:
                 T_world_cur = orthonormalize(merged[1] @ T_world_cur)
         self.T_world_last = T_world_cur
@@ -296,7 +200,7 @@ class Tracker:
         keep = found.surviving()
         self.tracks = Tracks(found.ids[keep], found.uv[keep], grey)
         due = needs_keyframe(kf, T_kf_cur, len(self.tracks.ids), self.cfg.keyframes)
-        timings["total"] = _ms(t0)
+        timings["total"] = elapsed_ms(t0)
         result = TrackResult(
             index,
             T_world_cur.copy(),
@@ -339,7 +243,7 @@ class Tracker:
                 )
                 self.T_world_last = T_world_kf
             kf = self._new_keyframe(p.index, p.grey, p.depth, T_world_kf)
-        ms = _ms(t)
+        ms = elapsed_ms(t)
         r = p.result
         r.new_keyframe, r.keyframe_id, r.keyframe_due = switched is None, kf.id, False
         r.timings_ms["keyframe"] = ms
@@ -355,123 +259,3 @@ class Tracker:
 
     def _judge(self, found: Registration) -> TrackingState:
         return judge(found.solution, self.cfg.state)
-
-    def _start(
-        self,
-        index: int,
-        grey: GreyImage,
-        depth: Float32Array,
-        timings: dict[str, float],
-        prior: FloatArray | None,
-    ) -> TrackResult:
-        t = time.perf_counter()
-        kf = self._new_keyframe(index, grey, depth, self.T_world_first)
-        timings["keyframe"] = _ms(t)
-        # A first frame without texture or depth cannot anchor tracking.
-        state = (
-            TrackingState.OK if len(kf.points) >= self.cfg.state.ok_inliers else TrackingState.LOST
-        )
-        if state is TrackingState.LOST:
-            self.keyframes.current, self.lost = None, True
-            self.keyframes.recent.clear()
-            self.recovery.reset()
-        else:
-            self.device.tracked(prior, self.T_world_first, ok=True)
-        return TrackResult(
-            index,
-            self.T_world_first.copy(),
-            state,
-            len(kf.points),
-            0.0,
-            1.0,
-            kf.id,
-            state is TrackingState.OK,
-            timings,
-        )
-
-    def _anchor(
-        self,
-        index: int,
-        grey: GreyImage,
-        depth: Float32Array,
-        timings: dict[str, float],
-        T_world_camera: FloatArray,
-        segment: int | None = None,
-        *,
-        prior_used: bool = False,
-        relocalised: bool = False,
-    ) -> TrackResult | None:
-        """Make this frame a keyframe at ``T_world_camera`` and go on from it (see ``Anchor``:
-        grey image, cleaned depth in metres, and the frame's timings so far bound first)."""
-        t = time.perf_counter()
-        kf = self.keyframes.make(index, T_world_camera, grey, depth)
-        if len(kf.points) < self.cfg.state.ok_inliers:
-            return None
-        if segment is not None:
-            self.recovery.segment = segment
-        self._adopt_keyframe(kf, grey, depth)
-        timings["keyframe"] = _ms(t)
-        timings["total"] = sum(v for k, v in timings.items() if k != "total")
-        self.velocity = np.eye(4)
-        self.T_world_last = T_world_camera.copy()
-        self.lost, self.recovery.lost_run = False, 0
-        return TrackResult(
-            index,
-            T_world_camera.copy(),
-            TrackingState.WEAK,
-            len(kf.points),
-            0.0,
-            1.0,
-            kf.id,
-            True,
-            timings,
-            prior_used=prior_used,
-            segment=self.recovery.segment,
-            relocalised=relocalised,
-        )
-
-    def _lose(
-        self, index: int, timings: dict[str, float], inliers: int, rmse: float, condition: float
-    ) -> TrackResult:
-        """Hold the last good pose; keyframes and trajectory stay as they were."""
-        if not self.lost:
-            log.info("frame %d: tracking lost (%d inliers)", index, inliers)
-        self.recovery.lose(self.velocity, first=not self.lost)
-        self.lost = True
-        self.velocity = np.eye(4)
-        self.tracks = None
-        timings["total"] = sum(timings.values())
-        kf_id = self.keyframe.id if self.keyframe is not None else -1
-        return TrackResult(
-            index,
-            self.T_world_last.copy(),
-            TrackingState.LOST,
-            inliers,
-            rmse,
-            condition,
-            kf_id,
-            False,
-            timings,
-            segment=self.recovery.segment,
-        )
-
-    def _new_keyframe(
-        self, index: int, grey: GreyImage, depth: Float32Array, T_world_camera: FloatArray
-    ) -> Keyframe:
-        kf = self.keyframes.make(index, T_world_camera, grey, depth)
-        self._adopt_keyframe(kf, grey, depth)
-        return kf
-
-    def _adopt_keyframe(self, kf: Keyframe, grey: GreyImage, depth: Float32Array) -> None:
-        """Make kf the keyframe the next frames track against, in the current segment, and
-        describe it for place recognition (depth: cleaned, metres)."""
-        left = self.keyframes.add(kf, self.recovery.segment)
-        if left is not None and self.cfg.relocalise.enabled:
-            self.recovery.archive_keyframe(left)
-        self.tracks = Tracks(np.arange(len(kf.uv)), kf.uv.copy(), grey)
-        if self.cfg.relocalise.enabled:
-            self.recovery.add_keyframe(kf, grey, depth)
-
-
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1e3

@@ -33,7 +33,6 @@ Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import os
 import re
@@ -41,7 +40,6 @@ import threading
 import time
 import uuid
 import weakref
-from collections import deque
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import replace
@@ -50,6 +48,7 @@ import ray
 from ray.exceptions import GetTimeoutError, RayActorError
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.actor_client import MAX_FRAMES_IN_FLIGHT, ActorClient
 from server.sessions.processes.actor_host import ActorHost
 from server.sessions.processes.session_process import WorkerLost
 from server.sessions.web.live import SessionTakenOver
@@ -59,7 +58,6 @@ log = logging.getLogger(__name__)
 NAMESPACE = "dronesim"
 SESSION_CPUS = 1  # Ray's logical CPUs reserved per session actor: the cluster's admission control
 SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's actor
-MAX_FRAMES_IN_FLIGHT = 2  # frame calls per session not yet run by the actor
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0
 _ORDERED = {"configure", "frame", "command", "stop"}
@@ -112,46 +110,15 @@ class SessionActor:
 # ---- the front-end's side --------------------------------------------------------------------
 
 
-class RayWorker:
+class RayWorker(ActorClient):
     """A front-end's handle on one session actor: the surface of ``ProcessWorker`` (``call``,
     ``post``, ``stop``, ``kill``, ``describe``, ``alive``, ``dropped``), plus ``last_active``
-    (this process's monotonic time of the session's latest hello or frame from any front-end)."""
+    (this process's monotonic time of the session's latest hello or frame from any front-end).
+    Built as ``ActorClient`` is (server/sessions/processes/actor_client.py: the ordered calls'
+    queue and send thread, the updates handed on, the ends); here the calls that need Ray."""
 
     kind = "ray"
-
-    def __init__(
-        self,
-        backend: RayWorkers,
-        actor,
-        session_id: str,
-        identity: dict,
-        on_update,
-        on_lost,
-        owner: bool,
-    ) -> None:
-        self.backend, self.actor, self.session_id = backend, actor, session_id
-        self.info = identity["info"]
-        self.data_dir = identity["data_dir"]
-        self.on_update, self.on_lost = on_update, on_lost
-        self.dropped = 0  # frames dropped here, before the actor saw them
-        self.last_active = time.monotonic()
-        self._owner = owner  # this front-end owns the session (its updates come here)
-        self._cond = threading.Condition()
-        self._queue: deque = deque()  # (method, args, Future | None), in order
-        self._in_flight = 0  # frame calls submitted, not yet run
-        self._numbers = itertools.count()
-        self._lost: str | None = None  # why no more calls can go
-        self._stopped = False  # this front-end stopped or killed it: its end is expected
-        self._ended_elsewhere = False
-        self._closing = False
-        self._threads = [
-            threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True)
-            for target, name in ((self._send_loop, "ray-out"), (self._poll_loop, "ray-poll"))
-        ]
-        for thread in self._threads:
-            thread.start()
-        backend._workers.add(self)
-        backend._with_threads.add(self)
+    backend: RayWorkers
 
     @property
     def alive(self) -> bool:
@@ -159,11 +126,6 @@ class RayWorker:
 
     def describe(self) -> dict:
         return {"kind": self.kind, **self.info}
-
-    # ------------------------------------------------------------------ calls
-    def post(self, method: str, *args) -> None:
-        """Queue without waiting for an answer (frames); raises WorkerLost when it is gone."""
-        self._enqueue(method, args, None)
 
     def call(self, method: str, *args, timeout_s: float = 60.0):
         if method == "set_threads":
@@ -195,57 +157,6 @@ class RayWorker:
         except RayActorError as exc:
             raise WorkerLost(self._lost or _death(exc)) from None
         return result(ok, value, "the session's Ray actor")
-
-    def _enqueue(self, method: str, args: tuple, future: Future | None) -> None:
-        with self._cond:
-            if self._lost is not None:
-                raise WorkerLost(self._lost)
-            if method == "frame":
-                for i, (queued, _, _) in enumerate(self._queue):
-                    if queued == "frame":  # newest wins: the one waiting gives way
-                        del self._queue[i]
-                        self.dropped += 1
-                        break
-            self._queue.append((method, args, future))
-            self._cond.notify_all()
-
-    def _sendable(self) -> bool:
-        return bool(self._queue) and (
-            self._queue[0][0] != "frame" or self._in_flight < MAX_FRAMES_IN_FLIGHT
-        )
-
-    def _send_loop(self) -> None:
-        """The one thread that submits ordered calls, numbered in queue order."""
-        owner = self.backend.owner
-        while True:
-            with self._cond:
-                while self._lost is None and not self._closing and not self._sendable():
-                    self._cond.wait()
-                if self._lost is not None or self._closing:
-                    waiting, self._queue = list(self._queue), deque()
-                    break
-                method, args, future = self._queue.popleft()
-                if method == "frame":
-                    self._in_flight += 1
-            try:
-                ref = self.actor.ordered.remote(owner, next(self._numbers), method, args)
-            except Exception as exc:  # Ray shut down under us
-                if future is not None:
-                    future.set_exception(WorkerLost(f"the Ray connection failed: {exc}"))
-                continue
-            if future is not None:
-                future.set_result(ref)
-            if method == "frame":
-                ref.future().add_done_callback(self._frame_done)
-        reason = self._lost or "the front-end let go of the session"
-        for _, _, future in waiting:
-            if future is not None:
-                future.set_exception(WorkerLost(reason))
-
-    def _frame_done(self, _) -> None:
-        with self._cond:
-            self._in_flight -= 1
-            self._cond.notify_all()
 
     def _poll_loop(self) -> None:
         owner = self.backend.owner
@@ -286,35 +197,6 @@ class RayWorker:
             if reply["ended"] is not None and not self._stopped:
                 return self._end_elsewhere("the session was closed by another front-end")
 
-    def _deliver(self, item) -> None:
-        try:
-            self.on_update(item)
-        except Exception:  # the listener's bug must not stop the updates
-            log.exception("delivering a session update failed")
-
-    def _let_go(self, reason: str) -> None:
-        with self._cond:
-            self._lost = self._lost or reason
-            self._cond.notify_all()
-        self.backend._workers.discard(self)
-
-    def _end(self, reason: str) -> None:
-        """The actor died: on_lost once, unless this front-end ended it."""
-        self._let_go(reason)
-        on_lost = self.on_lost
-        self.on_update = self.on_lost = _ignore
-        if not self._stopped:
-            on_lost(reason)
-
-    def _end_elsewhere(self, reason: str) -> None:
-        """Another front-end stopped or deleted the session: close it here without a word to
-        the disk (the meta there is the other front-end's)."""
-        self._ended_elsewhere = True
-        self._let_go(reason)
-        if not self._stopped:
-            self._deliver(SessionTakenOver(reason, closed=True))
-        self.on_update = self.on_lost = _ignore
-
     # ------------------------------------------------------------------ the end
     def stop(self, save: bool, timeout_s: float = 120.0) -> dict:
         """Stop the session (its final snapshot when ``save``) and end the actor. A front-end
@@ -343,32 +225,6 @@ class RayWorker:
             ray.kill(self.actor, no_restart=True)
         except Exception as exc:  # already gone
             log.debug("session %s: kill: %s", self.session_id, exc)
-
-    def _meta_on_disk(self) -> dict:
-        from pathlib import Path
-
-        from server.sessions.store import SessionStore, StoreError
-
-        try:
-            return SessionStore(Path(self.data_dir)).read_meta(self.session_id)
-        except (StoreError, OSError):
-            return {"id": self.session_id, "closed": False, "status": {}}
-
-    def detach_threads(self) -> None:
-        self._closing = True
-        with self._cond:
-            self._cond.notify_all()
-
-    def join_threads(self, timeout_s: float) -> None:
-        """Wait for the send and poll threads to end: a thread that touches Ray after
-        ``ray.shutdown`` makes Ray's core worker end the whole process."""
-        deadline = time.monotonic() + timeout_s
-        for thread in self._threads:
-            thread.join(max(0.0, deadline - time.monotonic()))
-
-
-def _ignore(*_) -> None:
-    pass
 
 
 def _killed(exc: RayActorError) -> bool:

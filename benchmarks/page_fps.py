@@ -35,7 +35,7 @@ from server.client.server_process import ServerProcess
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "page_fps.md"
 CHROMIUM = Path(os.environ.get("DRONESIM_CHROMIUM", "/usr/bin/chromium"))
-CHROMIUM_ARGS = [  # as tests/browser.py: software WebGL, no GPU on these machines
+CHROMIUM_ARGS = [  # as tests/support/browser.py: software WebGL, no GPU on these machines
     "--no-sandbox",
     "--use-angle=swiftshader",
     "--enable-unsafe-swiftshader",

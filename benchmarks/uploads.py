@@ -13,7 +13,8 @@ Targets (issue 32): the web process's peak within ~100 MB of idle through every 
 1 s of CPU for a rejected upload under 1 MB (all of these are under 3 MB; the worst counts).
 Writes ``benchmarks/results/uploads.md``. (A zip whose members declare more than
 ``MAX_UNPACK_FACTOR`` times the upload limit is refused from its directory; building one that
-declares gigabytes takes minutes, so ``tests/test_recordings.py`` covers it at a small limit.)
+declares gigabytes takes minutes, so ``tests/server/test_recordings.py`` covers it at a small
+limit.)
 
     python benchmarks/uploads.py
 """
@@ -37,12 +38,14 @@ import httpx  # noqa: E402
 import lzfse  # noqa: E402
 import numpy as np  # noqa: E402
 from capacity import scan_tree, snapshot_tree, tree_cpu_s  # noqa: E402  (this folder)
-
-sys.path.insert(0, str(REPO / "tests"))  # the bombs the upload tests build, built the same way
-from iphone_recordings import jpeg_declaring, lzfse_declaring, png_declaring  # noqa: E402
 from provenance import run_heading, utc_stamp  # noqa: E402
 
 from server.client.server_process import ServerProcess  # noqa: E402
+from tests.support.iphone_recordings import (  # noqa: E402  (the bombs the upload tests build)
+    jpeg_declaring,
+    lzfse_declaring,
+    png_declaring,
+)
 
 RESULTS = REPO / "benchmarks" / "results" / "uploads.md"
 WEB_GROWTH_TARGET_MB = 100.0

@@ -1,4 +1,6 @@
-"""Shared fixtures: the real data beside the repo, and small synthetic sequences."""
+"""Shared by every tier: the tiers themselves (the folder a test is in), CI's rule that nothing
+skips, the real data beside the repo, small synthetic sequences, a live server, and the helpers
+the tests of a session's conversation use (the browser's fixtures: tests/browser/conftest.py)."""
 
 from __future__ import annotations
 
@@ -15,8 +17,7 @@ import pytest
 
 from server import protocol as P
 from server.client.connection import Connection
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from tests.support.paths import SHARED_DATA
 
 
 def in_ci() -> bool:
@@ -54,67 +55,43 @@ def pytest_make_collect_report(collector):
 
 
 # ---- tiers --------------------------------------------------------------------------------------
-# Every test is in one tier, by what it needs; `pytest -m unit` (or server, browser, packaging)
-# runs one, `pytest -m fast` the unit tests that take a second or two each (under two minutes in
-# all on a 2-core machine), plain `pytest` everything:
-#   browser    a real Chromium (the chromium / open_page fixtures)
-#   server     a real server or session process (live_server, or a test that starts one)
-#   packaging  builds and installs the wheel, or checks the deployment files
-#   unit       the rest: numerical stages, formats, the protocol, on slices of real data
-# A unit module in SLOW_UNIT_MODULES tracks or fuses whole sequences: unit, not fast.
-_BROWSER_FIXTURES = {"chromium", "open_page"}
-_PACKAGING_MODULES = {"test_packaging", "test_deployment"}
-# Modules whose tests start a server, a session's worker, mapper or loop process, Ray, or the
-# command line in a subprocess, through their own helpers (a fixture whose name says "server"
-# is caught without being listed).
-SERVER_MODULES = {
-    "test_bad_input",
-    "test_cli",
-    "test_failures",
-    "test_faults",
-    "test_iphone_track",
-    "test_loadtest",
-    "test_memory",
-    "test_online_loops",
-    "test_ray",
-    "test_replay",
-    "test_session_worker",
-    "test_spec_client",
-}
-SLOW_UNIT_MODULES = {
-    "test_tracker_prior",
-    "test_tracker_phases",
-    "test_relocalise",
-    "test_loops",
-    "test_rooms",
-    "test_iphone_datasets",
-    "test_overlap",
-    "test_verify",
-    "test_ground_truth_check",
-    "test_webxr_live",
+# Every test is in one tier, the folder under tests/ it is in, by what it needs; `pytest -m unit`
+# (or server, browser, packaging) runs one, `pytest -m fast` the unit tests that take a second or
+# two each (under two minutes in all on a 2-core machine), plain `pytest` everything:
+#   unit       tests/unit/<package>/, as server/'s packages (tests/unit/ itself: server/'s own
+#              modules): numerical stages, formats, the protocol, on slices of real data, in
+#              this process
+#   server     tests/server/: a real server or session process (live_server, or a test that
+#              starts one, the command line or Ray)
+#   browser    tests/browser/: a real Chromium (tests/browser/conftest.py's fixtures)
+#   packaging  tests/packaging/: builds and installs the wheel, or checks the deployment files
+# A unit module that tracks or fuses whole sequences says so with `pytestmark = pytest.mark.slow`
+# (a single test with @pytest.mark.slow): unit, not fast.
+TESTS = Path(__file__).resolve().parent
+TIERS = {
+    "unit": "numerical stages, formats and the protocol, in this process",
+    "server": "a real server or session process on loopback",
+    "browser": "a real Chromium driving the page",
+    "packaging": "the wheel and the deployment files",
 }
 
 
 def tier_of(item) -> str:
-    """The tier a collected test belongs to (see above)."""
-    module = item.module.__name__.rpartition(".")[2]
-    fixtures = set(getattr(item, "fixturenames", ()))
-    if fixtures & _BROWSER_FIXTURES:
-        return "browser"
-    if module in _PACKAGING_MODULES:
-        return "packaging"
-    if module in SERVER_MODULES or any("server" in name for name in fixtures):
-        return "server"
-    return "unit"
+    """The tier a collected test belongs to: the folder under tests/ it is in (see above)."""
+    path = Path(item.path).resolve()
+    folder = path.relative_to(TESTS).parts[0] if path.is_relative_to(TESTS) else None
+    if folder not in TIERS:
+        raise pytest.UsageError(
+            f"{item.nodeid}: a test belongs in a tier's folder, tests/{{{','.join(TIERS)}}}/"
+        )
+    return folder
 
 
 def pytest_configure(config):
     for name, what in (
-        ("unit", "numerical stages, formats and the protocol, in this process"),
+        *TIERS.items(),
         ("fast", "the unit tests that take a second or two (under two minutes in all)"),
-        ("server", "a real server or session process on loopback"),
-        ("browser", "a real Chromium driving the page"),
-        ("packaging", "the wheel and the deployment files"),
+        ("slow", "a unit test that tracks or fuses whole sequences: not in the fast tier"),
     ):
         config.addinivalue_line("markers", f"{name}: {what}")
 
@@ -123,8 +100,7 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         tier = tier_of(item)
         item.add_marker(getattr(pytest.mark, tier))
-        module = item.module.__name__.rpartition(".")[2]
-        if tier == "unit" and module not in SLOW_UNIT_MODULES:
+        if tier == "unit" and item.get_closest_marker("slow") is None:
             item.add_marker(pytest.mark.fast)
 
 
@@ -191,6 +167,16 @@ def demo_clean(tmp_path_factory) -> Path:
 
     spec = DemoSpec(frames=24, noise=False)
     return demo_sequence_path(spec, cache_dir=tmp_path_factory.mktemp("demo"), progress=False)
+
+
+@pytest.fixture(scope="module")
+def demo_ready() -> Path:
+    """The small demo preset (320x240, 90 frames) that the page's replays stream, generated once
+    and cached (~/.cache/dronesim): a quarter of the full demo's work per frame."""
+    from server.datasets.demo import demo_sequence_path
+    from server.transport.routes_client import DEMO_PRESETS
+
+    return demo_sequence_path(DEMO_PRESETS["small"], progress=False)
 
 
 class LiveServer:

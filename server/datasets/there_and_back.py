@@ -1,7 +1,7 @@
 """A sequence played forward, then backward to its first frame: a camera that walks a path and
 comes back along it, as a user who returns to where they started. Loop closure is measured on
-it (tests/test_loops.py, benchmarks/loops.py): the way back sees the start again after the
-tracker's recent keyframes have moved on."""
+it (tests/unit/registration/test_loops.py, benchmarks/loops.py): the way back sees the start again
+after the tracker's recent keyframes have moved on."""
 
 from __future__ import annotations
 

@@ -1,0 +1,253 @@
+"""Sessions as Ray actors (``serve --ray ADDRESS``) on a local two-node Ray cluster, its traffic
+on the loopback only: sessions land on both nodes, poses flow, a second front-end takes a
+session's socket over, a restarted front-end finds the live sessions again, a delete ends the
+actor.
+
+One module-scoped cluster (two nodes of one CPU each); the front-ends are real uvicorn servers in
+this process, sharing its Ray driver connection (as separate processes they would each have one).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import os
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from tests.conftest import LiveServer, Stream, auth, missing, session_status
+
+# Ray's processes then use 127.0.0.1 for their node address and sockets (see NOTES-ray.md);
+# read when Ray's constants are imported, so before the first ``import ray``.
+os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+try:
+    import ray
+    from ray.cluster_utils import Cluster
+except ImportError:
+    missing("ray is not installed (pip install -e '.[ray]'; it is in [dev])")
+
+
+from server import protocol as P  # noqa: E402
+from server.datasets import open_dataset  # noqa: E402
+
+NAMESPACE = "dronesim"
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    from ray._private import ray_constants
+
+    ray_constants.ENABLE_RAY_CLUSTER = False  # in case ray was imported before the env was set
+    # Ray's files (sockets, logs, its "current cluster" address file) in a folder of this test's
+    # own, short enough for Unix socket paths: a leftover /tmp/ray must not be joined or touched.
+    temp = tempfile.mkdtemp(prefix="rt", dir="/tmp")
+    saved = os.environ.get("RAY_TMPDIR")
+    os.environ["RAY_TMPDIR"] = temp
+    cluster = Cluster(
+        initialize_head=True,
+        head_node_args={
+            "num_cpus": 1,
+            "temp_dir": os.path.join(temp, "ray"),
+            "include_dashboard": False,
+        },
+    )
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        ray.init(
+            address=cluster.address,
+            namespace=NAMESPACE,
+            logging_level="WARNING",
+            log_to_driver=False,
+        )
+        yield cluster
+    finally:
+        gc.collect()  # actor handles of stopped front-ends let go while Ray is still up
+        ray.shutdown()
+        cluster.shutdown()
+        if saved is None:
+            os.environ.pop("RAY_TMPDIR", None)
+        else:
+            os.environ["RAY_TMPDIR"] = saved
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def room(shared_data):
+    return open_dataset(shared_data / "synthetic_room0")
+
+
+def _actor_alive(sid: str) -> bool:
+    try:
+        ray.get_actor(f"session-{sid}", namespace=NAMESPACE)
+        return True
+    except ValueError:
+        return False
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            if child not in found:
+                found.add(child)
+                todo.append(child)
+    return found
+
+
+def _ray_addresses() -> set[str]:
+    """The local and remote IPv4/IPv6 addresses of every TCP socket of this process's children
+    (Ray's GCS, raylets, workers), from /proc."""
+    inodes = set()
+    for pid in _descendants(os.getpid()):
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                try:
+                    target = os.readlink(fd)
+                except OSError:
+                    continue
+                if target.startswith("socket:["):
+                    inodes.add(target[8:-1])
+        except OSError:
+            continue
+    addresses = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[9] in inodes:
+                addresses |= {_ip(cols[1]), _ip(cols[2])}
+    return addresses
+
+
+def _ip(hex_address: str) -> str:
+    raw = bytes.fromhex(hex_address.split(":")[0])
+    if len(raw) == 4:
+        return ".".join(str(b) for b in raw[::-1])
+    words = [raw[i : i + 4][::-1] for i in range(0, 16, 4)]
+    raw = b"".join(words)
+    if raw[:12] == b"\0" * 10 + b"\xff\xff":
+        return ".".join(str(b) for b in raw[12:])
+    return raw.hex()
+
+
+def _loopback(address: str) -> bool:
+    return (
+        address.startswith("127.") or address == "0.0.0.0" or address in ("0" * 31 + "1", "0" * 32)
+    )
+
+
+def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
+    t0 = time.monotonic()
+    data = tmp_path / "data"
+    node_ids = {n["NodeID"] for n in ray.nodes() if n["Alive"]}
+    assert len(node_ids) == 2
+    front1 = LiveServer(data, ray=cluster.address)
+    servers = [front1]
+    try:
+        (s1, t1), (s2, t2) = front1.create_session(), front1.create_session()
+        workers = [session_status(front1.url, s, t)["worker"] for s, t in ((s1, t1), (s2, t2))]
+        assert all(w["kind"] == "ray" for w in workers), workers
+        assert {w["node_id"] for w in workers} == node_ids, workers  # one session on each node
+        assert all(w["node_ip"].startswith("127.") for w in workers), workers
+
+        async def first_poses():
+            a = await Stream(front1.ws_url, s1, t1, room).open()
+            b = await Stream(front1.ws_url, s2, t2, room).open()
+            await asyncio.gather(a.send_range(range(6)), b.send_range(range(6)))
+            return a, b
+
+        a1, b1 = asyncio.run(first_poses())
+        # Both sessions track the room: poses move along, none lost.
+        for stream in (a1, b1):
+            assert all(p["state"] != "lost" for p in stream.poses), stream.poses
+            motion = np.linalg.norm(
+                P.pose_matrix(stream.poses[-1])[:3, 3] - P.pose_matrix(stream.poses[0])[:3, 3]
+            )
+            assert motion < 1.0
+
+        # A second front-end on the same cluster authorizes s1 with its token and takes its
+        # socket over: the first front-end's socket is told, and the poses go to the new one.
+        front2 = LiveServer(data, ray=cluster.address)
+        servers.append(front2)
+        assert session_status(front2.url, s1, t1)["worker"]["node_id"] == workers[0]["node_id"]
+        assert (
+            httpx.get(f"{front2.url}/api/sessions/{s1}", headers=auth("wrong")).status_code == 404
+        )
+
+        async def take_over():
+            await a1.open()  # the phone, still on front1: a new socket, a hello
+            await a1.send_range(range(2), first_index=6)  # a new socket numbers from 0
+            a2 = await Stream(front2.ws_url, s1, t1, room).open()
+            ended = await a1.answer()  # front1's socket: taken over
+            assert ended["type"] == "error" and ended["name"] == "session_taken_over", ended
+            await a2.send_range(range(4), first_index=8)
+            await a1.close()
+            return a2
+
+        a2 = asyncio.run(take_over())
+        assert len(a2.poses) == 4
+
+        # The first front-end stops (a restart): the sessions live on, a new front-end finds
+        # them and they stream on.
+        front1.stop()
+        servers.remove(front1)
+        assert _actor_alive(s1) and _actor_alive(s2)
+        # Its threads ended with it, those of the sessions it let go of too (a poll still inside
+        # ray.get after ray.shutdown would end this whole process): only front2 polls, for s1.
+        polls = sorted(t.name for t in threading.enumerate() if t.name.startswith("ray-poll-"))
+        assert polls == [f"ray-poll-{s1}"], polls
+        front3 = LiveServer(data, ray=cluster.address)
+        servers.append(front3)
+        status = session_status(front3.url, s2, t2)
+        assert status["closed"] is False and status["worker"]["kind"] == "ray", status
+        assert status["frames_processed"] >= 6
+
+        async def stream_on():
+            b3 = await Stream(front3.ws_url, s2, t2, room).open()
+            await b3.send_range(range(4), first_index=6)
+            a3 = await Stream(front3.ws_url, s1, t1, room).open()
+            await a3.send_range(range(3), first_index=12)
+            await asyncio.gather(b3.close(), a3.close())
+            return a3, b3
+
+        a3, b3 = asyncio.run(stream_on())
+        assert len(a3.poses) == 3 and len(b3.poses) == 4
+        status = session_status(front3.url, s1, t1)
+        assert status["frames_processed"] >= 6 + 2 + 4 + 3 - 2, status
+        assert status["out_of_order_calls"] == 0 and status["foreign_frames"] == 0, status
+
+        # Every Ray socket stayed on the loopback.
+        addresses = _ray_addresses()
+        assert addresses, "found no socket of Ray's processes to check"
+        outside = {a for a in addresses if not _loopback(a)}
+        assert not outside, f"Ray sockets outside 127.0.0.0/8: {outside}"
+
+        # Deleting a session ends its actor; closing one saves it and ends its actor.
+        assert httpx.delete(f"{front3.url}/api/sessions/{s2}", headers=auth(t2)).status_code in (
+            200,
+            204,
+        )
+        deadline = time.monotonic() + 10
+        while _actor_alive(s2) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not _actor_alive(s2)
+        assert not (data / "sessions" / s2).exists()
+    finally:
+        for server in servers:
+            server.stop()  # detached actors left over end with the cluster
+    print(f"ray test body: {time.monotonic() - t0:.1f} s")

@@ -1,0 +1,250 @@
+"""The TSDF map on real frames of the synthetic room with its exact ground-truth poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+
+from server.datasets import open_dataset
+from server.geometry import backproject
+from server.mapping.tsdf import TSDFConfig, TSDFMap
+from server.pipeline import ground_truth_pose_at
+from server.simulation.flight_map import FlightMap
+from tests.conftest import missing
+from tests.support.paths import SHARED_DATA
+
+DATA = SHARED_DATA / "synthetic_room0"
+VOXEL_M = 0.02
+FUSED = range(0, 30, 3)  # ten frames: every third of the first thirty
+
+
+def small_config(**overrides) -> TSDFConfig:
+    return TSDFConfig(**{"voxel_m": VOXEL_M, "block_count": 1000, **overrides})
+
+
+@pytest.fixture(scope="module")
+def room():
+    if not DATA.is_dir():
+        missing(f"shared data folder {DATA} is absent")
+    return open_dataset(DATA)
+
+
+def pose(ds, i: int) -> np.ndarray:
+    T = ground_truth_pose_at(ds, ds.timestamps[i])
+    assert T is not None, f"no ground truth for frame {i}"
+    return T
+
+
+def fuse(ds, tsdf: TSDFMap, indices) -> None:
+    for i in indices:
+        frame = ds[i]
+        tsdf.integrate(frame.colour, frame.depth, ds.intrinsics, pose(ds, i))
+
+
+def measured_surface(ds, indices, stride: int = 2, max_depth_m: float = 4.0) -> np.ndarray:
+    """The frames' depth up to the map's range, back-projected to the world frame with the true
+    poses, (N, 3) metres."""
+    clouds = []
+    for i in indices:
+        depth = ds[i].depth
+        points, _ = backproject(np.where(depth <= max_depth_m, depth, 0), ds.intrinsics, stride)
+        T = pose(ds, i)
+        clouds.append(points @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(clouds)
+
+
+@pytest.fixture(scope="module")
+def fused(room) -> TSDFMap:
+    """A map of the ten fused frames; tests must not change it."""
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, FUSED)
+    return tsdf
+
+
+def test_extracted_points_lie_on_the_measured_surface(room, fused):
+    points, colours = fused.point_cloud()
+    assert len(points) > 10_000
+    assert points.dtype == np.float64 and colours.shape == points.shape
+    assert colours.min() >= 0 and colours.max() <= 1 and colours.std() > 0.02
+    distances, _ = cKDTree(measured_surface(room, FUSED)).query(points)
+    assert np.median(distances) < 1.5 * VOXEL_M, f"median {np.median(distances) * 1000:.1f} mm"
+    assert fused.stats()["frames_integrated"] == len(FUSED)
+
+
+def test_point_cloud_and_mesh_ply_round_trip(fused, tmp_path):
+    fused.write_point_cloud_ply(tmp_path / "map.ply")
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "map.ply"))
+    assert len(cloud.points) > 1000 and cloud.has_colors()
+    assert len(cloud.points) == len(fused.point_cloud()[0])
+
+    fused.write_mesh_ply(tmp_path / "mesh.ply")
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "mesh.ply"))
+    assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.ply", "mesh.ply"]  # no temp files
+
+
+def test_save_and_load_restore_the_same_surface(fused, tmp_path):
+    fused.save(tmp_path / "map.npz")
+    restored = TSDFMap.load(tmp_path / "map.npz", small_config())
+    before, after = fused.point_cloud()[0], restored.point_cloud()[0]
+    assert abs(len(after) - len(before)) <= 0.01 * len(before)
+    assert np.median(cKDTree(before).query(after)[0]) < 1e-4
+    stats = restored.stats()
+    assert stats["frames_integrated"] == len(FUSED)
+    assert stats["active_blocks"] == fused.stats()["active_blocks"]
+    # Colours and the drone's occupancy come back too.
+    colours_before, colours_after = fused.point_cloud()[1], restored.point_cloud()[1]
+    assert abs(colours_after.mean() - colours_before.mean()) < 2 / 255
+    for a, b in zip(fused.occupancy(0.05), restored.occupancy(0.05), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # Compact: TSDF as float16 and colour as uint8, deflated - well under a third of the
+    # float32 grid's 20 bytes per voxel.
+    grid_bytes = stats["active_blocks"] * small_config().block_resolution ** 3 * 20
+    assert (tmp_path / "map.npz").stat().st_size < grid_bytes / 3
+
+
+def test_a_map_saved_in_open3ds_own_layout_still_loads(fused, tmp_path):
+    """Rooms saved before the compact format (Open3D's VoxelBlockGrid layout) keep opening."""
+    fused._grid.save(str(tmp_path / "old.npz"))
+    restored = TSDFMap.load(tmp_path / "old.npz")
+    before, after = fused.point_cloud()[0], restored.point_cloud()[0]
+    assert abs(len(after) - len(before)) <= 0.01 * len(before)
+    assert np.median(cKDTree(before).query(after)[0]) < 1e-4
+
+
+def test_a_damaged_or_foreign_map_file_is_refused_clearly(fused, tmp_path):
+    from server.mapping.tsdf import MapError
+
+    fused.save(tmp_path / "map.npz")
+    with np.load(tmp_path / "map.npz") as stored:
+        arrays = dict(stored)
+    np.savez(tmp_path / "future.npz", **{**arrays, "format": np.array("dronesim-tsdf-9")})
+    with pytest.raises(MapError, match="unknown map format"):
+        TSDFMap.load(tmp_path / "future.npz")
+    np.savez(tmp_path / "cut.npz", **{**arrays, "tsdf": arrays["tsdf"][:-1]})
+    with pytest.raises(MapError, match="shape"):
+        TSDFMap.load(tmp_path / "cut.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file")
+    with pytest.raises(MapError, match="cannot load"):
+        TSDFMap.load(tmp_path / "junk.npz")
+
+
+def test_invalid_depth_is_ignored(room):
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, range(0, 9, 3))
+    count = len(tsdf.point_cloud()[0])
+    frame = room[9]
+    blank = np.full_like(frame.depth, np.nan)
+    assert tsdf.integrate(frame.colour, blank, room.intrinsics, pose(room, 9)) == 0
+    assert len(tsdf.point_cloud()[0]) == count
+
+    # Half the image NaN, a stripe of inf and one of negative depth: the rest is still fused.
+    depth = frame.depth.copy()
+    depth[:, : depth.shape[1] // 2] = np.nan
+    depth[:20] = np.inf
+    depth[-20:] = -1.0
+    tsdf.integrate(frame.colour, depth, room.intrinsics, pose(room, 9))
+    points, colours = tsdf.point_cloud()
+    assert np.all(np.isfinite(points)) and np.all(np.isfinite(colours))
+    distances, _ = cKDTree(measured_surface(room, [0, 3, 6, 9])).query(points)
+    assert np.percentile(distances, 99) < 5 * VOXEL_M
+
+
+def test_occupancy_marks_camera_path_free_and_surfaces_occupied(room, fused):
+    cell = 0.05
+    origin, occupied, observed = fused.occupancy(cell)
+    assert occupied.shape == observed.shape and occupied.ndim == 3
+    assert not np.any(occupied & ~observed)
+
+    def cells(points):
+        ijk = np.floor((points - origin) / cell).astype(int)
+        inside = np.all((ijk >= 0) & (ijk < occupied.shape), axis=1)
+        return ijk, inside
+
+    cameras = np.array([pose(room, i)[:3, 3] for i in FUSED])
+    ijk, inside = cells(cameras)
+    assert inside.all()
+    i, j, k = ijk.T
+    assert observed[i, j, k].all() and not occupied[i, j, k].any()
+
+    surface = measured_surface(room, FUSED, stride=8)
+    ijk, inside = cells(surface)
+    i, j, k = ijk[inside].T
+    assert inside.mean() > 0.98
+    assert occupied[i, j, k].mean() > 0.9, f"only {occupied[i, j, k].mean():.1%} occupied"
+    # Free space was carved: most observed cells are free.
+    assert (observed & ~occupied).sum() > occupied.sum()
+
+
+def test_take_preview_is_bounded_and_returns_only_new_content(room):
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, FUSED)
+    points, colours = tsdf.take_preview(max_points=500)
+    assert len(points) == 500 and colours.shape == (500, 3)
+    seen = [points]
+    while len(batch := tsdf.take_preview(max_points=5000)[0]):
+        seen.append(batch)
+    seen = np.concatenate(seen)
+    assert len(np.unique(np.floor(seen / VOXEL_M), axis=0)) == len(seen)  # one per voxel
+    assert len(seen) > 0.5 * len(tsdf.point_cloud()[0])
+
+    assert tsdf.integrate(room[120].colour, room[120].depth, room.intrinsics, pose(room, 120)) > 0
+    fuse(room, tsdf, [121, 122, 123])  # new surface shows once seen min_weight times
+    fresh, _ = tsdf.take_preview(max_points=10**6)
+    assert len(fresh) > 0
+    assert np.median(cKDTree(seen).query(fresh)[0]) > VOXEL_M  # mostly new surface
+    assert len(tsdf.take_preview(max_points=10**6)[0]) == 0
+
+
+def test_occupancy_in_a_rotated_grid_frame(room, fused):
+    """A gravity-aligned grid: the same cameras and surfaces land in the rotated cells."""
+    cell = 0.05
+    angle = np.deg2rad(30.0)
+    R = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    origin, occupied, observed = fused.occupancy(cell, R_grid_world=R)
+
+    def cells(points_world):
+        return np.floor((points_world @ R.T - origin) / cell).astype(int)
+
+    i, j, k = cells(np.array([pose(room, i)[:3, 3] for i in FUSED])).T
+    assert observed[i, j, k].all() and not occupied[i, j, k].any()
+    ijk = cells(measured_surface(room, FUSED, stride=8))
+    inside = np.all((ijk >= 0) & (ijk < occupied.shape), axis=1)
+    assert inside.mean() > 0.98
+    assert occupied[tuple(ijk[inside].T)].mean() > 0.9
+
+
+def test_occupancy_updates_merge_into_exactly_the_full_grid_and_flight_map(room):
+    """Sub-boxes from occupancy_update, merged frame by frame, are the full occupancy grid; fed
+    into a flight map with update_region, its distance field is the full rebuild's."""
+    cell = 0.05
+    angle = np.deg2rad(20.0)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, [0, 3])
+    origin, occupied, observed = tsdf.occupancy_update(cell, R)  # the first: everything so far
+    full = tsdf.occupancy(cell, R)
+    np.testing.assert_allclose(origin, full[0])
+    np.testing.assert_array_equal(occupied, full[1])
+    np.testing.assert_array_equal(observed, full[2])
+    flight_map = FlightMap(cell, max_distance_m=0.5)
+    flight_map.update(origin, occupied, observed)
+    assert tsdf.occupancy_update(cell, R) is None  # nothing fused since
+    for i in [6, 40, 9, 80]:  # new views grow the grid, revisits change what is inside it
+        fuse(room, tsdf, [i])
+        box_origin, box_occupied, box_observed = tsdf.occupancy_update(cell, R)
+        # The box agrees with the full grid where they overlap and is unobserved elsewhere.
+        full = tsdf.occupancy(cell, R)
+        at = np.round((box_origin - full[0]) / cell).astype(int)
+        assert np.all(at >= 0) and np.all(at + box_occupied.shape <= full[1].shape)
+        box = tuple(slice(a, a + n) for a, n in zip(at, box_occupied.shape, strict=True))
+        np.testing.assert_array_equal(box_occupied, full[1][box])
+        np.testing.assert_array_equal(box_observed, full[2][box])
+        flight_map.update_region(box_origin, box_occupied, box_observed)
+        rebuilt = FlightMap(cell, max_distance_m=0.5)
+        rebuilt.update(*full)
+        np.testing.assert_allclose(flight_map.origin, rebuilt.origin, atol=1e-9)
+        np.testing.assert_array_equal(flight_map.blocked, rebuilt.blocked)
+        np.testing.assert_array_equal(flight_map.esdf, rebuilt.esdf)

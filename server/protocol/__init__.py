@@ -5,7 +5,8 @@ with one of its error code names. The ``make_*`` helpers build messages from num
 (images are JPEG / PNG / zlib encoded, map points packed little-endian); ``decode_frame_images``
 turns a frame back into an RGB image and a depth map in metres; ``ClientOrder`` holds the order
 rules of a client's messages. Modules: ``spec`` (the definition), ``errors``, ``schema``
-(validation), ``messages`` (builders, msgpack), ``codecs`` (images), ``order``.
+(validation), ``messages`` (builders, msgpack), ``peek`` (a message's type and seq, read without
+decoding it), ``codecs`` (images), ``order``.
 
 Used by the server (``server.transport``, ``server.sessions``) and the Python clients
 (``server.client``) alike; it imports neither.
@@ -33,6 +34,7 @@ from server.protocol.messages import (
     pose_matrix,
 )
 from server.protocol.order import ClientOrder
+from server.protocol.peek import Peek, peek
 from server.protocol.schema import validate
 from server.protocol.spec import (
     CLIENT_TO_SERVER,
@@ -59,6 +61,7 @@ __all__ = [
     "SPEC",
     "VERSION",
     "ClientOrder",
+    "Peek",
     "ProtocolError",
     "decode",
     "decode_frame_images",
@@ -80,6 +83,7 @@ __all__ = [
     "make_map_corrected",
     "make_pose",
     "make_welcome",
+    "peek",
     "pose_matrix",
     "validate",
 ]

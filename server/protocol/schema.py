@@ -152,7 +152,7 @@ def validate(message: Any, direction: str | None = None, *, strict: bool = False
     spec = MESSAGES.get(kind)
     if spec is None or (direction is not None and spec["direction"] != direction):
         raise ProtocolError("unknown_type", f"no {direction or 'protocol'} message {kind!r}")
-    seq = message.get("seq") if isinstance(message.get("seq"), int) else None
+    seq = message.get("seq") if type(message.get("seq")) is int else None  # no bool
     # A hello from another version may have other fields: report the version first.
     version = message.get("version")
     if kind == "hello" and isinstance(version, int) and version != VERSION:

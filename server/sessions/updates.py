@@ -51,6 +51,10 @@ class FrameData:
     timestamp: float
     colour: np.ndarray
     depth: np.ndarray
+    # When the frame arrived at the server (time.monotonic, which on Linux is one clock for every
+    # process of the machine): the web process stamps it as it receives the message, and a
+    # Ray actor, whose front-end may run on another machine, as the frame reaches the actor.
+    # The pose's server_total is measured from it.
     received_at: float = field(default_factory=time.monotonic)
     decode_ms: float = 0.0
     # The device's own camera pose in its world (4x4, metres), when the frame carried one.

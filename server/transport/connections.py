@@ -27,7 +27,11 @@ class Connection:
 
     def end(self, code: str, message: str) -> None:
         """Event-loop thread only. The first reason given is the one the client hears."""
-        self.why = self.why or proto.ProtocolError(code, message)
+        self.end_with(proto.ProtocolError(code, message))
+
+    def end_with(self, error: proto.ProtocolError) -> None:
+        """As ``end``, with a fatal error as it stands (a refused frame's, with its seq)."""
+        self.why = self.why or error
         self.ending.set()
 
 

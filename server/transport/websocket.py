@@ -1,8 +1,11 @@
-"""The session WebSocket: decode messages, hand frames to the session, send poses back.
+"""The session WebSocket: route the client's messages, hand frames to the session, send poses
+back.
 
-This module knows the protocol and asyncio; frames go on to the session's worker (a process of
-its own) as the bytes that arrived, and the worker decodes and registers them, so one slow
-session never stalls the event loop or another session.
+This module knows the protocol and asyncio. It reads a frame's type only (``proto.peek``): the
+frame goes on to the session's worker (a process of its own) as the bytes that arrived, and the
+worker decodes, validates, orders and registers it, so one slow session never stalls the event
+loop or another session; a frame the worker refuses comes back as a ``FrameRefused`` update,
+answered here like a bad message. Other messages are decoded and validated here.
 Which socket holds a session, and how other tasks end it, is ``connections.py``'s.
 """
 
@@ -46,6 +49,19 @@ _SESSION_CODES = {
     # A session in a room refuses a camera other than the room's (or a room it cannot read).
     "room_unusable": "bad_intrinsics",
 }
+
+
+def _refusal(code: str, message: str, seq: int | None, counted: bool = True) -> proto.ProtocolError:
+    """What the client hears when its session refuses a message, the one way for both roads
+    a refusal takes from the worker: raised by a call (a SessionError's code), or published for
+    a frame (a FrameRefused's code: a session's, or a protocol error's own name). A code the
+    protocol has no name for is internal_error."""
+    name = _SESSION_CODES.get(code, code)
+    if name not in proto.ERRORS:
+        name = "internal_error"
+    return proto.ProtocolError(name, message, seq=seq, counted=counted)
+
+
 # Updates waiting for a slow client; beyond this the oldest that may be lost are dropped
 # (server/transport/outbox.py); drone states are coalesced, only the newest waits.
 _OUTBOX = 256
@@ -215,12 +231,10 @@ async def _send_updates(
         while True:
             item = await outbox.get()
             if isinstance(item, FrameRefused):  # answered like a bad message, and counted
-                error = proto.ProtocolError(
-                    _SESSION_CODES.get(item.code, item.code),
-                    item.message,
-                    seq=item.seq,
-                    counted=item.counted,
-                )
+                error = _refusal(item.code, item.message, item.seq, item.counted)
+                if error.fatal:  # the socket's handler tells the client and closes
+                    connection.end_with(error)
+                    return
                 if await _report(ws, error, errors):
                     return
                 continue
@@ -334,23 +348,27 @@ async def _receive(
             if data is None:
                 data = (received.get("text") or "").encode()  # text frames are not msgpack
             closed = False
+            peeked: proto.Peek | None = None
+            message: dict = {}
             try:
-                message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes)
-                order.check(message)
-                await _handle(ws, session, message, data, deliver)
-                if message["type"] != "frame":  # a frame's run ends with its pose
+                peeked = proto.peek(data, max_bytes=max_bytes)
+                if peeked.kind == "frame":  # forwarded unread; a frame's run ends with its pose
+                    order.check("frame")
+                    session.submit(data)
+                else:
+                    message = proto.decode(
+                        data, direction=proto.CLIENT_TO_SERVER, max_bytes=max_bytes
+                    )
+                    order.check(message["type"])
+                    await _handle(ws, session, message, deliver)
                     errors.reset()
             except CommandRefused as exc:  # an answer to the pilot, not a client error in a row
                 refusal = proto.make_error(
                     exc.code, str(exc), command_id=message["id"], nearest=exc.nearest
                 )
                 await _send(ws, refusal)
-            except SessionError as exc:
-                error = proto.ProtocolError(
-                    _SESSION_CODES.get(exc.code, "internal_error"),
-                    str(exc),
-                    seq=message.get("seq"),  # decoded already: a session refused it
-                )
+            except SessionError as exc:  # the session refused it, or its worker is gone
+                error = _refusal(exc.code, str(exc), None if peeked is None else peeked.seq)
                 closed = await _report(ws, error, errors)
             except proto.ProtocolError as exc:
                 closed = await _report(ws, exc, errors)
@@ -359,7 +377,9 @@ async def _receive(
             except Exception:  # a bug on one message: say so with a documented code, keep going
                 SessionLog(log, session.id).exception("failed on a client message")
                 error = proto.ProtocolError(
-                    "internal_error", "the server failed on this message", seq=_seq(data)
+                    "internal_error",
+                    "the server failed on this message",
+                    seq=None if peeked is None else peeked.seq,
                 )
                 closed = await _report(ws, error, errors)
             if closed:
@@ -369,13 +389,6 @@ async def _receive(
                 return
     finally:
         ending.cancel()
-
-
-def _seq(data: bytes) -> int | None:
-    try:
-        return int(proto.decode(data)["seq"])
-    except Exception:
-        return None
 
 
 async def _report(ws: WebSocket, error: proto.ProtocolError, errors: _ErrorRun) -> bool:
@@ -391,7 +404,8 @@ async def _report(ws: WebSocket, error: proto.ProtocolError, errors: _ErrorRun) 
     return False
 
 
-async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: bytes, deliver) -> None:
+async def _handle(ws: WebSocket, session: LiveSession, message: dict, deliver) -> None:
+    """A decoded, validated message other than a frame, in its place in the client's order."""
     kind = message["type"]
     if kind == "hello":
         await asyncio.to_thread(session.configure, message)
@@ -402,8 +416,6 @@ async def _handle(ws: WebSocket, session: LiveSession, message: dict, data: byte
                 session.id, max_message_bytes=ws.app.state.settings.max_message_bytes
             ),
         )
-    elif kind == "frame":
-        session.submit(message["seq"], data)
     elif kind == "command":
         # Every field the protocol lists for a command (absent ones as None); others ignored.
         fields = {k: message.get(k) for k in _COMMAND_FIELDS}

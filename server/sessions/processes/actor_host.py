@@ -90,7 +90,11 @@ class ActorHost:
                 self.foreign_frames += 1
                 return None
             self._last_active = time.monotonic()
-            data, _received_at = args  # the front-end's clock: another machine's, maybe
+            # The front-end's arrival stamp is its own machine's monotonic clock, which means
+            # nothing here when the actor runs on another node: the frame's arrival is its
+            # arrival at the actor, so the pose's server_total leaves out the front-end's queue,
+            # the hop to the actor and the updates' poll back.
+            data, _front_end_arrival = args
             return self.host.frame(data, self._last_active)
         if method == "command":
             if owner != self._owner:

@@ -43,6 +43,19 @@ class SessionCounts:
         with self.lock:
             self.dirty = True
 
+    def frame_figures(self) -> dict:
+        """The status's counts of frames (call holding the lock)."""
+        return {
+            "frames_received": self.received,
+            "frames_processed": self.processed,
+            "frames_dropped": self.dropped,
+            "fusion_skipped": self.fusion_skipped,
+            "frames_repeated": self.repeated,
+            "tracking_states": dict(self.states),
+            "device_pose": dict(self.device_pose),
+            "recovery": dict(self.recovery),
+        }
+
     def count_recovery(self, result: TrackResult) -> None:
         """The status's ``recovery`` counts (call holding the lock)."""
         r = self.recovery

@@ -1,10 +1,11 @@
 """A session's host: the side of a live session that runs in its worker (a process of its own,
 or a Ray actor), apart from the web process.
 
-The web process forwards what the client sent: the hello as a dict, frames as the bytes that arrived
-(decoded here, so image decoding never costs the event loop), pilot commands. The host answers calls
-with plain values and hands updates (poses, map points, drone states and events, refused frames) to
-``publish``. Errors cross as ``RemoteError`` values (server/sessions/processes/ipc.py).
+The web process forwards what the client sent: the hello as a dict, frames as the bytes that
+arrived (unpacked, validated, put in order and decoded here, so that a frame costs the event loop
+no more than a look at its type), pilot commands. The host answers calls with plain values and
+hands updates (poses, map points, drone states and events, refused frames) to ``publish``.
+Errors cross as ``RemoteError`` values (server/sessions/processes/ipc.py).
 """
 
 from __future__ import annotations
@@ -111,19 +112,27 @@ class SessionHost:
         self._hello = hello
 
     def frame(self, data: bytes, received_at: float) -> None:
-        """A frame message as it arrived (already validated by the web process): decode its
-        images and hand it to the tracker; a frame that cannot be used is answered with a
-        FrameRefused update. ``received_at``: when the web process got it (its monotonic
-        clock, handed back in the pose's timings)."""
-        message = proto.decode(data)
-        seq = message.get("seq")
-        t0 = time.perf_counter()
+        """A frame message as it arrived, forwarded unread by the web process (which only peeked
+        at its type and seq): the one place a frame is unpacked and validated, put in order
+        (bad_sequence) and counted, before its images are decoded and it goes to the tracker.
+        A frame that cannot be used is answered with a FrameRefused update, its seq in it when
+        it could be read, worded as the web process words the errors it finds itself.
+        ``received_at``: its arrival (``FrameData.received_at``)."""
+        seq = None
         try:
+            # The web process checked the size against the server's limit, which may be above
+            # the protocol's default.
+            message = proto.decode(data, direction=proto.CLIENT_TO_SERVER, max_bytes=len(data))
+            if message["type"] != "frame":  # the web process sends frames only
+                raise proto.ProtocolError("unexpected_message", "not a frame")
+            seq = message["seq"]  # required in a frame, so validated with it
             if self._hello is None:
                 raise SessionError("no_hello", "send a hello before frames")
+            self.session.accept(seq)
+            t0 = time.perf_counter()
             colour, depth = proto.decode_frame_images(message, self._hello)
             frame = FrameData(
-                message["seq"],  # required in a frame, so validated with it
+                seq,
                 message["timestamp"],
                 colour,
                 depth,
@@ -136,7 +145,8 @@ class SessionHost:
             )
             self.session.submit(frame)
         except proto.ProtocolError as exc:
-            self.publish(FrameRefused(seq, exc.code, str(exc), counted=exc.counted))
+            refused = exc.seq if seq is None else seq
+            self.publish(FrameRefused(refused, exc.code, exc.message, counted=exc.counted))
         except SessionError as exc:
             self.publish(FrameRefused(seq, exc.code, str(exc)))
         except Exception as exc:  # a bug on one frame: the client hears internal_error

@@ -188,3 +188,23 @@ class MapRebuilds:
             raise
         except Exception:
             self.log.exception("cancelling the rebuild failed")
+
+
+def loop_figures(loops: LoopClosing | None, rebuilds: MapRebuilds | None) -> dict:
+    """A session's ``loops`` in its status: the loop thread's counts (zeros without online
+    loop closure) and the map's rebuilds."""
+    figures: dict[str, float | bool | None] = {
+        "enabled": loops is not None,
+        "keyframes": 0,
+        "queued": 0,
+        "found": 0,
+        "refused": 0,
+        "corrections": 0,
+        "last_optimise_ms": None,
+        "last_optimise_cpu_ms": None,
+        "lookup_cpu_ms": None,
+    }
+    if loops is not None:
+        figures.update(loops.figures())
+    figures.update(RebuildFigures().as_dict() if rebuilds is None else rebuilds.figures())
+    return figures

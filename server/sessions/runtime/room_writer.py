@@ -1,6 +1,7 @@
-"""A live session's room (server/rooms/): its keyframes written into the session's ``room/``
-folder as the mapping thread fuses them, and, when the session ends, the room itself (its
-keyframes, those of the room it continued in, and its final map) for a later session."""
+"""A live session's room (server/rooms/): the saved room it continues in, if any (read at its first
+hello); its keyframes written into the session's ``room/`` folder as the mapping thread fuses
+them; and, when the session ends, the room itself (its keyframes, those of the room it continued
+in, and its final map) for a later session."""
 
 from __future__ import annotations
 
@@ -16,17 +17,39 @@ from server.registration.config import RegistrationConfig
 from server.rooms.room import (
     MAP_FILE,
     Room,
+    RoomError,
     RoomKeyframe,
     link_keyframes,
+    load_room,
     room_keyframe,
     write_keyframe,
     write_room_meta,
 )
+from server.sessions.errors import SessionError
+from server.sessions.processes.mapper import Mapper, MapperClient
 from server.sessions.runtime.counts import SessionCounts
 from server.sessions.runtime.course_control import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.runtime.loop_closing import Worlds
 
 ROOM_FOLDER = "room"  # in a session's folder: the room it leaves (server/rooms/room.py)
+
+
+def continued_room(
+    room_dir: Path,
+    cfg: RegistrationConfig,
+    mapper: Mapper | MapperClient,
+    log: logging.LoggerAdapter,
+) -> Room:
+    """The saved room in ``room_dir`` that a session continues in, its map loaded into the
+    session's ``mapper`` (the drone's map is fed from it with the first fused frame). Raises
+    SessionError (room_unusable) when the room cannot be read."""
+    try:
+        room = load_room(room_dir, cfg)
+    except RoomError as exc:
+        raise SessionError("room_unusable", str(exc)) from exc
+    mapper.load(str(room_dir / MAP_FILE))
+    log.info("continues in the room %s (%d keyframes)", room_dir, len(room.keyframes))
+    return room
 
 
 class RoomWriter:

@@ -1,7 +1,7 @@
 """One live session: the orchestrator of its parts, which run on threads of their own.
 
-- tracking (server/sessions/runtime/tracking.py): the newest frame through the frame step
-  (server/frame_step.py), its pose published at once;
+- tracking (server/sessions/runtime/tracking.py): the client's frames in order (``accept``),
+  the newest through the frame step (server/frame_step.py), its pose published at once;
 - fusion (server/sessions/runtime/fusion.py): the mapping thread, behind it: the map, its preview,
   the drone's map, the room's keyframes (server/sessions/runtime/room_writer.py), the periodic
   snapshots, and, with online loop closure (server/sessions/runtime/loop_closing.py), the map's
@@ -9,7 +9,8 @@
 - the drone (server/sessions/runtime/flight.py), on its own thread.
 
 The parts are made with the first hello, when the camera is known; this object wires them, and
-answers for the session as a whole: status, snapshots, the end.
+answers for the session as a whole: status, snapshots, the end (the map's part in those:
+server/sessions/runtime/session_map.py).
 """
 
 from __future__ import annotations
@@ -22,26 +23,25 @@ from pathlib import Path
 import numpy as np
 
 from server.evaluation.trajectory import Trajectory, write_tum
-from server.frame_step import FrameStep
 from server.geometry import Intrinsics
 from server.registration import Tracker
 from server.rooms.continuation import RoomTracker
-from server.rooms.room import MAP_FILE, Room, RoomError, load_room
 from server.sessions.config import SessionConfig
 from server.sessions.errors import CommandRefused, SessionError
 from server.sessions.failures import SessionLog
 from server.sessions.flight_store import FlightLog
-from server.sessions.processes.mapper import Mapper, MapperClient, MapperLost
+from server.sessions.processes.mapper import Mapper, MapperClient
 from server.sessions.runtime.counts import SessionCounts
 from server.sessions.runtime.drone_setup import course_best_path, inherit_course_best, make_flight
 from server.sessions.runtime.flight import Flight
 from server.sessions.runtime.fusion import SessionFusion
 from server.sessions.runtime.loop_closing import Correction, LoopClosing
-from server.sessions.runtime.rebuilds import MapRebuilds, RebuildFigures
+from server.sessions.runtime.rebuilds import MapRebuilds, loop_figures
 from server.sessions.runtime.room_writer import ROOM_FOLDER as ROOM_FOLDER
-from server.sessions.runtime.room_writer import RoomWriter
+from server.sessions.runtime.room_writer import RoomWriter, continued_room
+from server.sessions.runtime.session_map import SessionMap
 from server.sessions.runtime.snapshots import Snapshots
-from server.sessions.runtime.tracking import SessionTracking
+from server.sessions.runtime.tracking import SessionTracking, live_step
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, FrameRefused, SessionFailed, Update
 
@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 
 class Session:
     """A live session. ``configure`` (the hello) makes its parts, ``start`` launches their
-    threads, ``submit`` hands in frames.
+    threads, ``accept`` and ``submit`` hand in frames.
 
     The tracking thread registers the newest frame and reports its pose at once; the mapping
     thread fuses frames into the TSDF behind it, so fusion never delays a pose. Keyframes are
@@ -94,9 +94,9 @@ class Session:
         self.room_dir = room_dir
         # The map, in a process of its own when given one (processes/mapper.py says why).
         self.mapper = mapper or Mapper(self.config.mapping)
-        self._map_closed = False
-        self.on_update: Callable[[Update], None] | None = None
         self.counts = SessionCounts()  # failures, counters, the snapshot's dirty flag
+        self.map = SessionMap(self.mapper, self.counts)  # status, snapshots, the end
+        self.on_update: Callable[[Update], None] | None = None
         self.failure: str | None = None  # why the session could not go on (see fail)
         self.last_seen = time.monotonic()
         self.snapshots = Snapshots(
@@ -139,8 +139,10 @@ class Session:
                 "this session was started with another camera; create a new session",
             )
         if self.tracker is None:
-            room = self._load_room()
             cfg = self.config.registration
+            room = None  # a fresh session starts an empty world
+            if self.room_dir is not None:
+                room = continued_room(self.room_dir, cfg, self.mapper, self.log)
             self.tracker = (
                 Tracker(intrinsics, cfg) if room is None else RoomTracker(room, intrinsics, cfg)
             )
@@ -171,19 +173,6 @@ class Session:
         assert self.tracking is not None
         self.tracking.renumber()  # a new connection numbers its frames afresh (a reloaded page)
 
-    def _load_room(self) -> Room | None:
-        """The room this session continues in, its map the mapper's (the drone's map is fed
-        from it with the first fused frame); None for a fresh session."""
-        if self.room_dir is None:
-            return None
-        try:
-            room = load_room(self.room_dir, self.config.registration)
-        except RoomError as exc:
-            raise SessionError("room_unusable", str(exc)) from exc
-        self.mapper.load(str(self.room_dir / MAP_FILE))
-        self.log.info("continues in the room %s (%d keyframes)", self.room_dir, len(room.keyframes))
-        return room
-
     def _make_parts(self, K: Intrinsics) -> None:
         """The tracking and mapping threads' parts, wired (not started)."""
         assert self.tracker is not None and self.room is not None
@@ -208,18 +197,8 @@ class Session:
             fail=self.fail,
             failed=lambda: self.failure is not None,
         )
-        step = FrameStep(
-            self.tracker,
-            K,
-            None,  # a live client's colour is registered to its depth (the phone's is)
-            self.config.mapping.fuse_every,
-            self.config.registration.relocalise.segment_keyframes_kept,
-            # With the first frame placed in a room the drone's map is fed the room's map (a
-            # fresh session's first frame is its first keyframe anyway).
-            fuse_first_placed=True,
-        )
         self.tracking = SessionTracking(
-            step,
+            live_step(self.tracker, K, self.config),
             self.fusion,
             self.counts,
             self._publish,
@@ -270,14 +249,23 @@ class Session:
         if self.loops is not None:
             self.loops.start()
 
+    def accept(self, seq: int) -> None:
+        """Frame ``seq`` arrived, before its images are decoded: counted as received, or
+        refused with a SessionError (no_hello, session_failed, bad_sequence)."""
+        self._open_tracking().accept(seq)
+
     def submit(self, frame: FrameData) -> None:
-        """Queue a frame; a frame still waiting is dropped in its favour."""
+        """Queue a frame (``accept``-ed); a frame still waiting is dropped in its favour."""
+        self._open_tracking().submit(frame)
+        self.last_seen = time.monotonic()
+
+    def _open_tracking(self) -> SessionTracking:
+        """The tracking part, while the session takes frames; else raises SessionError."""
         if self.tracking is None:
             raise SessionError("no_hello", "send a hello before frames")
         if self.failure is not None:
             raise SessionError("session_failed", f"{self.failure}; the session has ended")
-        self.tracking.submit(frame)
-        self.last_seen = time.monotonic()
+        return self.tracking
 
     def drain(self, timeout_s: float = 5.0) -> bool:
         """Wait until every submitted frame has been processed (or dropped); False on timeout.
@@ -314,22 +302,7 @@ class Session:
 
     def loop_figures(self) -> dict:
         """The status's ``loops``: the loop thread's counts and the map rebuilds."""
-        figures: dict[str, float | bool | None] = {
-            "enabled": self.loops is not None,
-            "keyframes": 0,
-            "queued": 0,
-            "found": 0,
-            "refused": 0,
-            "corrections": 0,
-            "last_optimise_ms": None,
-            "last_optimise_cpu_ms": None,
-            "lookup_cpu_ms": None,
-        }
-        if self.loops is not None:
-            figures.update(self.loops.figures())
-        rebuilds = self.rebuilds
-        figures.update(RebuildFigures().as_dict() if rebuilds is None else rebuilds.figures())
-        return figures
+        return loop_figures(self.loops, self.rebuilds)
 
     # ------------------------------------------------------------------ results
     def save_room(self) -> bool:
@@ -368,23 +341,8 @@ class Session:
             counts["snapshots_failed"] += self.flight_log.saves_failed
         return counts
 
-    def _map_figures(self, wait: bool = False) -> dict:
-        """The map's statistics: fresh when the mapper is idle; while it fuses, as of the latest
-        fusion (a status never waits behind the mapper, which runs at a lower priority and may
-        take seconds on a loaded machine). Once its process has ended (stopped, or died), its
-        last."""
-        if not self._map_closed:
-            try:
-                fresh = self.mapper.stats(wait=wait or not self.counts.map_stats)
-            except MapperLost:
-                self._map_closed = True
-            else:
-                if fresh is not None:
-                    self.counts.map_stats = fresh
-        return self.counts.map_stats
-
     def status(self) -> dict:
-        map_stats = self._map_figures()
+        map_stats = self.map.figures()
         failures = self.failure_counts()
         loops = self.loop_figures()
         poses = 0 if self.tracking is None else self.tracking.pose_count()
@@ -395,15 +353,8 @@ class Session:
                 "created_at": self.created_at,
                 "closed": self.closed,
                 "client_name": self.client_name,
-                "frames_received": c.received,
-                "frames_processed": c.processed,
-                "frames_dropped": c.dropped,
+                **c.frame_figures(),
                 "frames_failed": failures["frames_failed"],
-                "fusion_skipped": c.fusion_skipped,
-                "frames_repeated": c.repeated,
-                "tracking_states": dict(c.states),
-                "device_pose": dict(c.device_pose),
-                "recovery": dict(c.recovery),
                 "trajectory_poses": poses,
                 "map": map_stats,
                 "fusion_failed": failures["fusions_failed"],  # the name before failures existed
@@ -412,14 +363,9 @@ class Session:
                 "intrinsics": None if self.intrinsics is None else self.intrinsics.__dict__,
                 "gravity": self.gravity,
                 "drone": None if self.flight is None else self.flight.summary(),
-                "snapshot_error": self.snapshot_error,
+                "snapshot_error": self.snapshots.error,  # why the latest snapshot failed
                 "loops": loops,
             }
-
-    @property
-    def snapshot_error(self) -> str | None:
-        """Why the latest snapshot failed, if it did."""
-        return self.snapshots.error
 
     def snapshot(self) -> None:
         """Write map, trajectory and meta as one snapshot (``Snapshots.take``). When the map's
@@ -429,12 +375,7 @@ class Session:
 
     def _write_snapshot(self, staging: Path) -> list[str]:
         write_tum(staging / "trajectory.tum", self.trajectory())
-        names = ["trajectory.tum"]
-        if not self._map_closed:
-            try:
-                names += self.mapper.save(str(staging))
-            except MapperLost:
-                self._map_closed = True
+        names = ["trajectory.tum", *self.map.save(str(staging))]
         if self.flight_log is not None:  # the flight in progress, as far as it got
             self.flight_log.save_open()
         return names
@@ -475,6 +416,4 @@ class Session:
             except OSError:
                 self.log.exception("saving the session's room failed")
                 self.counts.failed("room_keyframes_failed")
-        self._map_figures(wait=True)
-        self._map_closed = True
-        self.mapper.close()
+        self.map.close()

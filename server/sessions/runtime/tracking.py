@@ -18,13 +18,30 @@ import numpy as np
 
 from server.evaluation.trajectory import Trajectory
 from server.frame_step import FrameStep
+from server.geometry import Intrinsics
 from server.registration import Tracker, TrackingState, TrackResult
+from server.rooms.continuation import RoomTracker
+from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError
 from server.sessions.runtime.counts import SessionCounts
 from server.sessions.runtime.flight import Flight
 from server.sessions.runtime.fusion import FuseJob, SessionFusion
 from server.sessions.runtime.loop_closing import Correction
 from server.sessions.updates import FrameData, MapCorrected, PoseUpdate, Update
+
+
+def live_step(tracker: Tracker | RoomTracker, K: Intrinsics, config: SessionConfig) -> FrameStep:
+    """The frame step of a live session's tracking thread (``SessionTracking``)."""
+    return FrameStep(
+        tracker,
+        K,
+        None,  # a live client's colour is registered to its depth (the phone's is)
+        config.mapping.fuse_every,
+        config.registration.relocalise.segment_keyframes_kept,
+        # With the first frame placed in a room the drone's map is fed the room's map (a fresh
+        # session's first frame is its first keyframe anyway).
+        fuse_first_placed=True,
+    )
 
 
 class SessionTracking:
@@ -53,7 +70,7 @@ class SessionTracking:
         self.frame_failed = frame_failed
         self.failure_counts = failure_counts
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        # Under counts.lock: the poses so far (timestamp, T_world_camera), the last seq taken.
+        # Under counts.lock: the poses so far (timestamp, T_world_camera), the last seq accepted.
         self._trajectory: list[tuple[float, np.ndarray]] = []
         self._last_seq = -1
         self._wake = threading.Condition()  # guards the inbox, _busy, _stopping, _corrections
@@ -77,16 +94,20 @@ class SessionTracking:
         with self.counts.lock:
             self._last_seq = -1
 
-    def submit(self, frame: FrameData) -> None:
-        """Queue a frame; a frame still waiting is dropped in its favour."""
+    def accept(self, seq: int) -> None:
+        """Frame ``seq`` arrived (before its images are decoded): counted as received, or
+        refused (SessionError bad_sequence) unless it is above the connection's last seq."""
         with self.counts.lock:
-            if frame.seq <= self._last_seq:
+            if seq <= self._last_seq:
                 raise SessionError(
                     "bad_sequence",
-                    f"sequence number {frame.seq} is not above the last one ({self._last_seq})",
+                    f"sequence number {seq} is not above the last one ({self._last_seq})",
                 )
-            self._last_seq = frame.seq
+            self._last_seq = seq
             self.counts.received += 1
+
+    def submit(self, frame: FrameData) -> None:
+        """Queue a frame (``accept``-ed); a frame still waiting is dropped in its favour."""
         with self._wake:
             if self._inbox is not None:
                 with self.counts.lock:
@@ -212,6 +233,8 @@ class SessionTracking:
             counts.count_recovery(result)
             dropped, processed = counts.dropped, counts.processed
             counts.dirty = True
+        # The one place server_total is measured: from the frame's arrival (FrameData.received_at)
+        # to its pose, published now.
         timings["server_total"] = (time.monotonic() - frame.received_at) * 1e3
         self.publish(
             PoseUpdate(

@@ -1,24 +1,22 @@
-"""A live session as the web process holds it: identity, the client's frame order, and a worker
-(a local process, or a Ray actor) that does the work.
+"""A live session as the web process holds it: identity, and a worker (a local process, or a Ray
+actor) that does the work.
 
 The transport and the REST routes talk to this object only; it forwards to the worker and turns
-the worker's updates into the client's. Nothing here decodes an image or touches a map.
+the worker's updates into the client's. Nothing here unpacks a frame: the worker decodes it, puts
+it in order, counts it and measures its pose's ``server_total``.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, Literal, Protocol, overload
 
 from server.sessions.errors import SessionError
 from server.sessions.processes.session_process import WorkerLost
-from server.sessions.updates import FrameRefused, PoseUpdate, SessionFailed
+from server.sessions.updates import PoseUpdate, SessionFailed
 from server.sessions.web.viewers import Viewers
-
-_RECEIVED_KEPT = 64  # arrival times of frames not yet answered (newest-wins drops the rest)
 
 
 class SessionTakenOver:
@@ -74,10 +72,6 @@ class LiveSession:
         self._stopped = threading.Event()
         self.last_seen = time.monotonic()
         self.on_update: Callable[[object], None] | None = None
-        self._last_seq = -1
-        self.received = 0  # frames accepted from the client (some dropped before the worker)
-        self._received: OrderedDict[int, float] = OrderedDict()  # seq -> arrival (monotonic)
-        self._lock = threading.Lock()
         self._on_lost = on_lost
         self._on_failed = on_failed
         self.sends_failed = 0  # connections ended because sending an update failed (web side)
@@ -97,16 +91,11 @@ class LiveSession:
 
     # ------------------------------------------------------------------ from the worker
     def deliver(self, item) -> None:
-        """An update from the worker (its reader thread): a pose's server time is measured
-        here, from the frame's arrival in this process to its pose leaving it."""
-        if isinstance(item, PoseUpdate | FrameRefused):
-            with self._lock:
-                received = None if item.seq is None else self._received.pop(item.seq, None)
-            if isinstance(item, PoseUpdate):
-                item.dropped += self.worker.dropped  # dropped before the worker saw them
-                item.failures["sends_failed"] = self.sends_failed
-                if received is not None:
-                    item.timings_ms["server_total"] = (time.monotonic() - received) * 1e3
+        """An update from the worker (its reader thread): a pose gets the counts only this
+        process knows (frames dropped before the worker saw them, sends that failed)."""
+        if isinstance(item, PoseUpdate):
+            item.dropped += self.worker.dropped
+            item.failures["sends_failed"] = self.sends_failed
         elif isinstance(item, SessionTakenOver) and item.closed:
             self.closed = True  # ended by another front-end: the reaper lets go of it here
         elif isinstance(item, SessionFailed):  # the worker lives on, to stop and save it
@@ -133,29 +122,18 @@ class LiveSession:
         """The client's validated hello. Raises SessionError or ProtocolError."""
         if self.closed:
             raise SessionError("session_closed", "this session is closed; create a new one")
-        self.worker.call("configure", hello)
+        self.worker.call("configure", hello)  # a new connection numbers its frames afresh
         self.last_seen = time.monotonic()
-        with self._lock:  # a new connection numbers its frames afresh (a reloaded page)
-            self._last_seq = -1
 
     def start(self, on_update: Callable[[object], None] | None) -> None:
         self.on_update = on_update
 
-    def submit(self, seq: int, data: bytes) -> None:
-        """A frame message as it arrived; the worker decodes it. Raises SessionError
-        (bad_sequence) at once, without the worker."""
+    def submit(self, data: bytes) -> None:
+        """A frame message as it arrived, posted unread with its arrival time: the worker
+        decodes and validates it, refuses it when its seq is out of order, counts it, and
+        answers a frame it refuses with a FrameRefused update. Raises WorkerLost (a
+        SessionError) when the worker is gone."""
         now = time.monotonic()
-        with self._lock:
-            if seq <= self._last_seq:
-                raise SessionError(
-                    "bad_sequence",
-                    f"sequence number {seq} is not above the last one ({self._last_seq})",
-                )
-            self._last_seq = seq
-            self.received += 1
-            self._received[seq] = now
-            while len(self._received) > _RECEIVED_KEPT:
-                self._received.popitem(last=False)
         self.last_seen = now
         self.worker.post("frame", data, now)
 
@@ -175,9 +153,10 @@ class LiveSession:
             if meta is None:
                 raise
             return meta["status"]
+        # Frames dropped here before the worker saw them: received by the server all the same.
+        status["frames_received"] += self.worker.dropped
         status["frames_dropped"] += self.worker.dropped
         status["failures"]["sends_failed"] = self.sends_failed
-        status["frames_received"] = self.received
         threads = status.pop("threads")
         return status | {"worker": self.worker.describe() | {"threads": threads}}
 

@@ -5,7 +5,9 @@ Cases, from the bare dynamics up to the whole per-session simulator as the serve
 
 - ``quadrotor``: ``Quadrotor.step`` with constant motor commands.
 - ``quadrotor + controller``: the cascaded controller holding a hover setpoint.
-- ``simulator hover``: ``DroneSimulator.advance`` hovering in the open.
+- ``simulator hover``: ``DroneSimulator.advance`` hovering in the open (where it spawned: a
+  drone holding still skips its steps, server/simulation/stillness.py, so this is the cost
+  of skipping; benchmarks/drone_physics.py sets it against stepping every step).
 - ``simulator goto``: planned routes through the door of ``room_with_door``, back and forth
   (planning time excluded: only ``advance`` is timed).
 - ``simulator on a wall``: full pitch into a wall, the worst case for collision queries (every

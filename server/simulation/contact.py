@@ -3,8 +3,9 @@
 Flight frame, metres, z up. The drone is a sphere of ``radius_m`` and touches the map when the
 distance field at its centre drops below the radius. The field is 1-Lipschitz, so a chunk of
 steps whose travelled length is provably shorter than the clearance at its start needs no query
-per step; near obstacles a few steps are run and every one of them is checked in one query,
-rewinding to the step before a contact (``run_checked``). A step moves at most
+per step; near obstacles a few steps are run, then every one of them is checked (in plain
+floats, ``FlightMap.distance_at``: cheaper than numpy for a chunk's few points), rewinding to the
+step before a contact (``run_checked``). A step moves at most
 max_speed / physics_hz (< radius, checked by the config), so the sphere cannot jump over a wall
 between two checks (the swept segment is covered), and ``segments_free`` guards longer steps.
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 from typing import Protocol, TypeVar
@@ -100,7 +102,7 @@ def run_checked(
             stepper.wait(n)
             return
         here = (q.px, q.py, q.pz)
-        clearance = float(flight_map.distance(np.array([here]))[0])
+        clearance = flight_map.distance_at(q.px, q.py, q.pz)
         budget = (clearance - radius - config.voxel_m) / LIPSCHITZ_SAFETY
         if budget > 0:
             # Far from the map: steps whose travel |v| t + a_max t^2 / 2 stays within the
@@ -121,7 +123,7 @@ def run_checked(
         for _ in range(k):
             stepper.step()
             track.append((q.px, q.py, q.pz))
-        j = first_contact(flight_map, np.array(track), radius)
+        j = first_contact(flight_map, track, radius)
         if j is None:
             n -= k
             continue
@@ -133,15 +135,40 @@ def run_checked(
         n -= j + 1
 
 
-def first_contact(flight_map: FlightMap, track: FloatArray, radius_m: float) -> int | None:
-    """Index of the first step of ``track`` ((k + 1, 3) positions) that touches the map, or
-    None. Inside an obstacle (the map grew into the drone) it may move out, never deeper."""
-    d = flight_map.distance(track)
-    touching = (d[1:] < radius_m) & (d[1:] < d[:-1])
-    long = np.linalg.norm(np.diff(track, axis=0), axis=1) > 0.5 * radius_m
-    if long.any():  # never at the configured limits; sweep such steps explicitly
-        touching[long] |= ~flight_map.segments_free(track[:-1][long], track[1:][long], radius_m)
-    return int(np.argmax(touching)) if touching.any() else None
+def first_contact(
+    flight_map: FlightMap, track: Sequence[tuple[float, float, float]], radius_m: float
+) -> int | None:
+    """Index of the first step of ``track`` (k + 1 positions (x, y, z), metres) that touches
+    the map, or None. Inside an obstacle (the map grew into the drone) it may move out, never
+    deeper. Plain floats, point by point (``FlightMap.distance_at``): for the few positions of
+    a chunk that is several times cheaper than numpy's per-call cost, and gives the same
+    distances to the bit."""
+    distance_at = flight_map.distance_at
+    x0, y0, z0 = track[0]
+    d0 = distance_at(x0, y0, z0)
+    long_m = 0.5 * radius_m
+    for j in range(1, len(track)):
+        x1, y1, z1 = track[j]
+        d1 = distance_at(x1, y1, z1)
+        if d1 < radius_m and d1 < d0:
+            return j - 1
+        dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
+        long = math.sqrt(dx * dx + dy * dy + dz * dz) > long_m  # never at the configured limits
+        if long and not _swept_free(flight_map, (x0, y0, z0), (x1, y1, z1), radius_m):
+            return j - 1
+        x0, y0, z0, d0 = x1, y1, z1, d1
+    return None
+
+
+def _swept_free(
+    flight_map: FlightMap,
+    a: tuple[float, float, float],
+    b: tuple[float, float, float],
+    radius_m: float,
+) -> bool:
+    """Whether the sphere swept along a step from ``a`` to ``b`` that is too long to check by
+    its ends alone stays free."""
+    return bool(flight_map.segments_free(np.array([a]), np.array([b]), radius_m)[0])
 
 
 class Touch(str, Enum):

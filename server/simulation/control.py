@@ -22,7 +22,7 @@ import numpy as np
 
 from server.geometry.arrays import FloatArray
 from server.simulation.config import SimulationConfig
-from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix_with, quaternion_rotation
 from server.simulation.route import Route
 
 MAX_TILT_RATE_RAD_S = 6.0  # body roll/pitch rate the attitude loop may ask for
@@ -141,12 +141,20 @@ class CascadedController:
         self._tan_tilt = math.tan(limits.max_tilt_rad)
         self._drag = params.drag_n_s_m / params.mass_kg
         self._max_thrust = MAX_THRUST_FRACTION * 4.0 * params.max_motor_thrust_n
+        # The mixer's constants (quadrotor.mix_with), worked out once.
+        self._mixer = (
+            params.arm_length_m / math.sqrt(2.0),
+            params.yaw_moment_m,
+            params.max_motor_thrust_n,
+        )
 
     def update(self, q: Quadrotor, sp: Setpoint) -> tuple[float, float, float, float]:
         """Motor thrust commands (N) for this step."""
         g = self.gains
         lim = self.limits
         grav = self.params.gravity_m_s2
+        kp = g.position
+        brake = lim.brake_accel_m_s2
 
         # Position -> velocity (horizontal and vertical separately, each limited).
         vx, vy, vz = sp.vx, sp.vy, sp.vz
@@ -154,30 +162,38 @@ class CascadedController:
             ex, ey = sp.x - q.px, sp.y - q.py
             e = math.hypot(ex, ey)
             if e > 1e-9:
-                s = _sqrt_controller(e, g.position, lim.brake_accel_m_s2) / e
+                s = _sqrt_controller(e, kp, brake) / e
                 vx += s * ex
                 vy += s * ey
         if sp.hold_z:
-            vz += _sqrt_controller(sp.z - q.pz, g.position, lim.brake_accel_m_s2)
+            vz += _sqrt_controller(sp.z - q.pz, kp, brake)
         speed = math.hypot(vx, vy)
-        if speed > lim.max_speed_m_s:
-            vx *= lim.max_speed_m_s / speed
-            vy *= lim.max_speed_m_s / speed
-        vz = min(max(vz, -lim.max_climb_rate_m_s), lim.max_climb_rate_m_s)
+        v_max = lim.max_speed_m_s
+        if speed > v_max:
+            vx *= v_max / speed
+            vy *= v_max / speed
+        climb = lim.max_climb_rate_m_s
+        vz = climb if vz > climb else (-climb if vz < -climb else vz)
 
         # Velocity -> acceleration (limited), plus feed-forward.
-        ax = sp.ax + g.velocity * (vx - q.vx)
-        ay = sp.ay + g.velocity * (vy - q.vy)
-        az = sp.az + g.velocity * (vz - q.vz)
+        kv = g.velocity
+        qvx, qvy, qvz = q.vx, q.vy, q.vz
+        ax = sp.ax + kv * (vx - qvx)
+        ay = sp.ay + kv * (vy - qvy)
+        az = sp.az + kv * (vz - qvz)
         a = math.sqrt(ax * ax + ay * ay + az * az)
         if a > lim.max_accel_m_s2:
             s = lim.max_accel_m_s2 / a
             ax, ay, az = ax * s, ay * s, az * s
 
         # Required specific thrust: acceleration + gravity + drag, vertical first, tilt limited.
-        fx = ax + self._drag * q.vx
-        fy = ay + self._drag * q.vy
-        fz = max(az + grav + self._drag * q.vz, MIN_THRUST_G * grav)
+        drag = self._drag
+        fx = ax + drag * qvx
+        fy = ay + drag * qvy
+        fz = az + grav + drag * qvz
+        f_min = MIN_THRUST_G * grav
+        if f_min > fz:
+            fz = f_min
         h = math.hypot(fx, fy)
         h_max = fz * self._tan_tilt
         if h > h_max:
@@ -194,7 +210,7 @@ class CascadedController:
         xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
 
         # Attitude error e_R = vee(M - M^T) / 2 with M = R_d^T R (only 6 entries needed).
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = q.rotation()
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = quaternion_rotation(q.qw, q.qx, q.qy, q.qz)
         m01 = xx * r01 + xy * r11 + xz * r21
         m02 = xx * r02 + xy * r12 + xz * r22
         m10 = yx * r00 + yy * r10 + yz * r20
@@ -206,20 +222,30 @@ class CascadedController:
         erz = 0.5 * (m10 - m01)
 
         # Attitude -> body rates (limited), yaw rate feed-forward about body z.
-        wdx = min(max(-g.attitude * erx, -MAX_TILT_RATE_RAD_S), MAX_TILT_RATE_RAD_S)
-        wdy = min(max(-g.attitude * ery, -MAX_TILT_RATE_RAD_S), MAX_TILT_RATE_RAD_S)
+        ka = g.attitude
+        wdx = -ka * erx
+        wdx = -MAX_TILT_RATE_RAD_S if wdx < -MAX_TILT_RATE_RAD_S else wdx
+        wdx = MAX_TILT_RATE_RAD_S if wdx > MAX_TILT_RATE_RAD_S else wdx
+        wdy = -ka * ery
+        wdy = -MAX_TILT_RATE_RAD_S if wdy < -MAX_TILT_RATE_RAD_S else wdy
+        wdy = MAX_TILT_RATE_RAD_S if wdy > MAX_TILT_RATE_RAD_S else wdy
         wdz = -g.yaw * erz + sp.yaw_rate * r22
-        wdz = min(max(wdz, -lim.max_yaw_rate_rad_s), lim.max_yaw_rate_rad_s)
+        yaw_max = lim.max_yaw_rate_rad_s
+        wdz = -yaw_max if wdz < -yaw_max else wdz
+        wdz = yaw_max if wdz > yaw_max else wdz
 
         # Body rates -> torques (with gyroscopic compensation); thrust along the current body z.
         ixx, iyy, izz = self.params.inertia_kg_m2
+        kr = g.rate
         wx, wy, wz = q.wx, q.wy, q.wz
-        tx = ixx * g.rate * (wdx - wx) + (izz - iyy) * wy * wz
-        ty = iyy * g.rate * (wdy - wy) + (ixx - izz) * wz * wx
-        tz = izz * g.rate * (wdz - wz) + (iyy - ixx) * wx * wy
+        tx = ixx * kr * (wdx - wx) + (izz - iyy) * wy * wz
+        ty = iyy * kr * (wdy - wy) + (ixx - izz) * wz * wx
+        tz = izz * kr * (wdz - wz) + (iyy - ixx) * wx * wy
         thrust = self.params.mass_kg * (fx * r02 + fy * r12 + fz * r22)
-        thrust = min(max(thrust, 0.0), self._max_thrust)
-        return mix(self.params, thrust, tx, ty, tz)
+        thrust = 0.0 if thrust < 0.0 else thrust
+        thrust = self._max_thrust if self._max_thrust < thrust else thrust
+        a_, k_, f_max = self._mixer
+        return mix_with(a_, k_, f_max, thrust, tx, ty, tz)
 
 
 # Setpoint generators: what the modes above the controller feed it.
@@ -294,14 +320,20 @@ class RouteTracker:
     def update(self, q: Quadrotor, sp: Setpoint) -> None:
         """Advance the clock one step and write the setpoint."""
         lag = math.dist((q.px, q.py, q.pz), (sp.x, sp.y, sp.z))
-        rate = min(1.0, max(0.0, 2.0 - 2.0 * lag / self._max_lag))
-        self.t_s = min(self.t_s + rate * self.dt, self.duration_s)
-        u = self.t_s / self.dt
+        rate = 2.0 - 2.0 * lag / self._max_lag
+        rate = rate if rate > 0.0 else 0.0  # min(1, max(0, rate)), as comparisons
+        rate = rate if rate < 1.0 else 1.0
+        t = self.t_s + rate * self.dt
+        t = self.duration_s if self.duration_s < t else t
+        self.t_s = t
+        u = t / self.dt
         i = int(u)
         f = u - i
-        x, y, z, vx, vy, vz, ax, ay, az = (
-            a + f * (b - a) for a, b in zip(self._table[i], self._table[i + 1], strict=True)
-        )
+        x0, y0, z0, vx0, vy0, vz0, ax0, ay0, az0 = self._table[i]
+        x1, y1, z1, vx1, vy1, vz1, ax1, ay1, az1 = self._table[i + 1]
+        x, y, z = x0 + f * (x1 - x0), y0 + f * (y1 - y0), z0 + f * (z1 - z0)
+        vx, vy, vz = vx0 + f * (vx1 - vx0), vy0 + f * (vy1 - vy0), vz0 + f * (vz1 - vz0)
+        ax, ay, az = ax0 + f * (ax1 - ax0), ay0 + f * (ay1 - ay0), az0 + f * (az1 - az0)
         r2 = rate * rate
         sp.hold_xy = sp.hold_z = True
         sp.x, sp.y, sp.z = x, y, z

@@ -10,7 +10,8 @@ physics steps (the remainder carries over to the next call).
 - modes.py holds the flight state and the modes: a step in each, and how they change;
 - route_following.py flies a goto's route and decides what a map change means for it;
 - contact.py checks every physics step against the map and judges a touch (bump or crash);
-- manual_flight.py and pilot_modes.py fly the sticks, control.py the setpoints.
+- manual_flight.py and pilot_modes.py fly the sticks, control.py the setpoints;
+- stillness.py skips the steps while the drone holds still (a fixed point of the step).
 
 Not thread-safe: one caller at a time. ``server.sessions.runtime.flight.Flight`` calls it only under
 its lock, the one lock over the simulator and its map (commands come from one thread, ``advance``
@@ -49,6 +50,7 @@ from server.simulation.modes import DroneModes
 from server.simulation.pilot_modes import FlightMode
 from server.simulation.route import PlanningError, Route
 from server.simulation.route_following import Replanner
+from server.simulation.stillness import Stillness
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +58,16 @@ log = logging.getLogger(__name__)
 class DroneSimulator:
     """The virtual quadrotor of one session, flying in ``flight_map``."""
 
-    def __init__(self, config: SimulationConfig, flight_map: FlightMap) -> None:
+    def __init__(
+        self, config: SimulationConfig, flight_map: FlightMap, skip_still: bool = True
+    ) -> None:
+        """``skip_still``: run no physics steps while the drone holds still (stillness.py);
+        False steps every one of them, for comparisons."""
         self.config = config
         self.flight_map = flight_map
         self._modes = DroneModes(config, flight_map)
         self._carry_s = 0.0  # simulated time short of a whole step, carried to the next advance
+        self.stillness = Stillness(self._modes, flight_map, enabled=skip_still)
 
     # Commands
 
@@ -276,7 +283,9 @@ class DroneSimulator:
                 span = self.config.max_advance_s
             n = int(span * self.config.physics_hz + 1e-9)
             self._carry_s = span - n * self.config.dt_s
-            run_checked(m, m.quad, self.flight_map, self.config, m.a_max, n)
+            n = self.stillness.skip(n)  # none while the drone holds still
+            if n > 0:
+                run_checked(m, m.quad, self.flight_map, self.config, m.a_max, n)
         return m.take_events()
 
     def status(self) -> DroneStatus:
@@ -293,7 +302,7 @@ class DroneSimulator:
             T_flight_drone=q.T_flight_body,
             velocity=q.velocity,
             mode=mode,
-            clearance=float(self.flight_map.distance(q.position[None])[0]),
+            clearance=self.flight_map.distance_at(q.px, q.py, q.pz),
             target=target,
             route=route,
             command_id=m.command_id,

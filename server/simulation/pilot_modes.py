@@ -48,7 +48,7 @@ from server.simulation.control import (
     Setpoint,
     wrap_angle,
 )
-from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix, quaternion_rotation
+from server.simulation.quadrotor import Quadrotor, QuadrotorParams, mix_with, quaternion_rotation
 
 # Angle mode tilts its setpoint at most at this share of the rate limits: the rest is headroom
 # for the yaw turning it and for the attitude loop's corrections.
@@ -181,6 +181,12 @@ class PilotController:
         self._weight = params.mass_kg * params.gravity_m_s2
         self._max_thrust = MAX_THRUST_FRACTION * 4.0 * params.max_motor_thrust_n
         self._min_boost_cos = math.cos(rates.angle_max_rad)
+        # The mixer's constants (quadrotor.mix_with), worked out once.
+        self._mixer = (
+            params.arm_length_m / math.sqrt(2.0),
+            params.yaw_moment_m,
+            params.max_motor_thrust_n,
+        )
 
     def release(self) -> None:
         """Another mode flies the drone now; the next update takes over from its attitude."""
@@ -308,7 +314,8 @@ class PilotController:
         ffx, ffy, ffz = feed_forward
         prev = self.ff_prev or feed_forward
         self.ff_prev = feed_forward
-        ax, ay, az = ((a - b) / q.dt for a, b in zip(feed_forward, prev, strict=True))
+        dt = q.dt
+        ax, ay, az = (ffx - prev[0]) / dt, (ffy - prev[1]) / dt, (ffz - prev[2]) / dt
         # e_R = vee(M - M^T) / 2 with M = Rd^T R.
         m01 = Rd[0] * R[1] + Rd[3] * R[4] + Rd[6] * R[7]
         m02 = Rd[0] * R[2] + Rd[3] * R[5] + Rd[6] * R[8]
@@ -331,7 +338,10 @@ class PilotController:
         tx = ixx * (g.rate * (wdx - wx) + ax) + (izz - iyy) * wy * wz
         ty = iyy * (g.rate * (wdy - wy) + ay) + (ixx - izz) * wz * wx
         tz = izz * (g.rate * (wdz - wz) + az) + (iyy - ixx) * wx * wy
-        return mix(self.params, min(max(thrust_n, 0.0), self._max_thrust), tx, ty, tz)
+        thrust_n = 0.0 if thrust_n < 0.0 else thrust_n  # min(max(t, 0), max), as comparisons
+        thrust_n = self._max_thrust if self._max_thrust < thrust_n else thrust_n
+        a_, k_, f_max = self._mixer
+        return mix_with(a_, k_, f_max, thrust_n, tx, ty, tz)
 
 
 def _rotate_into_body(

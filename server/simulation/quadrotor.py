@@ -57,19 +57,42 @@ def mix(
     When the motors cannot deliver everything, yaw torque is given up first, then the result is
     clipped (roll and pitch keep priority over yaw, as on real flight controllers).
     """
-    a = params.arm_length_m / math.sqrt(2.0)
+    return mix_with(
+        params.arm_length_m / math.sqrt(2.0),
+        params.yaw_moment_m,
+        params.max_motor_thrust_n,
+        thrust_n,
+        tx,
+        ty,
+        tz,
+    )
+
+
+def mix_with(
+    a: float, k: float, f_max: float, thrust_n: float, tx: float, ty: float, tz: float
+) -> tuple[float, float, float, float]:
+    """``mix`` with the airframe's constants worked out beforehand (the controllers call it at
+    every physics step): ``a`` the motors' offset along body x and y (arm / sqrt 2, m), ``k``
+    the yaw moment per newton (m), ``f_max`` a motor's full thrust (N). Same arithmetic; the
+    clipping is written as comparisons, which return what min and max would."""
     base = 0.25 * thrust_n
     rx = 0.25 * tx / a
     ry = 0.25 * ty / a
-    rz = 0.25 * tz / params.yaw_moment_m
-    f_max = params.max_motor_thrust_n
+    rz = 0.25 * tz / k
     f0 = base + rx - ry + rz
     f1 = base - rx - ry - rz
     f2 = base - rx + ry + rz
     f3 = base + rx + ry - rz
-    lo = min(f0, f1, f2, f3)
-    hi = max(f0, f1, f2, f3)
-    if (lo < 0.0 or hi > f_max) and rz != 0.0:
+    if rz != 0.0 and (
+        f0 < 0.0
+        or f1 < 0.0
+        or f2 < 0.0
+        or f3 < 0.0
+        or f0 > f_max
+        or f1 > f_max
+        or f2 > f_max
+        or f3 > f_max
+    ):
         # Largest share of the yaw command that keeps every motor within limits.
         scale = 1.0
         for f, s in ((f0, 1.0), (f1, -1.0), (f2, 1.0), (f3, -1.0)):
@@ -86,10 +109,10 @@ def mix(
         f2 = base - rx + ry + rz
         f3 = base + rx + ry - rz
     return (
-        min(max(f0, 0.0), f_max),
-        min(max(f1, 0.0), f_max),
-        min(max(f2, 0.0), f_max),
-        min(max(f3, 0.0), f_max),
+        f_max if f0 > f_max else (0.0 if f0 < 0.0 else f0),
+        f_max if f1 > f_max else (0.0 if f1 < 0.0 else f1),
+        f_max if f2 > f_max else (0.0 if f2 < 0.0 else f2),
+        f_max if f3 > f_max else (0.0 if f3 < 0.0 else f3),
     )
 
 
@@ -144,6 +167,12 @@ class Quadrotor:
         "_ixx",
         "_iyy",
         "_izz",
+        "_izz_iyy",
+        "_ixx_izz",
+        "_iyy_ixx",
+        "_f_max",
+        "_mass",
+        "_gravity",
     )
 
     def __init__(self, params: QuadrotorParams, dt_s: float) -> None:
@@ -154,6 +183,13 @@ class Quadrotor:
         self._k = params.yaw_moment_m
         self._drag = params.drag_n_s_m / params.mass_kg
         self._ixx, self._iyy, self._izz = (float(i) for i in params.inertia_kg_m2)
+        # Constants of the step, worked out once (the same values the step used to compute).
+        self._izz_iyy = self._izz - self._iyy
+        self._ixx_izz = self._ixx - self._izz
+        self._iyy_ixx = self._iyy - self._ixx
+        self._f_max = params.max_motor_thrust_n
+        self._mass = params.mass_kg
+        self._gravity = params.gravity_m_s2
         self.reset((0.0, 0.0, 0.0))
 
     def reset(self, position: Iterable[float], yaw_rad: float = 0.0, hovering: bool = True) -> None:
@@ -177,13 +213,21 @@ class Quadrotor:
     def step(self, c0: float, c1: float, c2: float, c3: float) -> None:
         """Advance one step with commanded motor thrusts ``c0..c3`` (N, clipped to [0, max])."""
         dt = self.dt
-        f_max = self.params.max_motor_thrust_n
+        f_max = self._f_max
         al = self._alpha
         # Motors: first-order lag towards the (saturated) commands.
-        f0 = self.f0 + al * (min(max(c0, 0.0), f_max) - self.f0)
-        f1 = self.f1 + al * (min(max(c1, 0.0), f_max) - self.f1)
-        f2 = self.f2 + al * (min(max(c2, 0.0), f_max) - self.f2)
-        f3 = self.f3 + al * (min(max(c3, 0.0), f_max) - self.f3)
+        c0 = f_max if c0 > f_max else (0.0 if c0 < 0.0 else c0)
+        c1 = f_max if c1 > f_max else (0.0 if c1 < 0.0 else c1)
+        c2 = f_max if c2 > f_max else (0.0 if c2 < 0.0 else c2)
+        c3 = f_max if c3 > f_max else (0.0 if c3 < 0.0 else c3)
+        f0 = self.f0
+        f0 += al * (c0 - f0)
+        f1 = self.f1
+        f1 += al * (c1 - f1)
+        f2 = self.f2
+        f2 += al * (c2 - f2)
+        f3 = self.f3
+        f3 += al * (c3 - f3)
         self.f0, self.f1, self.f2, self.f3 = f0, f1, f2, f3
         thrust = f0 + f1 + f2 + f3
         a = self._a
@@ -193,23 +237,23 @@ class Quadrotor:
 
         # Translation: thrust along body z, gravity, linear drag.
         qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
-        t_m = thrust / self.params.mass_kg
+        t_m = thrust / self._mass
         drag = self._drag
-        self.vx += (t_m * 2.0 * (qx * qz + qw * qy) - drag * self.vx) * dt
-        self.vy += (t_m * 2.0 * (qy * qz - qw * qx) - drag * self.vy) * dt
-        self.vz += (
-            t_m * (1.0 - 2.0 * (qx * qx + qy * qy)) - drag * self.vz - self.params.gravity_m_s2
-        ) * dt
-        self.px += self.vx * dt
-        self.py += self.vy * dt
-        self.pz += self.vz * dt
+        vx, vy, vz = self.vx, self.vy, self.vz
+        vx += (t_m * 2.0 * (qx * qz + qw * qy) - drag * vx) * dt
+        vy += (t_m * 2.0 * (qy * qz - qw * qx) - drag * vy) * dt
+        vz += (t_m * (1.0 - 2.0 * (qx * qx + qy * qy)) - drag * vz - self._gravity) * dt
+        self.vx, self.vy, self.vz = vx, vy, vz
+        self.px += vx * dt
+        self.py += vy * dt
+        self.pz += vz * dt
 
         # Rotation: Euler's equations with diagonal inertia.
         ixx, iyy, izz = self._ixx, self._iyy, self._izz
         wx, wy, wz = self.wx, self.wy, self.wz
-        wx += (tx - (izz - iyy) * wy * wz) / ixx * dt
-        wy += (ty - (ixx - izz) * wz * wx) / iyy * dt
-        wz += (tz - (iyy - ixx) * wx * wy) / izz * dt
+        wx += (tx - self._izz_iyy * wy * wz) / ixx * dt
+        wy += (ty - self._ixx_izz * wz * wx) / iyy * dt
+        wz += (tz - self._iyy_ixx * wx * wy) / izz * dt
         self.wx, self.wy, self.wz = wx, wy, wz
 
         # Attitude: q <- q * exp(w dt / 2), then renormalise.

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -105,6 +106,26 @@ def tree_cpu_s(root_pid: int, name: str = "") -> float:
     return total
 
 
+def chromium_cpu_by_type(root_pid: int) -> dict[str, float]:
+    """CPU seconds of the chromium processes under ``root_pid`` by their ``--type=`` (renderer,
+    gpu-process, utility, ...; the browser process itself as "browser")."""
+    out: dict[str, float] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            comm, rest = stat.read_text().rsplit(")", 1)
+            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ")
+        except OSError:
+            continue
+        if "chrom" not in comm.split("(", 1)[1]:
+            continue
+        fields = rest.split()
+        # Chromium rewrites its children's command lines (one string, not one argument each).
+        found = re.search(rb"--type=([\w-]+)", cmdline)
+        kind = found.group(1).decode() if found else "browser"
+        out[kind] = out.get(kind, 0.0) + (int(fields[11]) + int(fields[12])) / CLOCK_HZ
+    return out
+
+
 @contextmanager
 def demo_server(tree: Path, data_dir: Path, demo: bool):
     """``python -m server serve --demo`` from a checkout (its own server and page)."""
@@ -165,6 +186,7 @@ def measure(browser, tree: Path, args) -> dict:
                 "task_s": metrics["TaskDuration"],
                 "script_s": metrics["ScriptDuration"],
                 "browser_cpu": tree_cpu_s(os.getpid(), "chrom"),
+                "browser_by_type": chromium_cpu_by_type(os.getpid()),
                 "server_cpu": tree_cpu_s(pid),
                 "wall": time.monotonic(),
             }
@@ -188,6 +210,10 @@ def measure(browser, tree: Path, args) -> dict:
         "kinds_ms": {k: (v - a["kinds"].get(k, 0)) / max(sent, 1) for k, v in b["kinds"].items()},
         "renders_per_s": (b["renders"] - a["renders"]) / span,
         "browser_cores": (b["browser_cpu"] - a["browser_cpu"]) / span,
+        "browser_cores_by_type": {
+            k: round((v - a["browser_by_type"].get(k, 0.0)) / span, 2)
+            for k, v in b["browser_by_type"].items()
+        },
         "server_cores": (b["server_cpu"] - a["server_cpu"]) / span,
         "pixel_ratio": b["pixelRatio"],
         "hud": b["hud"],

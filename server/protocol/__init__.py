@@ -32,6 +32,7 @@ from server.protocol.messages import (
     make_pose,
     make_welcome,
     pose_matrix,
+    queued_frames,
 )
 from server.protocol.order import ClientOrder
 from server.protocol.peek import Peek, peek
@@ -85,5 +86,6 @@ __all__ = [
     "make_welcome",
     "peek",
     "pose_matrix",
+    "queued_frames",
     "validate",
 ]

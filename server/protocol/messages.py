@@ -62,10 +62,12 @@ def make_hello(
     depth_scale: float = 1000.0,
     version: int = VERSION,
     gravity: ArrayLike | None = None,
+    recorded: bool = False,
 ) -> dict:
     """intrinsics: fx, fy, cx, cy of the colour image (px); sizes (width, height) px;
     depth_size defaults to colour_size; depth_scale: depth units per metre; gravity: its
-    direction in the first camera's frame (None: the server assumes +y)."""
+    direction in the first camera's frame (None: the server assumes +y); recorded: the frames
+    come from a recording, to be queued rather than dropped (see ``queued_frames``)."""
     depth_size = colour_size if depth_size is None else depth_size
     return _message(
         "hello",
@@ -76,6 +78,7 @@ def make_hello(
         depth_size=[int(v) for v in depth_size],
         depth_scale=float(depth_scale),
         gravity=None if gravity is None else _floats(gravity, 3, "gravity"),
+        recorded=True if recorded else None,
     )
 
 
@@ -149,8 +152,10 @@ def make_welcome(
     max_message_bytes: int = LIMITS["max_message_bytes"],
     map_chunk_max_points: int = LIMITS["max_map_chunk_points"],
     role: str | None = None,
+    queued_frames: int | None = None,
 ) -> dict:
-    """role: None for the session's own socket, "viewer" for a viewer link's."""
+    """role: None for the session's own socket, "viewer" for a viewer link's. queued_frames:
+    ``queued_frames(hello)`` for the session's own socket."""
     return _message(
         "welcome",
         version=VERSION,
@@ -159,7 +164,15 @@ def make_welcome(
         max_message_bytes=int(max_message_bytes),
         map_chunk_max_points=int(map_chunk_max_points),
         role=role,
+        queued_frames=None if queued_frames is None else int(queued_frames),
     )
+
+
+def queued_frames(hello: dict, max_in_flight: int = LIMITS["max_in_flight"]) -> int:
+    """How many of a connection's frames the server queues while it is busy: a recording's
+    (hello ``recorded``) as many as it may have in flight, so a replay loses none; a live
+    camera's one, the newest (an older one still waiting is dropped: latency stays bounded)."""
+    return int(max_in_flight) if hello.get("recorded") else 1
 
 
 def make_pose(

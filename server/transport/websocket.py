@@ -413,7 +413,9 @@ async def _handle(ws: WebSocket, session: LiveSession, message: dict, deliver) -
         await _send(
             ws,
             proto.make_welcome(
-                session.id, max_message_bytes=ws.app.state.settings.max_message_bytes
+                session.id,
+                max_message_bytes=ws.app.state.settings.max_message_bytes,
+                queued_frames=proto.queued_frames(message),
             ),
         )
     elif kind == "command":

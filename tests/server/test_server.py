@@ -308,3 +308,37 @@ def test_a_reconnecting_client_may_number_its_frames_from_zero_again(live_server
     assert len(second.poses) == 8 and not second.errors, second.errors
     status = session_status(server.url, sid, token)
     assert status["frames_processed"] == 16 and status["trajectory_poses"] == 16
+
+
+def test_a_recording_keeps_two_frames_in_flight_and_loses_none(live_server, shared_data):
+    """A hello with ``recorded`` gets queued_frames = max_in_flight in its welcome, and the
+    server queues that many: a sender that always has two frames out (never more) gets a pose
+    for every frame, none dropped, even with a slow tracker and keyframes made after poses. A
+    live camera's welcome says 1 (the newest frame wins)."""
+    server = live_server(registration=RegistrationConfig().with_overrides(solver={"dense": True}))
+    ds = open_dataset(shared_data / "synthetic_room0")
+    K = ds.intrinsics
+    n = 40
+    frames = [proto.make_frame(i, ds[i].timestamp, ds[i].colour, ds[i].depth) for i in range(n)]
+
+    async def go(recorded: bool) -> tuple[dict, list[dict]]:
+        sid, token = server.create_session()
+        hello = proto.make_hello("rec", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
+        hello = {**hello, "recorded": True} if recorded else hello
+        url = f"{server.ws_url}/ws/sessions/{sid}"
+        async with await Connection.open(url, token, hello) as conn:
+            poses: list[dict] = []
+            conn.start(lambda m, _ms: poses.append(m) if m["type"] == "pose" else None)
+            for frame in frames if recorded else frames[:2]:
+                assert await conn.wait_for_room(2, timeout=60)
+                await conn.send_frame(frame)
+            assert await conn.wait_for_room(1, timeout=60)
+            return conn.welcome, poses
+
+    welcome, poses = asyncio.run(go(recorded=True))
+    assert welcome["queued_frames"] == proto.LIMITS["max_in_flight"] == 2
+    assert [p["seq"] for p in poses] == list(range(n))
+    assert poses[-1]["dropped"] == 0
+    assert any(p.get("keyframe") for p in poses[1:])  # keyframe work ran after some poses
+    live_welcome, _ = asyncio.run(go(recorded=False))
+    assert live_welcome["queued_frames"] == 1

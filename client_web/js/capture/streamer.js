@@ -3,8 +3,9 @@
 // one, or is not connected) is skipped, as a phone's camera would drop it. A source may hand its
 // frame over once its pixels are read and pack it (JPEG, zlib) while the next frame is read:
 // reading and packing overlap, and frames are still sent in the order they were captured. A
-// recording (holdBack) has no reason to drop frames: it sends a frame when the previous one's
-// pose came back, or at its own rate, whichever is slower; while the server is behind, its clock
+// recording (holdBack) has no reason to drop frames: it says so in its hello (recorded), sends a
+// frame while the server has room to queue it (the welcome's queued_frames), or at its own rate,
+// whichever is slower; while the server is behind, its clock
 // stops and the frame waits, so a slow server gives a slower replay, never a lost one. Sent
 // frames keep their image for the AR view until their pose arrives.
 
@@ -61,9 +62,10 @@ export class Streamer extends EventTarget {
 
   async #onTick() {
     if (!this.running) return;
-    // A recording sends its next frame when the previous pose came back: with two in flight the
-    // server may still drop one (its inbox keeps the newest while a keyframe is being made).
-    if (this.holdBack && (this.capturing || !this.client.isOpen || this.client.inFlight.size > 0)) {
+    // A recording sends its next frame while the server has room to queue it: as many frames in
+    // flight as the welcome's queued_frames (a server that keeps only the newest frame says 1,
+    // or nothing: then the next frame waits for the previous pose).
+    if (this.holdBack && (this.capturing || !this.client.isOpen || this.#queueFull())) {
       if (!this.client.isOpen) this.client.wake(); // a session paused by the idle timeout reconnects
       if (!this.heldBack) {
         this.heldBack = true;
@@ -131,6 +133,12 @@ export class Streamer extends EventTarget {
     } finally {
       this.capturing = false;
     }
+  }
+
+  /** A recording's frames already fill what the server queues for it (see #onTick). */
+  #queueFull() {
+    const queued = Math.min(this.client.welcome?.queued_frames ?? 1, this.client.maxInFlight);
+    return this.client.inFlight.size + this.packing >= queued;
   }
 
   /** Send a captured frame ({fields, bitmap, anchor?, index?}), or count it skipped when the

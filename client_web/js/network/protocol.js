@@ -205,8 +205,10 @@ export class Protocol {
    * @param {number[]} p.colourSize [width, height] px; p.depthSize likewise (default: colour's)
    * @param {number} p.depthScale depth units per metre (1000: millimetres)
    * @param {number[]} [p.gravity] gravity in the first camera frame (x right, y down, z forward)
+   * @param {boolean} [p.recorded] the frames come from a recording: the server queues them
+   *   rather than keeping only the newest (the welcome's queued_frames says how many)
    */
-  hello({ clientName, intrinsics, colourSize, depthSize = colourSize, depthScale = 1000, gravity }) {
+  hello({ clientName, intrinsics, colourSize, depthSize = colourSize, depthScale = 1000, gravity, recorded }) {
     const message = {
       type: "hello",
       version: this.version,
@@ -217,6 +219,7 @@ export class Protocol {
       depth_scale: depthScale,
     };
     if (gravity) message.gravity = Array.from(gravity, Number);
+    if (recorded) message.recorded = true;
     return this.validate(message, CLIENT_TO_SERVER, { strict: true });
   }
 

@@ -58,7 +58,7 @@ export class SessionControl extends EventTarget {
       if (!source) return;
       this.source = source;
       const info = source.info;
-      const hello = this.protocol.hello(info);
+      const hello = this.protocol.hello({ ...info, recorded: source.kind === "replay" });
       const { id, resumed } = await this.client.open(hello, { fresh, room, loopClosure: loops || null });
       if (!resumed) this.state.reset();
       this.hud.toast(resumed ? `continuing session ${id}` : `new session ${id}`, "ok");

@@ -105,7 +105,12 @@ class SessionHost:
             intrinsics = Intrinsics(fx, fy, cx, cy, int(width), int(height))
         except ConfigError as exc:
             raise proto.ProtocolError("bad_intrinsics", str(exc)) from exc
-        self.session.configure(intrinsics, hello.get("client_name", ""), hello.get("gravity"))
+        self.session.configure(
+            intrinsics,
+            hello.get("client_name", ""),
+            hello.get("gravity"),
+            queued=proto.queued_frames(hello),
+        )
         if self.args.faults and self._hello is None:
             inject(self.session, self.args.faults)
         self.session.start(self.publish)

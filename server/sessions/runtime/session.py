@@ -126,11 +126,17 @@ class Session:
 
     # ------------------------------------------------------------------ the hello
     def configure(
-        self, intrinsics: Intrinsics, client_name: str = "", gravity: np.ndarray | None = None
+        self,
+        intrinsics: Intrinsics,
+        client_name: str = "",
+        gravity: np.ndarray | None = None,
+        queued: int = 1,
     ) -> None:
         """Set the camera from the client's hello. A reconnecting client must present the same
         camera, as the map and trajectory were built with it. gravity: its direction in the
-        first camera's frame (sets the drone's up; +y when None); a reconnect keeps the first."""
+        first camera's frame (sets the drone's up; +y when None); a reconnect keeps the first.
+        queued: how many of this connection's frames wait while tracking is busy
+        (``protocol.queued_frames``)."""
         if self.closed:
             raise SessionError("session_closed", "this session is closed; create a new one")
         if self.intrinsics is not None and self.intrinsics != intrinsics:
@@ -171,7 +177,7 @@ class Session:
         self.client_name = client_name
         self.last_seen = time.monotonic()
         assert self.tracking is not None
-        self.tracking.renumber()  # a new connection numbers its frames afresh (a reloaded page)
+        self.tracking.renumber(queued)  # a new connection numbers its frames afresh
 
     def _make_parts(self, K: Intrinsics) -> None:
         """The tracking and mapping threads' parts, wired (not started)."""

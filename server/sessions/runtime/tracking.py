@@ -3,8 +3,10 @@ step (server/frame_step.py), publishes the pose at once, then hands the frame's 
 mapping thread (server/sessions/runtime/fusion.py). Between two frames it moves the tracker into
 each corrected world a loop closure made.
 
-Frames arrive faster than they can be processed on a busy server; the inbox holds one frame and
-the newest wins, so latency stays bounded and stale frames are dropped and counted.
+Frames arrive faster than they can be processed on a busy server; for a live camera the inbox
+holds one frame and the newest wins, so latency stays bounded and stale frames are dropped and
+counted. A recording's connection (hello ``recorded``) queues as many as it may have in flight
+(``protocol.queued_frames``): a replay that waits for room loses none.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -74,7 +77,8 @@ class SessionTracking:
         self._trajectory: list[tuple[float, np.ndarray]] = []
         self._last_seq = -1
         self._wake = threading.Condition()  # guards the inbox, _busy, _stopping, _corrections
-        self._inbox: FrameData | None = None
+        self._inbox: deque[FrameData] = deque()  # oldest first
+        self._queued = 1  # frames the inbox keeps (this connection's queued_frames)
         self._busy = False  # the thread holds a frame
         self._stopping = False
         self._corrections: list[Correction] = []
@@ -89,10 +93,13 @@ class SessionTracking:
     def started(self) -> bool:
         return self._thread.ident is not None
 
-    def renumber(self) -> None:
-        """A new connection numbers its frames afresh (a reloaded page)."""
+    def renumber(self, queued: int = 1) -> None:
+        """A new connection numbers its frames afresh (a reloaded page); ``queued``: how many of
+        its frames the inbox keeps (1: the newest wins)."""
         with self.counts.lock:
             self._last_seq = -1
+        with self._wake:
+            self._queued = max(1, int(queued))
 
     def accept(self, seq: int) -> None:
         """Frame ``seq`` arrived (before its images are decoded): counted as received, or
@@ -107,12 +114,14 @@ class SessionTracking:
             self.counts.received += 1
 
     def submit(self, frame: FrameData) -> None:
-        """Queue a frame (``accept``-ed); a frame still waiting is dropped in its favour."""
+        """Queue a frame (``accept``-ed); when the inbox is full, the oldest frame waiting is
+        dropped in its favour."""
         with self._wake:
-            if self._inbox is not None:
+            while len(self._inbox) >= self._queued:
+                self._inbox.popleft()
                 with self.counts.lock:
                     self.counts.dropped += 1
-            self._inbox = frame
+            self._inbox.append(frame)
             self._wake.notify()
 
     def correct(self, correction: Correction) -> None:
@@ -125,7 +134,7 @@ class SessionTracking:
         """Wait until every submitted frame has been processed (or dropped); False on timeout."""
         deadline = time.monotonic() + timeout_s
         with self._wake:
-            while self._inbox is not None or self._busy:
+            while self._inbox or self._busy:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -156,9 +165,9 @@ class SessionTracking:
     def _run(self) -> None:
         while True:
             with self._wake:
-                while self._inbox is None and not self._stopping and not self._corrections:
+                while not self._inbox and not self._stopping and not self._corrections:
                     self._wake.wait()
-                frame, self._inbox = self._inbox, None
+                frame = self._inbox.popleft() if self._inbox else None
                 corrections, self._corrections = self._corrections, []
                 self._busy = frame is not None
                 stopping = self._stopping

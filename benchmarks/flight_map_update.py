@@ -43,7 +43,8 @@ from server.evaluation.plots import top_view_basis, up_direction  # noqa: E402
 from server.mapping.tsdf import TSDFMap  # noqa: E402
 from server.pipeline import ground_truth_pose_at  # noqa: E402
 from server.simulation.config import SimulationConfig  # noqa: E402
-from server.simulation.flight_map import FlightMap, Region  # noqa: E402
+from server.simulation.flight_map import FlightMap  # noqa: E402
+from server.simulation.map_regions import Region  # noqa: E402
 
 DATA = REPO_ROOT.parent / "shared" / "data"
 

@@ -45,7 +45,8 @@ from server.simulation.drone_types import (
     DroneMode,
     DroneStatus,
 )
-from server.simulation.flight_map import Box, FlightMap, Region
+from server.simulation.flight_map import FlightMap
+from server.simulation.map_regions import Box, Region
 from server.simulation.modes import DroneModes
 from server.simulation.pilot_modes import FlightMode
 from server.simulation.route import PlanningError, Route

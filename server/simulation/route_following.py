@@ -22,7 +22,8 @@ from server.errors import DroneSimError
 from server.geometry.arrays import FloatArray, IndexArray
 from server.simulation.config import SimulationConfig
 from server.simulation.control import RouteTracker
-from server.simulation.flight_map import Box, FlightMap
+from server.simulation.flight_map import FlightMap
+from server.simulation.map_regions import Box
 from server.simulation.planner import plan_path, route_is_clear
 from server.simulation.polyline import simplify
 from server.simulation.route import PlanningError, Route

@@ -38,8 +38,9 @@ from server.sessions.updates import DroneNotice, DroneUpdate
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneSimulator
 from server.simulation.drone_types import DroneCommandError, DroneEventKind
-from server.simulation.flight_map import FlightMap, Region
+from server.simulation.flight_map import FlightMap
 from server.simulation.flight_recording import FlightRecorder
+from server.simulation.map_regions import Region
 from server.simulation.pilot_modes import euler_from_rotation
 
 log = logging.getLogger(__name__)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from server.simulation.flight_map import Region
+from server.simulation.map_regions import Region
 
 Grid = tuple[np.ndarray, np.ndarray, np.ndarray]  # origin, occupied, observed
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from server.simulation import esdf, scenes
-from server.simulation.flight_map import FlightMap, FlightMapError, Region
+from server.simulation.flight_map import FlightMap, FlightMapError
+from server.simulation.map_regions import Region
 
 
 def brute_force_field(blocked: np.ndarray, voxel_m: float, max_m: float, outside: bool):

@@ -51,6 +51,12 @@ def test_slow_draws_lower_the_pixel_ratio_and_the_hud_says_the_page_is_busy(live
     ratio = page.page.evaluate("window.dronesim.ar.renderer.getPixelRatio()")
     assert ratio == s["budget"]["pixelRatio"], (ratio, s["budget"])
     assert s["budget"]["drawIntervalMs"] >= 100, s["budget"]
+    # Behind for windows in a row, the views draw less often still (the interval doubles).
+    page.wait(
+        "window.dronesim.snapshot().budget.drawIntervalMs >= 200",
+        30,
+        "the draw interval to grow while the stream stays behind",
+    )
     assert not page.errors, page.errors
 
 
@@ -74,3 +80,41 @@ def test_fpv_shows_the_map_points_and_says_the_map_is_loading_before_its_mesh(
     assert s["mesh"]["failures"] >= 1 and s["mesh"]["triangles"] == 0, s["mesh"]
     errors = [e for e in page.errors if "mesh.ply" not in e and "ERR_FAILED" not in e]
     assert not errors, errors
+
+
+ADAPT_INTERVAL = """async () => {
+  const { RenderBudget, RENDER_BUDGET } = await import("/app/js/views/render_budget.js");
+  const budget = new RenderBudget({ software: true, devicePixelRatio: 1 });
+  let now = budget.windowStart;
+  const windows = (n, behind) => {
+    budget.streamBehind = behind;
+    const seen = [];
+    for (let i = 0; i < n; i++) {
+      now += RENDER_BUDGET.windowMs + 1;
+      budget.update(now);
+      seen.push(budget.drawIntervalMs);
+    }
+    return seen;
+  };
+  return { base: budget.drawIntervalMs, behind: windows(10, true), atRate: windows(12, false),
+    limits: RENDER_BUDGET };
+}"""
+
+
+def test_the_draw_interval_grows_while_the_stream_is_behind_and_comes_back_at_rate(
+    live_server, open_page
+):
+    """RenderBudget's adapted interval, driven window by window with the page's own module: at
+    least slowDrawMs as soon as the stream is behind, doubling every overWindows windows up to
+    maxDrawMs, halving every calmWindows windows at rate back to the software base."""
+    page = open_page(live_server(), "/?mode=demo-small", **PHONE)
+    r = page.page.evaluate(ADAPT_INTERVAL)
+    limits = r["limits"]
+    assert r["base"] == limits["softwareDrawMs"]
+    behind = r["behind"]
+    assert behind[0] == limits["slowDrawMs"] and 2 * limits["slowDrawMs"] in behind, behind
+    assert behind == sorted(behind) and behind[-1] == limits["maxDrawMs"], behind
+    at_rate = r["atRate"]
+    assert at_rate[0] == limits["maxDrawMs"], at_rate  # one calm window is not enough
+    assert at_rate == sorted(at_rate, reverse=True) and at_rate[-1] == limits["softwareDrawMs"]
+    assert not page.errors, page.errors

@@ -10,9 +10,13 @@
 //   row, the ratio drops a step (down to minRatio); far under it for a few windows, it rises a
 //   step again (each change reallocates every view's drawing buffer: not on one slow window).
 // - Draw interval: RENDER_BUDGET.drawMs between draws normally (softwareDrawMs in software:
-//   each draw also recomposites the page on the CPU); slowDrawMs while the stream runs behind
-//   its rate, whatever it waits for (ui/hud.js): a phone's camera and a server on the same
-//   machine come before the rotors' spin.
+//   each draw also recomposites the page on the CPU); at least slowDrawMs while the stream runs
+//   behind its rate, whatever it waits for (ui/hud.js): a phone's camera and a server on the
+//   same machine come before the rotors' spin. The interval adapts: each overWindows windows
+//   in a row that end with the stream behind double it (up to maxDrawMs), each calmWindows
+//   windows at rate halve it again (down to the normal one), so the views draw as often as
+//   the stream leaves room for. (In software WebGL a draw's pixels cost far more in the GPU
+//   process than its JavaScript: benchmarks/page_stream.py splits chromium's CPU by process.)
 // - Resizing a view's drawing buffer reallocates it (tens to hundreds of milliseconds in
 //   software): a view keeps drawing into the old buffer, stretched by CSS, until its size has
 //   been still for settleMs (fitRenderer).
@@ -29,6 +33,7 @@ export const RENDER_BUDGET = Object.freeze({
   drawMs: 33, // least time between draws of a view
   softwareDrawMs: 50, // the same where WebGL runs in software
   slowDrawMs: 100, // the same while the stream runs behind its rate
+  maxDrawMs: 800, // the longest the adapted interval grows to
   overWindows: 2, // windows over budget before a step down
   settleMs: 300, // a new size must hold this long before the drawing buffer follows
 });
@@ -51,6 +56,9 @@ export class RenderBudget {
     this.pixelRatio = this.maxRatio;
     this.software = software;
     this.streamBehind = false; // set by the app: the stream runs behind its rate (ui/hud.js)
+    this.intervalMs = this.baseDrawMs; // the adapted least time between draws
+    this.behindWindows = 0; // windows in a row that ended with the stream behind
+    this.atRateWindows = 0; // ... at its rate
     this.windowStart = performance.now();
     this.drawMsSum = 0;
     this.draws = 0;
@@ -60,10 +68,31 @@ export class RenderBudget {
     this.changes = 0; // pixel ratio changes (tests, debugging)
   }
 
+  /** The draw interval with the stream at rate, ms. */
+  get baseDrawMs() {
+    return this.software ? RENDER_BUDGET.softwareDrawMs : RENDER_BUDGET.drawMs;
+  }
+
   /** Least time between two draws of a view, ms. */
   get drawIntervalMs() {
-    if (this.streamBehind) return RENDER_BUDGET.slowDrawMs;
-    return this.software ? RENDER_BUDGET.softwareDrawMs : RENDER_BUDGET.drawMs;
+    return this.streamBehind ? Math.max(RENDER_BUDGET.slowDrawMs, this.intervalMs) : this.intervalMs;
+  }
+
+  /** Adapt the draw interval to the stream at a window's end (see the top of this file). */
+  #adaptInterval() {
+    if (this.streamBehind) {
+      this.atRateWindows = 0;
+      if (++this.behindWindows >= RENDER_BUDGET.overWindows) {
+        this.behindWindows = 0;
+        this.intervalMs = Math.min(RENDER_BUDGET.maxDrawMs, Math.max(RENDER_BUDGET.slowDrawMs, this.intervalMs * 2));
+      }
+    } else {
+      this.behindWindows = 0;
+      if (++this.atRateWindows >= RENDER_BUDGET.calmWindows) {
+        this.atRateWindows = 0;
+        this.intervalMs = Math.max(this.baseDrawMs, this.intervalMs / 2);
+      }
+    }
   }
 
   /** Time a draw: fn's JavaScript time counts against the budget (and `meter`, the page's load). */
@@ -87,6 +116,7 @@ export class RenderBudget {
     this.windowStart = now;
     this.drawMsSum = 0;
     this.draws = 0;
+    this.#adaptInterval();
     if (!this.lastWindow.draws) return;
     let ratio = this.pixelRatio;
     if (meanMs > this.frameMs) {

@@ -759,9 +759,10 @@ def test_replay_of_a_tum_folder_picked_in_the_setup_dialog(
 
 
 def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_server, open_page):
-    """A recording played at 200 fps, far beyond what the server tracks: the page holds each
-    frame until the previous pose came back instead of skipping it, says so in the HUD, and
-    neither side drops a frame: every seq gets its pose, in order, none missing."""
+    """A recording played at 200 fps, far beyond what the server tracks: the page says recorded
+    in its hello, keeps as many frames in flight as the welcome's queued_frames (2) and holds
+    the next one until there is room instead of skipping it, says so in the HUD, and neither
+    side drops a frame: every seq gets its pose, in order, none missing."""
     server = live_server()
     page = open_page(server, "/?autostart=demo-small&fps=200", **PHONE)
     page.wait("window.dronesim.seen.poses >= 40", 120, "40 poses")
@@ -770,7 +771,9 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     page.page.evaluate("window.dronesim.streamer.stop()")
     assert s["skipped"] == 0, s["skipped"]
     assert s["serverDropped"] == 0, s["serverDropped"]
-    assert s["counts"]["maxInFlight"] == 1
+    assert s["hello"]["recorded"] is True
+    queued = page.page.evaluate("window.dronesim.client.welcome.queued_frames")
+    assert queued == 2 and s["counts"]["maxInFlight"] == queued, (queued, s["counts"])
     assert s["heldBack"] or s["heldBackMs"] > 0
     # No gaps: the newest pose's seq is one less than the poses received (seqs start at 0).
     assert s["lastPose"]["seq"] == s["poses"] - 1, (s["lastPose"]["seq"], s["poses"])

@@ -8,11 +8,13 @@ and ``flights/`` (the drone's flight recordings, written by ``server/sessions/fl
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import re
 import shutil
+import time
 from pathlib import Path
 
 from server.atomic import atomic_write_bytes
@@ -21,6 +23,20 @@ from server.errors import DroneSimError
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
 FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json", "course_best.json")
 STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
+# In the sessions folder: held shared by every process that writes sessions' files (the workers,
+# the mappers) for as long as it lives; a starting server takes it exclusively before it cleans.
+WRITERS_LOCK = ".writers.lock"
+
+
+def hold_writers_lock(data_dir: str | Path) -> int:
+    """This process writes sessions' files under ``data_dir``: hold the writers lock (shared)
+    until it ends, whichever way (the kernel lets go of it with the process, killed or not).
+    Returns the lock's file descriptor, to keep open."""
+    root = Path(data_dir) / "sessions"
+    root.mkdir(parents=True, exist_ok=True)
+    fd = os.open(root / WRITERS_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    return fd
 
 
 def hash_token(token: str) -> str:
@@ -68,6 +84,25 @@ class SessionStore:
         self.write_meta(session_id, meta)
         shutil.rmtree(staging, ignore_errors=True)  # leaves the folder as a reader expects it
 
+    def wait_for_writers(self, timeout_s: float) -> bool:
+        """Wait until no process holds the writers lock (``hold_writers_lock``): a killed
+        server's session processes outlive it, a mapper finishing the snapshot it was writing
+        (seconds on a busy machine) before it ends, and their files must not be cleaned away
+        from under them. True once none is left; False after ``timeout_s``."""
+        fd = os.open(self.root / WRITERS_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    return True  # let go with the close: this run's processes take it shared
+                except BlockingIOError:
+                    if time.monotonic() >= deadline:
+                        return False
+                    time.sleep(0.05)
+        finally:
+            os.close(fd)
+
     def read_meta(self, session_id: str) -> dict:
         path = self.folder(session_id) / "meta.json"
         try:
@@ -91,8 +126,8 @@ class SessionStore:
     def remove_partial_files(self, session_id: str) -> list[str]:
         """Delete temp files that a write cut short by a crash left beside the session's files,
         and a snapshot staged but not committed (the files themselves are whole: each was
-        renamed into place). Call only while the
-        session is not live. Returns the names removed."""
+        renamed into place). Call only while the session is not live, and no process of an
+        earlier run writes any more (``wait_for_writers``). Returns the names removed."""
         prefixes = tuple(f".{name}." for name in FILES)  # as the atomic writers name them
         partial = [
             p

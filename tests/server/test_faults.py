@@ -28,6 +28,7 @@ from server.datasets import open_dataset
 from server.evaluation.trajectory import read_tum
 from server.mapping.tsdf import TSDFMap
 from tests.conftest import Stream, auth, offline_track, session_status
+from tests.support.rest import map_caught_up, wait_for_status
 
 
 @pytest.fixture
@@ -368,8 +369,10 @@ def test_a_session_that_cannot_be_saved_stays_in_memory_until_the_disk_takes_it(
         stream.abort()
 
     asyncio.run(stream_and_vanish())
-    deadline = time.monotonic() + 30  # the TTL passes, then the close is tried and fails
-    while not (status := session_status(server.url, sid, token))["snapshot_error"]:
+    # The TTL passes, then the close is tried and fails: closed (its stop has ended), not saved.
+    # (A periodic snapshot may have failed before, setting snapshot_error while still live.)
+    deadline = time.monotonic() + 30
+    while not (status := session_status(server.url, sid, token))["closed"]:
         assert time.monotonic() < deadline, "the close after the TTL was never tried"
         time.sleep(0.1)
     assert httpx.get(f"{server.url}/healthz").json()["live_sessions"] == 1
@@ -400,18 +403,9 @@ def test_a_session_lost_for_long_keeps_its_map_and_says_so(live_server, room):
     wall_depth = np.full((K.height, K.width), 1.2, np.float32)  # ...as a constant depth plane
 
     def settled_status() -> dict:
-        """Status once the mapping thread has caught up: the map unchanged for 2 s (a busy
-        machine can stall the mapper for longer than one 0.3 s poll: one CI run read a map
-        'settled' at 1 frame that then grew to 5)."""
-        last, same = None, 0
-        for _ in range(200):
-            status = session_status(server.url, sid, token)
-            same = same + 1 if last is not None and status["map"] == last["map"] else 0
-            if same >= 7:
-                return status
-            last = status
-            time.sleep(0.3)
-        raise AssertionError("the map kept changing")
+        """Status once the mapping thread has fused every frame it will of those sent (it runs
+        behind the poses, by seconds on a busy machine): its map figures are then final."""
+        return wait_for_status(server.url, sid, token, map_caught_up, "the map to catch up")
 
     def map_ply() -> o3d.geometry.PointCloud:
         r = httpx.get(f"{server.url}/api/sessions/{sid}/map.ply", headers=auth(token), timeout=60)

@@ -23,6 +23,7 @@ from server.evaluation.trajectory import Trajectory
 from server.mapping.config import MappingConfig
 from server.registration.config import RegistrationConfig
 from tests.conftest import auth
+from tests.support.rest import wait_for_status
 
 FRAMES = 100  # forward, then back: 199 frames, 16 keyframes, a loop back to the first ones
 LOOPS = RegistrationConfig().with_overrides(loops={"live": True, "min_separation": 8})
@@ -40,10 +41,22 @@ def _status(server, sid: str, token: str) -> dict:
     return r.json()
 
 
-async def _stream(server, sid: str, token: str, ds, extra: int, until=None) -> tuple[list, list]:
+def _settled(status: dict) -> bool:
+    """The session's loops are settled: every correction so far was rebuilt into the map (its
+    reset preview sent), skipped or failed (a rebuild runs behind the frames, on the mapping
+    thread, seconds behind on a busy machine)."""
+    loops = status["loops"]
+    return loops["corrections"] >= 1 and not loops["rebuild_pending"]
+
+
+async def _stream(
+    server, sid: str, token: str, ds, extra: int, settled=None, until=None
+) -> tuple[list, list]:
     """Send every frame of ``ds`` (two in flight: the server's inbox never drops one), then up
-    to ``extra`` more (its first frames again, seqs going on) until a map_corrected came, and
-    wait up to 20 s for ``until(messages)``; -> every server message in order, and the poses."""
+    to ``extra`` more (its first frames again, seqs going on) until a map_corrected came; then,
+    still connected, wait until the status says ``settled(status)``, and for
+    ``until(messages)`` (what the server sent before its status said so);
+    -> every server message in order, and the poses."""
     K = ds.intrinsics
     hello = P.make_hello("loops", (K.fx, K.fy, K.cx, K.cy), (K.width, K.height))
     conn = await Connection.open(f"{server.ws_url}/ws/sessions/{sid}", token, hello, timeout=60)
@@ -52,14 +65,19 @@ async def _stream(server, sid: str, token: str, ds, extra: int, until=None) -> t
     conn.start(lambda m, _latency: messages.append(m))
     try:
         for seq in range(len(ds) + extra):
-            if seq >= len(ds) and (until is None or conn.corrections):
+            if seq >= len(ds) and conn.corrections:
                 break
             assert await conn.wait_for_room(2, 60), conn.failure
             f = ds[seq % len(ds)]
             await conn.send_frame(P.make_frame(seq, float(seq) / 15, f.colour, f.depth))
         assert await conn.drain(60)
-        deadline = time.monotonic() + 20  # what the last frames started (a rebuild) comes
-        while until is not None and not until(messages) and time.monotonic() < deadline:
+        if settled is not None:
+            await asyncio.to_thread(
+                wait_for_status, server.url, sid, token, settled, "the session's loops"
+            )
+        deadline = time.monotonic() + 30  # sent already: on its way through the web process
+        while until is not None and not until(messages):
+            assert time.monotonic() < deadline, _kinds(messages)
             await asyncio.sleep(0.1)
         await conn.bye()
     finally:
@@ -88,7 +106,9 @@ def test_a_live_loop_corrects_the_world_map_drone_and_room(live_server, shared_d
     ds = ThereAndBack(open_dataset(shared_data / "synthetic_room0"), FRAMES)
     server = live_server(tmp_path / "data", registration=LOOPS, mapping=REFUSE_ALL)
     sid, token = server.create_session()
-    messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, _corrected_then_reset))
+    messages, poses = asyncio.run(
+        _stream(server, sid, token, ds, 60, _settled, _corrected_then_reset)
+    )
 
     kinds = _kinds(messages)
     assert "map_corrected" in kinds, "no loop closed live"
@@ -154,10 +174,7 @@ def test_a_correction_below_the_maps_resolution_moves_poses_and_room_but_not_the
     server = live_server(tmp_path / "data", registration=LOOPS, mapping=MAPPING)
     sid, token = server.create_session()
 
-    def skipped(_messages) -> bool:  # the mapping thread saw the correction
-        return _status(server, sid, token)["loops"]["rebuilds_skipped"] >= 1
-
-    messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, skipped))
+    messages, poses = asyncio.run(_stream(server, sid, token, ds, 60, _settled))
     kinds = _kinds(messages)
     assert "map_corrected" in kinds and "map_chunk/reset" not in kinds, "no loop, or re-fused"
     status = _status(server, sid, token)
@@ -196,8 +213,8 @@ def test_a_sequence_without_a_loop_sends_no_map_corrected(live_server, shared_da
     assert created["loop_closure"] is True
     sid, token = created["id"], created["token"]
 
-    def looked_up(_messages) -> bool:  # the loop thread (below the map's priority) caught up
-        loops = _status(server, sid, token)["loops"]
+    def looked_up(status: dict) -> bool:  # the loop thread (below the map's priority) caught up
+        loops = status["loops"]
         return loops["keyframes"] >= 3 and loops["queued"] == 0
 
     messages, poses = asyncio.run(_stream(server, sid, token, _First(ds, 60), 0, looked_up))

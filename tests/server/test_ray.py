@@ -1,7 +1,8 @@
 """Sessions as Ray actors (``serve --ray ADDRESS``) on a local two-node Ray cluster, its traffic
 on the loopback only: sessions land on both nodes, poses flow, a second front-end takes a
 session's socket over, a restarted front-end finds the live sessions again, a delete ends the
-actor.
+actor; each actor's map is fused in a mapper process of its own, whose death fails the session
+as under the process workers.
 
 One module-scoped cluster (two nodes of one CPU each); the front-ends are real uvicorn servers in
 this process, sharing its Ray driver connection (as separate processes they would each have one).
@@ -13,6 +14,7 @@ import asyncio
 import gc
 import os
 import shutil
+import signal
 import tempfile
 import threading
 import time
@@ -21,8 +23,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import websockets
 
-from tests.conftest import LiveServer, Stream, auth, missing, session_status
+from tests.conftest import LiveServer, Stream, auth, missing, process_running, session_status
+from tests.support.rest import create_session
 
 # Ray's processes then use 127.0.0.1 for their node address and sockets (see NOTES-ray.md);
 # read when Ray's constants are imported, so before the first ``import ray``.
@@ -110,6 +114,16 @@ def _descendants(pid: int) -> set[int]:
     return found
 
 
+def _stat(pid: int) -> list[str]:
+    """The fields of /proc/<pid>/stat after the command name (state, ppid, ...)."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+def _cpu_ticks(pid: int) -> int:
+    fields = _stat(pid)
+    return int(fields[11]) + int(fields[12])  # utime + stime
+
+
 def _ray_addresses() -> set[str]:
     """The local and remote IPv4/IPv6 addresses of every TCP socket of this process's children
     (Ray's GCS, raylets, workers), from /proc."""
@@ -159,7 +173,8 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
     front1 = LiveServer(data, ray=cluster.address)
     servers = [front1]
     try:
-        (s1, t1), (s2, t2) = front1.create_session(), front1.create_session()
+        # Each create starts an actor, a process on its node (seconds on a busy machine).
+        (s1, t1), (s2, t2) = create_session(front1.url), create_session(front1.url)
         workers = [session_status(front1.url, s, t)["worker"] for s, t in ((s1, t1), (s2, t2))]
         assert all(w["kind"] == "ray" for w in workers), workers
         assert {w["node_id"] for w in workers} == node_ids, workers  # one session on each node
@@ -251,3 +266,64 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         for server in servers:
             server.stop()  # detached actors left over end with the cluster
     print(f"ray test body: {time.monotonic() - t0:.1f} s")
+
+
+def test_a_sessions_map_is_fused_in_its_actors_mapper_process_whose_death_fails_it(
+    cluster, room, tmp_path
+):
+    """The actor fuses the map in a mapper process, its child (so on its node), at a lower
+    priority; that process does the fusing (its CPU time grows with the frames, the map with
+    it). SIGKILL it: as under the process workers, the next fusion fails the session, whose
+    client hears session_failed and the close 4010; the session is closed and saved with the
+    failure, and its actor ends."""
+    data = tmp_path / "data"
+    front = LiveServer(data, ray=cluster.address)
+    try:
+        sid, token = create_session(front.url)
+        worker = session_status(front.url, sid, token)["worker"]
+        actor, mapper = worker["pid"], worker["mapper_pid"]
+        assert worker["kind"] == "ray" and mapper not in (None, actor), worker
+        assert int(_stat(mapper)[1]) == actor  # the actor's child: on its node, ends with it
+        assert os.getpriority(os.PRIO_PROCESS, mapper) > os.getpriority(os.PRIO_PROCESS, actor)
+        stream = Stream(front.ws_url, sid, token, room)
+        cpu0 = _cpu_ticks(mapper)
+
+        async def stream_then_kill():
+            await stream.open()
+            await stream.send_range(range(12))
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                status = session_status(front.url, sid, token)
+                if status["map"].get("frames_integrated", 0) > 0:
+                    break
+                await asyncio.sleep(0.2)
+            fused_cpu = _cpu_ticks(mapper) - cpu0
+            os.kill(mapper, signal.SIGKILL)
+            answers = []
+            for seq in range(12, 72):  # until a fusion finds the mapper gone
+                f = room[seq % len(room)]
+                await stream.conn.send_frame(P.make_frame(seq, f.timestamp, f.colour, f.depth))
+                answers.append(await stream.answer())
+                if answers[-1]["type"] == "error":
+                    break
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                while True:
+                    await stream.answer()
+            return status, fused_cpu, answers[-1], closed.value.rcvd.code
+
+        status, fused_cpu, error, close_code = asyncio.run(stream_then_kill())
+        assert status["map"]["frames_integrated"] > 0, status["map"]
+        assert fused_cpu > 0  # the fusing took the mapper's CPU, not the actor's
+        assert error["type"] == "error" and error["name"] == "session_failed", error
+        assert "mapping process died" in error["message"], error
+        assert close_code == P.CLOSE_CODES["session_failed"]
+        deadline = time.monotonic() + 30
+        while (_actor_alive(sid) or process_running(mapper)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not _actor_alive(sid) and not process_running(mapper)
+        status = session_status(front.url, sid, token)
+        assert status["closed"] is True and "mapping process died" in status["failure"], status
+        meta = (data / "sessions" / sid / "meta.json").read_text()
+        assert "mapping process died" in meta
+    finally:
+        front.stop()

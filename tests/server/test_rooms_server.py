@@ -14,6 +14,7 @@ from server.datasets import open_dataset
 from server.geometry import invert
 from server.pipeline import ground_truth_pose_at
 from tests.conftest import Stream, auth
+from tests.support.rest import map_caught_up, wait_for_status
 
 
 def _wait_closed(server, sid: str, token: str, timeout_s: float = 60.0) -> dict:
@@ -26,10 +27,16 @@ def _wait_closed(server, sid: str, token: str, timeout_s: float = 60.0) -> dict:
     raise AssertionError(f"session {sid} did not close in {timeout_s} s")
 
 
-def _stream(server, sid: str, token: str, ds, first: int, n: int) -> Stream:
+def _stream(server, sid: str, token: str, ds, first: int, n: int, then=None) -> Stream:
+    """Frames ``first``.. of ``ds`` as seqs 0..n-1, each waiting for its pose; then
+    ``then()`` (in a thread) while the socket is still open: a connected session is never
+    closed for its TTL."""
+
     async def run() -> Stream:
         s = await Stream(server.ws_url, sid, token, ds).open()
         await s.send_range(range(n), first_index=first)
+        if then is not None:
+            await asyncio.to_thread(then)
         await s.close()
         return s
 
@@ -62,9 +69,24 @@ def test_a_session_opened_in_a_saved_room_relocalises_and_tracks_in_its_frame(
     assert created["room"] == a and created["token"] != token_a
     b, token_b = created["id"], created["token"]
 
+    # 4 (below) reads b's map while b is live: after its frames, the mapper (behind the poses)
+    # and the drone's map (behind the mapper) catch up while the socket stays open, since a
+    # disconnected session is closed after the TTL (1 s here), its drone stopped.
+    live: dict = {}
+
+    def caught_up() -> None:
+        live["status"] = wait_for_status(server.url, b, token_b, map_caught_up, "b's map")
+        live["drone"] = wait_for_status(
+            server.url,
+            b,
+            token_b,
+            lambda st: (st["drone"] or {}).get("map_frames", 0) >= 1,
+            "b's drone map",
+        )["drone"]
+
     # 3. The return visit starts 20 frames later: found in the room within a few frames, and
     # its poses are those of the room's frame (session a's first camera), not its own origin.
-    s = _stream(server, b, token_b, ds, 60, 20)
+    s = _stream(server, b, token_b, ds, 60, 20, then=caught_up)
     states = [p["state"] for p in s.poses]
     first_ok = next(k for k, st in enumerate(states) if st != "lost")
     assert first_ok <= 5 and states.count("lost") == first_ok, states
@@ -76,15 +98,9 @@ def test_a_session_opened_in_a_saved_room_relocalises_and_tracks_in_its_frame(
 
     # 4. Its map started as the room's: it holds a's fused frames and its own; the drone's map
     # was fed from it.
-    # (The status may lag the worker by a moment on a busy machine: wait for it.)
-    deadline = time.time() + 60
-    while True:
-        status = httpx.get(f"{url}/{b}", headers=auth(token_b)).json()
-        grown = status["map"].get("frames_integrated", 0) > closed["map"]["frames_integrated"]
-        if grown and (status["drone"] or {}).get("map_frames", 0) >= 1:
-            break
-        assert time.time() < deadline, status
-        time.sleep(0.3)
+    status = live["status"]
+    assert status["map"]["frames_integrated"] > closed["map"]["frames_integrated"], status
+    assert live["drone"]["map_frames"] >= 1
     assert status["failures"]["room_keyframes_failed"] == 0
 
     # 5. Closed, it leaves the room extended: a third session may open it with b's token.

@@ -1,16 +1,42 @@
 """What a session's Ray actor does (server/sessions/processes/ray_workers.py ``SessionActor`` is its
 Ray shell): hosts one SessionHost, runs the ordered calls strictly by each front-end's numbering,
-and keeps the updates for the owner's long-poll. No Ray here: Ray stays in ray_workers.py."""
+and keeps the updates for the owner's long-poll. No Ray here: Ray stays in ray_workers.py.
+
+The session's map is fused in a **mapper process** of the actor's own (``mapper_main``, the
+process workers' mapper, at the same lower priority), not in a thread of the actor: Open3D's
+integrate holds the GIL for its whole call, which beside tracking would stall it
+(server/sessions/processes/mapper.py). The actor starts it as its child, so it runs on the
+actor's node, and it ends with the actor: when the actor stops the session (its pipe closes),
+when Ray ends the actor (Ray kills a worker's children as the worker exits) and when the actor's
+process dies any other way (its end of the pipe closes with it; the mapper ends after the call
+in hand). A mapper that dies fails the session as under the process workers (``MapperLost`` ->
+``Session.fail`` -> ``SessionFailed``: the front-end then stops and saves it).
+
+How it starts: a fresh interpreter (a fork of the actor, whose threads, Ray's among them, may
+hold locks, is unsafe), by ``subprocess`` rather than multiprocessing's ``spawn``: ``spawn`` runs
+the parent's ``__main__`` again in the child, here Ray's worker script, which would import Ray
+into every mapper (measured: 224 against 194 MB resident, about a second more of CPU to start,
+and a resource-tracker process beside it); and multiprocessing's exit handler joins its
+children, which a mapper ignoring SIGTERM would hang. The pipe is the same
+(``multiprocessing.Pipe``), its child's end passed down by descriptor."""
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
+from typing import TYPE_CHECKING
 
 from server.sessions.errors import SessionError
 from server.sessions.processes.ipc import attempt
+
+if TYPE_CHECKING:
+    from server.sessions.processes.mapper import MapperClient
 
 log = logging.getLogger(__name__)
 
@@ -23,8 +49,6 @@ class ActorHost:
 
     def __init__(self, args, owner: str) -> None:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-        from server.sessions.runtime.host import SessionHost
-
         self._cond = threading.Condition()
         self._turn = threading.Lock()  # one ordered call at a time
         self._items: deque = deque()
@@ -36,8 +60,18 @@ class ActorHost:
         self.foreign_frames = 0  # frames from a front-end that was no longer the owner
         self.skipped_updates = 0
         self.args = args
-        self.host = SessionHost(args, self._publish)
-        self.info: dict = self.host.describe()
+        # First, so that its interpreter starts while this one imports the session's stack.
+        self.mapper_process, mapper = start_mapper(args)
+        try:
+            from server.sessions.runtime.host import SessionHost
+
+            self.host = SessionHost(args, self._publish, mapper)
+            mapper.stats()  # up and answering (raises MapperLost when it died starting)
+        except BaseException:
+            mapper.close()
+            end_mapper(self.mapper_process)
+            raise
+        self.info: dict = self.host.describe() | {"mapper_pid": self.mapper_process.pid}
 
     def _publish(self, item) -> None:  # any of the session's threads
         with self._cond:
@@ -103,10 +137,11 @@ class ActorHost:
                 )
             return self.host.command(*args)
         if method == "stop":
-            meta = self.host.stop(*args)
+            meta = self.host.stop(*args)  # the session's map closes: its process ends
             with self._cond:
                 self._ended = "closed"
                 self._cond.notify_all()
+            end_mapper(self.mapper_process)
             return meta
         raise ValueError(f"not an ordered method: {method}")
 
@@ -141,3 +176,60 @@ class ActorHost:
                 "idle_s": time.monotonic() - self._last_active,
                 "ended": self._ended,
             }
+
+
+# ---- the session's mapper process ----------------------------------------------------------------
+
+# The mapper's command line: its end of the pipe by descriptor, then the session (for ``ps``).
+_MAPPER_MAIN = (
+    "import sys; from server.sessions.processes.actor_host import mapper_child; "
+    "mapper_child(int(sys.argv[1]))"
+)
+
+
+def start_mapper(args) -> tuple[subprocess.Popen, MapperClient]:
+    """Start the session's mapper process, a child of this one (the process workers' mapper:
+    ``mapper_main``, one Open3D thread, its priority lowered); returns (the process, a
+    ``MapperClient`` on it). It imports what this process can (its ``sys.path``)."""
+    from server.sessions.processes.mapper import MapperClient
+
+    here, there = multiprocessing.Pipe(duplex=True)
+    try:
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                _MAPPER_MAIN,
+                str(there.fileno()),
+                f"session-{args.session_id}-map",
+            ],
+            pass_fds=(there.fileno(),),
+            stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},
+        )
+    finally:
+        there.close()  # the child's now: its end of the pipe closes with it
+    here.send((args.config.mapping, args.session_id))  # waits in the pipe for the child
+    return process, MapperClient(here)
+
+
+def mapper_child(fd: int) -> None:
+    """The mapper process's start: the session's mapping configuration from the pipe, then
+    ``mapper_main`` until the pipe closes."""
+    from multiprocessing.connection import Connection
+
+    from server.sessions.processes.mapper import mapper_main
+
+    conn = Connection(fd)
+    config, session_id = conn.recv()
+    mapper_main(conn, config, 1, session_id)
+
+
+def end_mapper(process: subprocess.Popen, timeout_s: float = 10.0) -> None:
+    """Wait for a mapper process whose pipe has closed to end (at once, or after the call in
+    hand); kill it past ``timeout_s``."""
+    try:
+        process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(timeout_s)

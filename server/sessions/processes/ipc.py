@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import queue
 import signal
 import threading
 from collections.abc import Callable, Collection
@@ -136,12 +137,11 @@ def serve(
 
     Calls run in arrival order on this thread, except, when ``ordered`` is given, the methods
     not in it, which run on ``beside`` threads of their own so that they never hold up the
-    ordered ones (a worker's status query beside its frames)."""
+    ordered ones (a worker's status query beside its frames), nor wait for them: a reader
+    thread takes every request off the pipe as it comes, so a query is answered while an
+    ordered call runs (a status while the stop writes the final snapshot, seconds on a busy
+    machine)."""
     send = conn.send if send is None else send
-    side = None
-    if ordered is not None and beside > 0:
-        side = ThreadPoolExecutor(max_workers=beside, thread_name_prefix="query")
-    ended = False
 
     def answer(call_id: int | None, method: str, args: tuple) -> bool:
         ok, value = attempt(target, method, args, log)
@@ -149,22 +149,48 @@ def serve(
             send(reply(call_id, ok, value))
         return ok
 
-    try:
+    if ordered is None or beside <= 0:
+        try:
+            while True:
+                try:
+                    call_id, method, args = conn.recv()
+                except (EOFError, OSError):
+                    return False
+                if answer(call_id, method, args) and method == last:
+                    return True
+        except (OSError, ValueError):  # the reply could not go: the caller is gone
+            return False
+
+    side = ThreadPoolExecutor(max_workers=beside, thread_name_prefix="query")
+    calls: queue.SimpleQueue[tuple | None] = queue.SimpleQueue()  # the ordered ones; None: EOF
+
+    def read() -> None:
         while True:
             try:
-                call_id, method, args = conn.recv()
+                call = conn.recv()
             except (EOFError, OSError):
-                return False
-            if side is not None and ordered is not None and method not in ordered:
-                side.submit(answer, call_id, method, args)
-            elif answer(call_id, method, args) and method == last:
+                calls.put(None)
+                return
+            if call[1] in ordered:
+                calls.put(call)
+            else:
+                try:
+                    side.submit(answer, *call)
+                except RuntimeError:  # shut down: the loop below has ended
+                    return
+
+    threading.Thread(target=read, name="requests", daemon=True).start()
+    ended = False
+    try:
+        while (call := calls.get()) is not None:
+            if answer(*call) and call[1] == last:
                 ended = True
                 return True
+        return False
     except (OSError, ValueError):  # the reply could not go: the caller is gone
         return False
     finally:
-        if side is not None:
-            side.shutdown(wait=ended)
+        side.shutdown(wait=ended)
 
 
 # ---- the caller ---------------------------------------------------------------------------------
@@ -172,8 +198,9 @@ def serve(
 
 class Proxy:
     """The caller's handle on a target served in another process at the other end of ``conn``,
-    one call at a time (``busy`` while one is in progress). When that process is gone, each call
-    raises ``lost(message)``, the caller's own error for it; ``where`` names the process."""
+    one call at a time (``call_if_idle`` never waits for another). When that process is gone,
+    each call raises ``lost(message)``, the caller's own error for it; ``where`` names the
+    process."""
 
     def __init__(self, conn, lost: Callable[[str], Exception], where: str) -> None:
         self._conn = conn
@@ -182,19 +209,28 @@ class Proxy:
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
 
-    @property
-    def busy(self) -> bool:
-        return self._lock.locked()
-
     def call(self, method: str, *args):
         """Run ``method`` there and return its value (or raise its error)."""
         with self._lock:
-            call_id = next(self._ids)
-            try:
-                self._conn.send((call_id, method, args))
-                _, answered, ok, value = self._conn.recv()
-            except (EOFError, OSError, ValueError) as exc:
-                raise self._lost(f"{self.where} is gone ({exc})") from None
+            return self._call_holding_lock(method, args)
+
+    def call_if_idle(self, method: str, *args) -> tuple[bool, object]:
+        """As ``call`` when no other call is in progress: ``(True, its value)``; else
+        ``(False, None)`` at once, never waiting for the call in progress."""
+        if not self._lock.acquire(blocking=False):
+            return False, None
+        try:
+            return True, self._call_holding_lock(method, args)
+        finally:
+            self._lock.release()
+
+    def _call_holding_lock(self, method: str, args: tuple):
+        call_id = next(self._ids)
+        try:
+            self._conn.send((call_id, method, args))
+            _, answered, ok, value = self._conn.recv()
+        except (EOFError, OSError, ValueError) as exc:
+            raise self._lost(f"{self.where} is gone ({exc})") from None
         if answered != call_id:  # one call at a time: a reply out of turn is a broken pipe
             raise self._lost(f"{self.where} answered call {answered} for call {call_id}")
         return result(ok, value, self.where)

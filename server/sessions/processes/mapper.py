@@ -1,5 +1,7 @@
 """A session's map: TSDF fusion, the map preview and the drone's occupancy grid, in a process of
-its own beside the session's tracking (or, for a session hosted elsewhere, in the calling thread).
+its own beside the session's tracking: a process worker's sibling, or a Ray actor's child
+(server/sessions/processes/actor_host.py); or, in a Session made in-process (tests), in the
+calling thread.
 
 Why a process: Open3D's ``VoxelBlockGrid.integrate`` holds the GIL for the whole call (30-50 ms
 for a 640x480 frame), so in a thread beside tracking every fusion stalls the tracker. Measured
@@ -28,6 +30,7 @@ from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
 from server.sessions.processes.ipc import Proxy, prepare_child, serve
 from server.sessions.processes.priority import MAPPING_NICE
+from server.sessions.store import hold_writers_lock
 
 log = logging.getLogger(__name__)
 
@@ -144,8 +147,9 @@ class Mapper:
             )
 
     def rebuild_step(self, count: int = 1) -> int:
-        """Fuse up to ``count`` more keyframes into the new map (30-50 ms each); returns how many
-        are left (0: ready for ``rebuild_finish``). Raises MapError with no rebuild started."""
+        """Fuse up to ``count`` more keyframes into the new map (each read, then fused); returns
+        how many are left (0: ready for ``rebuild_finish``). Raises MapError with no rebuild
+        started."""
         with self._lock:
             rebuild = self._require_rebuild()
             for _ in range(min(count, len(rebuild.todo))):
@@ -274,10 +278,15 @@ class MapperLost(SessionError):
         super().__init__("session_failed", message)
 
 
-def mapper_main(conn, config: MappingConfig, threads: int, session_id: str = "") -> None:
+def mapper_main(
+    conn, config: MappingConfig, threads: int, session_id: str = "", data_dir: str | None = None
+) -> None:
     """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
-    closes (its session stopped, or died)."""
+    closes (its session stopped, or died). ``data_dir``: where it writes its session's
+    snapshots, whose writers lock it holds while it lives (``store.hold_writers_lock``)."""
     prepare_child(MAPPING_NICE)  # the session's worker decides when it ends
+    if data_dir is not None:  # a restarted server cleans only after this process ends
+        hold_writers_lock(data_dir)
     import open3d as o3d
 
     o3d.utility.set_max_threads(threads)
@@ -316,11 +325,12 @@ class MapperClient:
         return self._call("occupancy", voxel_m, R_flight_world)
 
     def stats(self, wait: bool = True) -> dict | None:
-        """As ``Mapper.stats``: None at once when a call (a fusion) is in progress and ``wait``
-        is False, since the mapping process answers one call at a time."""
-        if not wait and self._proxy.busy:
-            return None
-        return self._call("stats")
+        """As ``Mapper.stats``: None at once when a call (a fusion, a save) is in progress and
+        ``wait`` is False, since the mapping process answers one call at a time."""
+        if wait:
+            return self._call("stats")
+        _, stats = self._proxy.call_if_idle("stats")
+        return stats  # type: ignore[return-value]
 
     def save(self, folder: str) -> list[str]:
         return self._call("save", str(folder))

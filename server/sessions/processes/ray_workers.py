@@ -7,9 +7,13 @@ Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
   it outlives the front-end that created it, and any front-end finds it by name
   (``RayWorkers.find``), so several front-ends behind a load balancer serve the same sessions
   and a restarted front-end finds its live sessions again. Actors are spread over the nodes
-  (``SPREAD``); each reserves ``SESSION_CPUS`` logical CPU (its tracking, mapping and flight
-  threads keep about one core busy at 15 fps), so a node with N CPUs hosts N sessions; a session
-  that finds no free CPU within ``START_TIMEOUT_S`` is refused with ``server_full``.
+  (``SPREAD``); each reserves ``SESSION_CPUS`` logical CPU (its tracking and flight threads and
+  its mapper process keep about one core busy at 15 fps), so a node with N CPUs hosts N
+  sessions; a session that finds no free CPU within ``START_TIMEOUT_S`` is refused with
+  ``server_full``.
+- **The map** is fused in a mapper process the actor starts as its child (on its node, ending
+  with it; actor_host.py), as the process workers fuse theirs beside the worker: never in a
+  thread beside tracking, where Open3D's integrate would hold the GIL.
 - **Order**: the hello, frames, commands and the stop go through one ``ordered`` entry point,
   submitted by one sender thread per session with a running number per front-end; the actor runs
   them strictly by that number (and counts any it had to run out of turn in ``out_of_order``),
@@ -56,7 +60,9 @@ from server.sessions.web.live import SessionTakenOver
 log = logging.getLogger(__name__)
 
 NAMESPACE = "dronesim"
-SESSION_CPUS = 1  # Ray's logical CPUs reserved per session actor: the cluster's admission control
+# Ray's logical CPUs reserved per session actor (its mapper process included): the cluster's
+# admission control
+SESSION_CPUS = 1
 SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's actor
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0

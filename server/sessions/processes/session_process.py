@@ -60,9 +60,11 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     ``loops_conn`` when it closes loops) and serve the pipe until told to stop or until the web
     process goes away."""
     from server.sessions.processes.ipc import as_remote, prepare_child, reply, serve
+    from server.sessions.store import hold_writers_lock
 
     # The web process stops each session with a final save, which must find its worker alive.
     prepare_child()
+    hold_writers_lock(args.data_dir)  # a restarted server cleans only after this process ends
     from server.sessions.failures import SessionLog
     from server.sessions.processes.mapper import MapperClient
     from server.sessions.runtime.host import SessionHost
@@ -151,7 +153,7 @@ class ProcessWorker:
             target=mapper_main,
             daemon=True,
             name=f"session-{args.session_id}-map",
-            args=(mapper_end, args.config.mapping, 1, args.session_id),
+            args=(mapper_end, args.config.mapping, 1, args.session_id, args.data_dir),
         )
         self.process = ctx.Process(
             target=_worker_main,

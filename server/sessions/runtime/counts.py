@@ -20,6 +20,9 @@ class SessionCounts:
         self.received = self.processed = self.dropped = 0
         self.last_seq_processed = -1
         self.fusion_skipped = 0
+        # Tracked frames on their way into the map: from the pose until the mapping thread has
+        # fused them (queued, or being fused), or they are known not to be fused.
+        self.fusion_waiting = 0
         self.repeated = 0  # frames held at the pose before: a repeated colour or depth image
         self.states = {s.value: 0 for s in TrackingState}
         # Frames that carried the device's own pose, and those whose guess started from it.
@@ -37,6 +40,11 @@ class SessionCounts:
         """Count one failure of the kind ``name`` (a field of Failures)."""
         with self.lock:
             setattr(self.failures, name, getattr(self.failures, name) + 1)
+
+    def fusion_settled(self, frames: int = 1) -> None:
+        """``frames`` counted in ``fusion_waiting`` are fused, failed to, or will not be."""
+        with self.lock:
+            self.fusion_waiting -= frames
 
     def changed(self) -> None:
         """Something a snapshot holds changed."""

@@ -423,13 +423,15 @@ class Flight:
     def summary(self) -> dict:
         """For the session's status endpoint: ``errors`` counts the flight steps that failed;
         ``fault`` (when the drone was stopped for good) says why, and ``mode`` is faulted."""
+        with self._lock:  # from one flight step: the map it took, and whether it spawned
+            map_frames, spawned = self.map_frames, self.spawned
         health = {
             "errors": self.errors,
             "fault": self.fault,
-            "map_frames": self.map_frames,
+            "map_frames": map_frames,
             "corrections": self.corrections,
         }
-        s = self.state() if self.spawned or self.fault is not None else None
+        s = self.state() if spawned or self.fault is not None else None
         if s is None:
             return {"spawned": False, **health}
         return {

@@ -103,10 +103,11 @@ class SessionFusion:
     def alive(self) -> bool:
         return self._thread.is_alive() and not self.failed()
 
-    def queue(self, job: FuseJob) -> None:
+    def queue(self, job: FuseJob) -> bool:
         """Keyframes wait for room (no keyframe is lost from the map), up to _KEYFRAME_WAIT_S;
         other frames are skipped when the mapper is behind. Nothing waits for a mapping thread
-        that has ended."""
+        that has ended. True when queued: the frame, counted in ``counts.fusion_waiting`` by
+        the caller, is counted off once fused; False when skipped (the caller counts it off)."""
         deadline = time.monotonic() + (_KEYFRAME_WAIT_S if job.keyframe else 0.0)
         while self.alive():
             try:
@@ -114,15 +115,19 @@ class SessionFusion:
                     self._jobs.put(job, timeout=_POLL_S)
                 else:
                     self._jobs.put_nowait(job)
-                return
+                return True
             except queue.Full:
                 if time.monotonic() >= deadline:
                     break
         with self.counts.lock:
             self.counts.fusion_skipped += 1
+        return False
 
     def add_merged(self, jobs: list[FuseJob]) -> None:
-        """A segment merged into the map: its kept keyframes, fused one between live frames."""
+        """A segment merged into the map: its kept keyframes, fused one between live frames
+        (counted in ``counts.fusion_waiting`` until then)."""
+        with self.counts.lock:
+            self.counts.fusion_waiting += len(jobs)
         with self._lock:
             self._merged.extend(jobs)
 
@@ -160,9 +165,10 @@ class SessionFusion:
                 rebuilds.start_if_wanted()
             merged = self._next_merged()
             if merged is not None:  # a merged segment's keyframes, one between live frames
-                if self._fuse(merged):
-                    with self.counts.lock:
-                        self.counts.recovery["segment_frames_fused"] += 1
+                fused = self._fuse(merged)
+                with self.counts.lock:
+                    self.counts.recovery["segment_frames_fused"] += fused
+                    self.counts.fusion_waiting -= 1
             rebuilding = rebuilds is not None and rebuilds.rebuilding is not None
             try:
                 # A rebuild, or a merged segment's keyframes, go on between fusions: no long
@@ -180,6 +186,7 @@ class SessionFusion:
                 self._finish_loops()
                 return
             self._fuse(job)
+            self.counts.fusion_settled()  # after the map's figures took it (``_fuse``)
             if rebuilds is not None and rebuilds.rebuilding is not None:
                 self._rebuild_step()
 

@@ -28,6 +28,7 @@ class RebuildFigures:
     """The status's rebuild figures (``loops``)."""
 
     rebuilds: int = 0
+    rebuild_pending: bool = False  # a correction waits for its rebuild, or one is in progress
     rebuilds_skipped: int = 0
     rebuilds_cpu_ms: float = 0.0  # the mapping process's CPU over every rebuild so far
     map_behind_m: float = 0.0  # the most a keyframe moved since the map was fused, m
@@ -63,9 +64,10 @@ class MapRebuilds:
         self.cfg = cfg
         self.counts = counts
         self.log = log
-        self._lock = threading.Lock()  # guards _wanted and _figures
+        self._lock = threading.Lock()  # guards _wanted, _figures and _running
         self._wanted: Correction | None = None  # the newest correction not yet rebuilt
         self._figures = RebuildFigures()
+        self._running = False  # a correction taken from _wanted is being handled
         # Mapping thread only:
         self.rebuilding: Correction | None = None
         self._t0 = 0.0
@@ -82,7 +84,14 @@ class MapRebuilds:
 
     def figures(self) -> dict:
         with self._lock:
+            self._figures.rebuild_pending = self._wanted is not None or self._running
             return self._figures.as_dict()
+
+    def _handled(self) -> None:
+        """The correction taken is done with: rebuilt (its reset published), skipped or
+        failed."""
+        with self._lock:
+            self._running = False
 
     def pose_in_rebuild(self, kf_id: int, T_world_camera: np.ndarray, world: int):
         """A keyframe about to be fused during a rebuild: its pose in the new map (it goes into
@@ -108,6 +117,7 @@ class MapRebuilds:
             return
         with self._lock:
             wanted, self._wanted = self._wanted, None
+            self._running = wanted is not None
         if wanted is None:
             return
         entries = self.room.carry_into(self.loops.worlds, wanted.world)
@@ -118,6 +128,7 @@ class MapRebuilds:
         if move <= self.cfg.rebuild_min_move_m:
             with self._lock:
                 self._figures.rebuilds_skipped += 1
+                self._running = False
             self.log.info(
                 "world %d moves the map by %.3f m at most: not re-fused", wanted.world, move
             )
@@ -174,7 +185,10 @@ class MapRebuilds:
             ms,
             correction.world,
         )
-        on_rebuilt(rebuilt, T_map, seq)
+        try:
+            on_rebuilt(rebuilt, T_map, seq)
+        finally:
+            self._handled()
 
     def _failed(self) -> None:
         """A rebuild failed (logged from the except block): counted; the map stays as it was
@@ -182,6 +196,7 @@ class MapRebuilds:
         self.log.exception("rebuilding the map after a loop closure failed")
         self.counts.failed("loops_failed")
         self.rebuilding = None
+        self._handled()
         try:
             self.mapper.rebuild_cancel()
         except MapperLost:

@@ -348,6 +348,9 @@ class Session:
         return counts
 
     def status(self) -> dict:
+        # Read before the map's figures, which then hold every fusion it no longer counts.
+        with self.counts.lock:
+            fusion_waiting = self.counts.fusion_waiting
         map_stats = self.map.figures()
         failures = self.failure_counts()
         loops = self.loop_figures()
@@ -363,6 +366,7 @@ class Session:
                 "frames_failed": failures["frames_failed"],
                 "trajectory_poses": poses,
                 "map": map_stats,
+                "fusion_waiting": fusion_waiting,
                 "fusion_failed": failures["fusions_failed"],  # the name before failures existed
                 "failures": failures,
                 "failure": self.failure,

@@ -1,7 +1,8 @@
 """A live session's map as the session's own threads use it beside the mapping thread: its
 figures for a status, its files for a snapshot, its end. The map runs in a process of its own
-(server/sessions/processes/mapper.py), or in a thread of this one (a Ray actor); once that
-process has ended (stopped, or died), the session answers with what it last knew."""
+(server/sessions/processes/mapper.py), or in a thread of this one (a Session made in-process,
+as tests make them); once that process has ended (stopped, or died), the session answers with
+what it last knew."""
 
 from __future__ import annotations
 

@@ -240,6 +240,7 @@ class SessionTracking:
             counts.device_pose["world_changes"] += frame.device_world != self._device_world
             self._device_world = frame.device_world
             counts.count_recovery(result)
+            counts.fusion_waiting += 1  # until its fusion is done or known not to come
             dropped, processed = counts.dropped, counts.processed
             counts.dirty = True
         # The one place server_total is measured: from the frame's arrival (FrameData.received_at)
@@ -260,26 +261,31 @@ class SessionTracking:
                 result.recovery,
             )
         )
-        settled = self.step.settle(result, frame.seq, processed - 1, colour, depth)
-        if settled.merged:  # a merged segment's keyframes, fused between the live frames
-            self.fusion.add_merged(
-                [
-                    FuseJob(k.seq, k.colour, k.depth, T, False, world=self._world)
-                    for k, T in settled.merged
-                ]
-            )
-        if settled.fuse:
-            self.fusion.queue(
-                FuseJob(
-                    frame.seq,
-                    colour,
-                    depth,
-                    result.T_world_camera,
-                    settled.new_keyframe,
-                    result.keyframe_id,
-                    self._world,
+        queued = False  # the frame's fusion job: the mapping thread then counts it off
+        try:
+            settled = self.step.settle(result, frame.seq, processed - 1, colour, depth)
+            if settled.merged:  # a merged segment's keyframes, fused between the live frames
+                self.fusion.add_merged(
+                    [
+                        FuseJob(k.seq, k.colour, k.depth, T, False, world=self._world)
+                        for k, T in settled.merged
+                    ]
                 )
-            )
+            if settled.fuse:
+                queued = self.fusion.queue(
+                    FuseJob(
+                        frame.seq,
+                        colour,
+                        depth,
+                        result.T_world_camera,
+                        settled.new_keyframe,
+                        result.keyframe_id,
+                        self._world,
+                    )
+                )
+        finally:
+            if not queued:
+                counts.fusion_settled()
 
 
 def _not_placed(seq: int) -> TrackResult:

@@ -153,6 +153,10 @@ class LiveSession:
             if meta is None:
                 raise
             return meta["status"]
+        if self._stopping and not self._stopped.is_set():
+            # The worker answers while its stop writes the final snapshot: the session is
+            # closed (status.closed) once that has ended, saved or refused by the disk.
+            status["closed"] = False
         # Frames dropped here before the worker saw them: received by the server all the same.
         status["frames_received"] += self.worker.dropped
         status["frames_dropped"] += self.worker.dropped

@@ -107,15 +107,32 @@ class SessionManager:
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
-    def load_saved(self) -> int:
-        """Index the sessions a previous run left on disk (closed, downloadable)."""
+    def load_saved(self, writers_timeout_s: float = 60.0) -> int:
+        """Index the sessions a previous run left on disk (closed, downloadable), and remove
+        the partial files of writes it cut short, once its session processes have ended (a
+        killed server's mapper finishes the snapshot it was writing first); after
+        ``writers_timeout_s`` without that, the partial files are left where they are."""
+        t0 = time.monotonic()
+        clean = self.store.wait_for_writers(writers_timeout_s)
+        if clean and time.monotonic() - t0 > 0.1:
+            log.warning(
+                "waited %.1f s for the session processes of an earlier run to end",
+                time.monotonic() - t0,
+            )
+        if not clean:
+            log.error(
+                "processes of an earlier run still write under %s after %.0f s: partial files "
+                "of interrupted writes are left in place",
+                self.store.root,
+                writers_timeout_s,
+            )
         for sid in self.store.saved_ids():
             try:
                 self._saved[sid] = self.store.read_meta(sid)
             except StoreError as exc:
                 log.warning("skipping saved session: %s", exc)
                 continue
-            removed = self.store.remove_partial_files(sid)
+            removed = self.store.remove_partial_files(sid) if clean else []
             if removed:
                 log.warning(
                     "session %s: removed %d partial files of an interrupted write: %s",
@@ -134,7 +151,10 @@ class SessionManager:
         the session is live or saved no room (no keyframe, or no map)."""
         entry = self.authorize(room_id, token)
         folder = self.store.folder(room_id) / ROOM_FOLDER
-        if isinstance(entry, LiveSession) or not (folder / "room.json").is_file():
+        # A live session has no room yet; one whose final save is done has (its status says
+        # closed before this manager has moved it to the saved ones).
+        live = isinstance(entry, LiveSession) and entry.final_meta is None
+        if live or not (folder / "room.json").is_file():
             raise SessionError(
                 "room_unavailable",
                 "that session has saved no room: a room is saved when a session that mapped "

@@ -100,6 +100,12 @@ class LoopClosure(WireModel):
         "and verification, ms",
     )
     rebuilds: int = Field(description="maps rebuilt from the corrected keyframes and swapped in")
+    rebuild_pending: bool = Field(
+        False,
+        description="a correction waits for its map rebuild, or a rebuild is in progress; "
+        "false once the newest correction's rebuild was swapped in (its map_chunk with reset "
+        "sent), skipped (rebuilds_skipped) or failed (failures.loops_failed)",
+    )
     rebuilds_skipped: int = Field(
         0,
         description="corrections that moved no keyframe by more than mapping.rebuild_min_move_m "
@@ -151,7 +157,9 @@ class WorkerInfo(WireModel):
     threads: int = Field(description="native threads (OpenCV, BLAS) of its thread pools")
     pid: int | None = Field(None, description="the worker's process id (on its node, for Ray)")
     mapper_pid: int | None = Field(
-        None, description="process workers: the session's mapper process id"
+        None,
+        description="the session's mapper process id (for Ray, on the actor's node: a child "
+        "of the actor's process)",
     )
     loops_pid: int | None = Field(
         None,
@@ -222,6 +230,13 @@ class SessionStatus(WireModel):
     )
     fusion_skipped: int = Field(
         description="tracked frames not fused into the map because the mapper was behind"
+    )
+    fusion_waiting: int = Field(
+        0,
+        description="tracked frames still on their way into the map: queued for the mapping "
+        "thread or being fused (a frame counts from its pose until it is fused or known not to "
+        "be). 0: the map (map.frames_integrated) holds every frame it will take of those "
+        "processed so far",
     )
     frames_repeated: int = Field(
         0,

@@ -72,3 +72,49 @@ def test_a_process_gone_raises_the_callers_lost_error():
     there.close()  # the serving end is gone
     with pytest.raises(Lost, match="the test process is gone"):
         proxy.call("add", 1, 2)
+
+
+class Slow(Target):
+    """A target whose ordered call ``wait`` runs until ``go`` is set."""
+
+    def __init__(self) -> None:
+        self.go = threading.Event()
+
+    def wait(self) -> str:
+        assert self.go.wait(10)
+        return "waited"
+
+
+def test_a_query_is_answered_while_an_ordered_call_runs():
+    """With ``ordered``: a method not in it runs beside, at once, however long the ordered call
+    in hand takes (a worker's status while its stop writes the final snapshot)."""
+    here, there = multiprocessing.Pipe(duplex=True)
+    target = Slow()
+    ended: list[bool] = []
+    thread = threading.Thread(
+        target=lambda: ended.append(
+            serve(target, there, log, ordered={"wait", "stop"}, beside=2, last="stop")
+        ),
+        daemon=True,
+    )
+    thread.start()
+    here.send((1, "wait", ()))
+    here.send((2, "add", (2, 3)))
+    assert here.poll(10)
+    assert here.recv() == ("reply", 2, True, 5)  # the query, while "wait" still runs
+    target.go.set()
+    assert here.poll(10)
+    assert here.recv() == ("reply", 1, True, "waited")
+    here.send((3, "stop", ()))
+    assert here.poll(10) and here.recv() == ("reply", 3, True, "stopped")
+    thread.join(5)
+    assert ended == [True]
+
+
+def test_a_busy_proxy_is_not_waited_for_by_call_if_idle():
+    proxy, thread, _, _ = _served()
+    with proxy._lock:  # another call in progress
+        assert proxy.call_if_idle("add", 1, 2) == (False, None)
+    assert proxy.call_if_idle("add", 1, 2) == (True, 3)
+    proxy.close()
+    thread.join(5)

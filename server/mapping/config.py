@@ -16,23 +16,33 @@ MAX_PREVIEW_POINTS = 16384
 
 @dataclass(frozen=True)
 class TSDFConfig:
-    """voxel_m: voxel edge (m). block_resolution: voxels per block edge. block_count: blocks
-    allocated up front (the hash map doubles when full; each block costs block_resolution^3 * 20
-    bytes, 80 KiB at 16). trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond
-    this is ignored. min_weight: observations a voxel needs before it shows in extracted surfaces.
-    carve_free_space: also allocate the blocks a ray crosses before the surface (see
-    server/mapping/tsdf.py). carve_every: carve on every n-th integration only (the first
-    included): the space a moving camera sees empty changes slowly, while carving costs ~40 % of
-    an integration (7scenes_a, 2 cm voxels: 46 ms with, 28 without, one thread)."""
+    """voxel_m: voxel edge (m). block_resolution: voxels per block edge: Open3D fuses every
+    voxel of each block a frame touches, so smaller blocks hug the surface band closer (8: 30 %
+    less fusion CPU than 16 on 7scenes_a, benchmarks/README.md "Mapper CPU"); a saved map of
+    another resolution is re-blocked when loaded. block_count: blocks allocated up front (the
+    hash map doubles when full; each block costs block_resolution^3 * 20 bytes, 10 KiB at 8).
+    trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond this is ignored.
+    min_weight: observations a voxel needs before it shows in extracted surfaces.
+    carve_free_space: also record the space rays cross before the surface as seen, in a grid
+    of its own (server/mapping/free_space.py), for the drone to tell free space from unknown.
+    carve_every: carve on every n-th integration only (the first included): the space a moving
+    camera sees empty changes slowly. carve_voxels: the free-space grid's voxel edge, in TSDF
+    voxels (2: 4 cm, the spacing at which the drone's 5 cm cells sample the TSDF).
+    block_search_width_px: the blocks a frame touches are found from every n-th pixel of a depth
+    image wider than this, each way (n the smallest that brings it to this width: 640x480 ->
+    320x240), one voxel beyond the truncation band; every pixel is fused into them
+    (server/mapping/frame_input.py). 0: found from every pixel."""
 
     voxel_m: float = 0.02
-    block_resolution: int = 16
-    block_count: int = 256  # 20 MiB up front (idle sessions stay cheap); a room doubles it to 2-4k
+    block_resolution: int = 8
+    block_count: int = 1024  # 10 MiB up front (idle sessions stay cheap); a room doubles it
     trunc_voxels: float = 4.0
     depth_max_m: float = 4.0
     min_weight: float = 3.0
     carve_free_space: bool = True
     carve_every: int = 3
+    carve_voxels: int = 2
+    block_search_width_px: int = 320
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
@@ -40,6 +50,10 @@ class TSDFConfig:
             raise ConfigError(f"TSDF voxel, truncation and depth range must be positive: {self}")
         if self.carve_every < 1:
             raise ConfigError(f"TSDF carve_every must be at least 1: {self}")
+        if self.carve_voxels < 1:
+            raise ConfigError(f"TSDF carve_voxels must be at least 1: {self}")
+        if self.block_search_width_px < 0:
+            raise ConfigError(f"TSDF block_search_width_px must be >= 0 (0: every pixel): {self}")
         if self.block_resolution < 2 or self.block_count < 1:
             raise ConfigError(f"TSDF block resolution < 2 or block count < 1: {self}")
 
@@ -65,8 +79,8 @@ class MappingConfig:
     # of a core per session.
     flight_map_interval_s: float = 3.0
     # After a loop closure the map is re-fused from the keyframes
-    # (server/sessions/runtime/session.py) this many at a time between two fusions (30-50 ms each):
-    # new frames wait at most that.
+    # (server/sessions/runtime/session.py) this many at a time between two fusions (each read
+    # from its files, then fused): new frames wait at most that.
     rebuild_keyframes_per_step: int = 2
     # A loop correction re-fuses the map only once it moves some keyframe by more than this
     # since the map was last fused (metres, at a point 2 m in front of the keyframe's camera:

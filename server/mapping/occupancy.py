@@ -43,9 +43,9 @@ def unpack_keys(keys: Int64Array) -> Int64Array:
 def free_space_keys(
     depth: Float32Array, K: Intrinsics, T: FloatArray, cfg: TSDFConfig
 ) -> Int64Array:
-    """Packed keys of the blocks that sparse rays of a frame (depth (H, W), metres, seen with K
-    from T_world_camera ``T``) cross between the camera and the surface band (which Open3D's
-    compute_unique_block_coordinates already covers)."""
+    """Packed keys of the blocks of ``cfg``'s geometry that sparse rays of a frame (depth
+    (H, W), metres, seen with K from T_world_camera ``T``) cross between the camera and the
+    surface band."""
     s = _CARVE_STRIDE_PX
     d = depth[s // 2 :: s, s // 2 :: s]
     v, u = np.nonzero((d > 0) & (d <= cfg.depth_max_m))
@@ -102,6 +102,38 @@ def block_cells(
     return cells.min(axis=1).astype(np.int64) - 1, cells.max(axis=1).astype(np.int64) + 1
 
 
+def _cells(
+    keys: Int64Array,
+    voxels: tuple[IndexArray, ...],
+    step: int,
+    voxel_m: float,
+    R_grid_world: RealArray | None,
+    cfg: TSDFConfig,
+) -> Int64Array:
+    """Cells of the voxels at ``voxels`` = (block, z, y, x) indices, into blocks sampled at
+    every step-th voxel."""
+    b, zl, yl, xl = voxels
+    local = np.stack([xl, yl, zl], axis=1) * step
+    world = (keys[b] * cfg.block_resolution + local).astype(np.float32) * cfg.voxel_m
+    return np.floor(rotate(world, R_grid_world) / voxel_m).astype(np.int64)
+
+
+def seen_cells(
+    keys: Int64Array,
+    weight: Float32Array,
+    voxel_m: float,
+    R_grid_world: RealArray | None,
+    cfg: TSDFConfig,
+) -> Int64Array:
+    """Grid cells (integer (N, 3), not unique) of the given blocks' seen voxels (weight > 0),
+    blocks of ``cfg``'s voxels: every s-th voxel each way is enough to say what was seen, as
+    long as samples stay closer than a cell."""
+    s = 1
+    while s < cfg.block_resolution and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
+        s *= 2
+    return _cells(keys, np.nonzero(weight[:, ::s, ::s, ::s] > 0), s, voxel_m, R_grid_world, cfg)
+
+
 def voxel_cells(
     keys: Int64Array,
     tsdf: Float32Array,
@@ -112,26 +144,25 @@ def voxel_cells(
 ) -> tuple[Int64Array, Int64Array]:
     """Grid cells (integer (N, 3) each, not unique) of the given blocks' seen voxels and of
     their surface voxels."""
-    res = cfg.block_resolution
     # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
     # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
     band = min(max(0.87 * voxel_m, cfg.voxel_m), 0.99 * cfg.trunc_m)
-    # Every s-th TSDF voxel is enough to say what was seen, as long as samples stay closer
-    # than a cell; surfaces (a thin band) are placed from every voxel of the band.
-    s = 1
-    while s < res and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
-        s *= 2
+    # Surfaces (a thin band) are placed from every voxel of the band.
+    near = np.nonzero((np.abs(tsdf) < _stored_safe(band / cfg.trunc_m)) & (weight > 0))
+    surface = _cells(keys, near, 1, voxel_m, R_grid_world, cfg)
+    return seen_cells(keys, weight, voxel_m, R_grid_world, cfg), surface
 
-    def cells(voxels: tuple[IndexArray, ...], step: int = 1) -> Int64Array:
-        """Cells of the voxels at ``voxels`` = (block, z, y, x) indices, every step-th."""
-        b, zl, yl, xl = voxels
-        local = np.stack([xl, yl, zl], axis=1) * step
-        world = (keys[b] * res + local).astype(np.float32) * cfg.voxel_m
-        return np.floor(rotate(world, R_grid_world) / voxel_m).astype(np.int64)
 
-    seen = cells(np.nonzero(weight[:, ::s, ::s, ::s] > 0), step=s)
-    surface = cells(np.nonzero((np.abs(tsdf) * cfg.trunc_m <= band) & (weight > 0)))
-    return seen, surface
+def _stored_safe(limit: float) -> np.float32:
+    """The midpoint of the two float16 values around ``limit``: a TSDF value is below it
+    exactly when its float16 rounding is (save and load keep a map's TSDF as float16,
+    server/mapping/tsdf_files.py), so a map loaded back has the very occupancy it had."""
+    low = np.float16(limit)
+    if low > limit:
+        low = np.nextafter(low, np.float16(0))
+    high = np.nextafter(low, np.float16(np.inf))
+    mid: np.float32 = np.float32((float(low) + float(high)) / 2)
+    return mid
 
 
 def grid_of(
@@ -152,4 +183,6 @@ def grid_of(
 
 def in_box(cells: Int64Array, box_lo: Int64Array, box_hi: Int64Array) -> Int64Array:
     """The cells (N, 3) inside [box_lo, box_hi)."""
-    return cells[np.all((cells >= box_lo) & (cells < box_hi), axis=1)]
+    # One unsigned comparison per axis: below box_lo wraps to above any size.
+    inside = (cells - box_lo).astype(np.uint64) < (box_hi - box_lo).astype(np.uint64)
+    return cells[inside[:, 0] & inside[:, 1] & inside[:, 2]]

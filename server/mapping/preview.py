@@ -40,7 +40,7 @@ class MapPreview:
         ijk = np.floor(world / self.voxel_m).astype(np.int64) + (1 << 20)
         keys = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
         keys, first = np.unique(keys, return_index=True)
-        fresh = np.fromiter((k not in self._sent for k in keys.tolist()), bool, len(keys))
+        fresh = ~np.fromiter(map(self._sent.__contains__, keys.tolist()), bool, len(keys))
         idx, new_keys = first[fresh], keys[fresh]
         if len(idx) > max_points:  # an even spread now, the rest with later frames
             pick = self._rng.choice(len(idx), max_points, replace=False)

@@ -4,10 +4,11 @@
 x right, y down, z forward); everything returned is in the world frame, in metres. Per voxel the
 grid holds a TSDF value (signed distance / truncation, -1..1), a weight (observations) and an RGB
 colour (0..255 in the grid, 0..1 where returned), all float32 (saved smaller: ``save``). Open3D
-allocates blocks only near surfaces; ``carve_free_space`` also allocates the blocks sparse camera
-rays cross, so the space seen empty (TSDF +1) is recorded too, which ``occupancy`` needs to tell
-free space from unknown space. ``occupancy_update`` returns only
-the part of that grid the frames fused since its last call can have changed.
+allocates blocks only near surfaces; with ``carve_free_space`` the space sparse camera rays cross
+before them is recorded as seen in a coarser grid beside it (server/mapping/free_space.py),
+which ``occupancy`` needs to tell free space from unknown space. ``occupancy_update`` returns
+only the part of that grid the frames fused since its last call can have changed. Which pixels
+of a frame are fused: server/mapping/frame_input.py.
 """
 
 from __future__ import annotations
@@ -17,9 +18,7 @@ import threading
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import cast
 
-import cv2
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
@@ -28,34 +27,31 @@ from numpy.typing import ArrayLike
 from server.atomic import atomic_write
 from server.errors import ConfigError, DroneSimError
 from server.geometry import Intrinsics
-from server.geometry.arrays import (
-    BoolArray,
-    FloatArray,
-    GreyImage,
-    Int64Array,
-    RealArray,
-)
+from server.geometry.arrays import BoolArray, FloatArray, GreyImage, Int64Array, RealArray
 from server.mapping.config import TSDFConfig
+from server.mapping.frame_input import fusion_frame
+from server.mapping.free_space import FreeSpace
 from server.mapping.occupancy import (
     block_cells,
     camera_cells,
     check_cell,
-    free_space_keys,
     grid_of,
     in_box,
     pack_keys,
+    seen_cells,
     unpack_keys,
     voxel_cells,
 )
 from server.mapping.tsdf_files import StoredTSDF, read_tsdf, write_tsdf
 from server.mapping.voxel_blocks import (
-    ATTRIBUTES,
     BYTES_PER_VOXEL,
     HOST,
     active_keys,
     grid_from_blocks,
     new_grid,
+    read_all,
     read_blocks,
+    reblocked,
 )
 
 log = logging.getLogger(__name__)
@@ -83,14 +79,19 @@ class TSDFMap:
         config: TSDFConfig | None = None,
         grid: o3d.t.geometry.VoxelBlockGrid | None = None,
         camera_positions: ArrayLike | None = None,
+        free: FreeSpace | None = None,
     ) -> None:
         """config: None for ``TSDFConfig()``. grid: an existing ``open3d.t.geometry.VoxelBlockGrid``
-        and camera_positions (N, 3) (world, metres) of the frames fused in it (used by ``load``)."""
+        and camera_positions (N, 3) (world, metres) of the frames fused in it, free the free
+        space seen with them, if any (used by ``load``)."""
         self.config = config = config or TSDFConfig()
         self._device = o3c.Device(config.device)
         if grid is None:
             grid = new_grid(config, config.block_count)
         self._grid = grid
+        if free is None and config.carve_free_space:
+            free = FreeSpace(config)
+        self._free = free if config.carve_free_space else None
         self._lock = threading.Lock()
         # Where each fused frame's camera was: known free space, even just behind the camera.
         self._cameras: list[FloatArray] = list(
@@ -134,32 +135,35 @@ class TSDFMap:
         T = np.asarray(T_world_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise MapError(f"T_world_camera must be a finite 4x4 matrix, got shape {T.shape}")
-        h, w = depth.shape
-        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
-        if colour.shape[:2] != (h, w):
-            # cv2.resize keeps the dtype; its stubs do not say so.
-            colour = cast(GreyImage, cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA))
-        K = self._intrinsics_for(K, w, h)
-        intrinsic = o3c.Tensor(K.matrix, o3c.float64, HOST)
+        try:
+            frame = fusion_frame(colour, depth, K, cfg)
+        except ValueError as exc:
+            raise MapError(str(exc)) from exc
+        units = frame.depth_units
+        intrinsic = o3c.Tensor(frame.K.matrix, o3c.float64, HOST)
         # T_camera_world, as Open3D wants.
         extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64, HOST)
-        depth_img = o3d.t.geometry.Image(o3c.Tensor(depth, o3c.float32, HOST)).to(self._device)
-        colour_img = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(colour, dtype=np.float32) / 255.0, o3c.float32, HOST)
-        ).to(self._device)
+        depth_img = self._image(frame.depth_uint16, o3c.uint16)
+        colour_img = self._image(frame.colour_uint8, o3c.uint8)
+        search_img = self._image(frame.search_uint16, o3c.uint16)
+        search_intrinsic = o3c.Tensor(frame.search_K.matrix, o3c.float64, HOST)
 
         with self._lock:
             self._cameras.append(T[:3, 3].copy())
-            if not np.any(depth):
+            if not np.any(frame.depth_uint16):
                 return 0
             blocks = self._grid.compute_unique_block_coordinates(
-                depth_img, intrinsic, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxels
+                search_img,
+                search_intrinsic,
+                extrinsic,
+                units,
+                cfg.depth_max_m,
+                frame.search_band_voxels,
             )
             keys = np.unique(pack_keys(blocks.cpu().numpy()))
-            carve = cfg.carve_free_space and self._integrations % cfg.carve_every == 0
+            if self._free is not None and self._integrations % cfg.carve_every == 0:
+                self._free.carve(depth_img, frame, T)
             self._integrations += 1
-            if carve:
-                keys = np.union1d(keys, free_space_keys(depth, K, T, cfg))
             if keys.size == 0:
                 return 0
             hashmap = self._grid.hashmap()
@@ -173,7 +177,7 @@ class TSDFMap:
                 colour_img,
                 intrinsic,
                 extrinsic,
-                1.0,
+                units,
                 cfg.depth_max_m,
                 cfg.trunc_voxels,
             )
@@ -181,13 +185,8 @@ class TSDFMap:
             self._occupancy_dirty = np.union1d(self._occupancy_dirty, keys)
             return hashmap.size() - before
 
-    def _intrinsics_for(self, K: Intrinsics, w: int, h: int) -> Intrinsics:
-        if (K.width, K.height) == (w, h):
-            return K
-        factor = w / K.width
-        if abs(K.height * factor - h) > 1.0:
-            raise MapError(f"depth {w}x{h} has not the aspect of intrinsics {K.width}x{K.height}")
-        return K.scaled(factor)
+    def _image(self, array: np.ndarray, dtype: o3c.Dtype) -> o3d.t.geometry.Image:
+        return o3d.t.geometry.Image(o3c.Tensor(array, dtype, HOST)).to(self._device)
 
     # --- extraction --------------------------------------------------------------------------
     def _extract(self) -> tuple[FloatArray, FloatArray]:
@@ -256,10 +255,12 @@ class TSDFMap:
         check_cell(voxel_m)
         with self._lock:
             keys, tsdf, weight = read_blocks(self._grid)
+            free = None if self._free is None else self._free.read()
             cameras = np.array(self._cameras).reshape(-1, 3)
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, self.config)
+        free_seen = self._free_cells(free, voxel_m, R_grid_world)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
-        grid = grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
+        grid = grid_of(np.concatenate([seen, free_seen, surface, at_camera]), surface, voxel_m)
         if grid is None:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
         return grid
@@ -277,8 +278,9 @@ class TSDFMap:
         full ``occupancy``'s (the voxels of untouched blocks that fall in the box are read too).
         The origin sits on the same lattice as every ``occupancy`` grid, so boxes merge into one
         grid (``FlightMap.update_region``). Outside the box nothing changed: observed never
-        turns false, except, when voxel_m is 5 TSDF voxels or more (voxels are then sampled),
-        a cell seen only through surface voxels that have left the surface band.
+        turns false, except, when voxel_m is 2.5 TSDF voxels or more (the seen voxels are then
+        sampled, ``occupancy.seen_cells``), a cell seen only through surface voxels that have
+        left the surface band (unobserved now, where it was occupied: blocked either way).
 
         The first call returns the whole grid. Each call restarts what the next one covers, so
         a map has one such reader (the session's drone), which passes the same voxel_m and
@@ -288,31 +290,51 @@ class TSDFMap:
         cfg = self.config
         with self._lock:
             dirty = unpack_keys(self._occupancy_dirty)
+            free = self._free
+            free_dirty = np.empty((0, 3), np.int64) if free is None else free.take_dirty()
             cameras = np.array(self._cameras).reshape(-1, 3)
             new_cameras = cameras[self._occupancy_cameras :]
             self._occupancy_dirty = np.empty(0, np.int64)
             self._occupancy_cameras = len(cameras)
-            if len(dirty) == 0 and len(new_cameras) == 0:
+            if len(dirty) == 0 and len(free_dirty) == 0 and len(new_cameras) == 0:
                 return None
             reach = [block_cells(dirty, voxel_m, R_grid_world, cfg)]
+            if free is not None:
+                reach.append(block_cells(free_dirty, voxel_m, R_grid_world, free.config))
             if len(new_cameras):
                 at = camera_cells(new_cameras, voxel_m, R_grid_world)
                 reach.append((at, at))
             box_lo = np.min([lo.min(axis=0) for lo, _ in reach if len(lo)], axis=0)
             box_hi = np.max([hi.max(axis=0) for _, hi in reach if len(hi)], axis=0) + 1
 
-            def overlapping(keys: Int64Array) -> BoolArray:  # blocks with a voxel in the box
-                lo, hi = block_cells(keys, voxel_m, R_grid_world, cfg)
-                hit: BoolArray = np.all((lo < box_hi) & (hi >= box_lo), axis=1)
-                return hit
+            def overlapping(grid: TSDFConfig) -> Callable[[Int64Array], BoolArray]:
+                def hits(keys: Int64Array) -> BoolArray:  # blocks with a voxel in the box
+                    lo, hi = block_cells(keys, voxel_m, R_grid_world, grid)
+                    hit: BoolArray = np.all((lo < box_hi) & (hi >= box_lo), axis=1)
+                    return hit
 
-            keys, tsdf, weight = read_blocks(self._grid, overlapping)
+                return hits
+
+            keys, tsdf, weight = read_blocks(self._grid, overlapping(cfg))
+            free_blocks = None if free is None else free.read(overlapping(free.config))
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, cfg)
+        seen = np.concatenate([seen, self._free_cells(free_blocks, voxel_m, R_grid_world)])
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
         seen, surface = in_box(seen, box_lo, box_hi), in_box(surface, box_lo, box_hi)
         at_camera = in_box(at_camera, box_lo, box_hi)
         # Cropped to what is observed: the rest of the box was unobserved before too.
         return grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
+
+    def _free_cells(
+        self,
+        free: tuple[Int64Array, np.ndarray] | None,
+        voxel_m: float,
+        R_grid_world: RealArray | None,
+    ) -> Int64Array:
+        """Cells of the free-space grid's seen voxels among ``free`` = (keys, weights)."""
+        if free is None or self._free is None:
+            return np.empty((0, 3), np.int64)
+        return seen_cells(*free, voxel_m, R_grid_world, self._free.config)
 
     # --- files -------------------------------------------------------------------------------
     def write_point_cloud_ply(self, path: str | Path) -> None:
@@ -336,20 +358,23 @@ class TSDFMap:
         server/mapping/tsdf_files.py). Gathered with numpy rather than Open3D's own save, which
         is ~20x slower at it, under the lock that fusion waits for."""
         with self._lock:
-            hashmap = self._grid.hashmap()
-            active = hashmap.active_buf_indices().to(o3c.int64).numpy()
-            keys = hashmap.key_tensor().numpy()[active]
-            values = {name: self._grid.attribute(name).numpy()[active] for name in ATTRIBUTES}
+            keys, values = read_all(self._grid)
+            free = None if self._free is None else self._free.blocks()
             cameras = np.array(self._cameras).reshape(-1, 3)
         cfg = self.config
-        write_tsdf(path, StoredTSDF(cfg.voxel_m, cfg.block_resolution, cameras, keys, values))
-        log.info("saved TSDF map (%d blocks) to %s", len(active), path)
+        stored = StoredTSDF(cfg.voxel_m, cfg.block_resolution, cameras, keys, values)
+        if free is not None and self._free is not None:
+            stored.free_voxel_m = self._free.config.voxel_m
+            stored.free_keys, stored.free_values = free
+        write_tsdf(path, stored)
+        log.info("saved TSDF map (%d blocks) to %s", len(keys), path)
 
     @classmethod
     def load(cls, path: str | Path, config: TSDFConfig | None = None) -> TSDFMap:
         """Restore a map written by ``save`` (or by an earlier version's, in the layout of
-        Open3D's ``VoxelBlockGrid.save``). ``config`` must match the file's voxel size and block
-        resolution; None takes them from the file (other settings at their defaults)."""
+        Open3D's ``VoxelBlockGrid.save``). ``config`` must match the file's voxel size; blocks of
+        another resolution (one a multiple of the other) are re-blocked to its. None takes voxel
+        size and block resolution from the file (other settings at their defaults)."""
         path = Path(path)
         if not path.is_file():
             raise MapError(f"no TSDF map file at {path}")
@@ -357,35 +382,51 @@ class TSDFMap:
             stored = read_tsdf(path)
             voxel_m, resolution = stored.voxel_m, stored.block_resolution
             if config is None:
-                config = TSDFConfig(voxel_m=round(voxel_m, 9), block_resolution=resolution)
-            elif not np.isclose(config.voxel_m, voxel_m) or config.block_resolution != resolution:
+                free_voxels = round(stored.free_voxel_m / voxel_m) if stored.free_voxel_m else 2
+                config = TSDFConfig(
+                    voxel_m=round(voxel_m, 9),
+                    block_resolution=resolution,
+                    carve_voxels=max(1, free_voxels),
+                )
+            elif not np.isclose(config.voxel_m, voxel_m):
                 raise ConfigError(
-                    f"{path} holds {voxel_m} m voxels in {resolution}^3 blocks, config "
-                    f"asks for {config.voxel_m} m in {config.block_resolution}^3"
+                    f"{path} holds {voxel_m} m voxels, config asks for {config.voxel_m} m"
                 )
             if stored.keys is not None and stored.values is not None:
-                grid = grid_from_blocks(config, stored.keys, stored.values)
-            else:
-                grid = o3d.t.geometry.VoxelBlockGrid.load(str(path))
+                keys, values = stored.keys, stored.values
+            else:  # Open3D's own layout
+                keys, values = read_all(o3d.t.geometry.VoxelBlockGrid.load(str(path)))
+            if resolution != config.block_resolution:
+                keys, values = reblocked(keys, values, config.block_resolution)
+            grid = grid_from_blocks(config, keys, values)
+            free = None
+            if config.carve_free_space and stored.free_keys is not None and stored.free_values:
+                free = FreeSpace.from_blocks(
+                    config, stored.free_voxel_m, stored.free_keys, stored.free_values
+                )
         except (OSError, RuntimeError, KeyError, ValueError, zipfile.BadZipFile) as exc:
             raise MapError(f"cannot load a TSDF map from {path}: {exc}") from exc
-        camera_positions = stored.camera_positions
         return cls(
-            config, grid=grid.to(o3c.Device(config.device)), camera_positions=camera_positions
+            config,
+            grid=grid.to(o3c.Device(config.device)),
+            camera_positions=stored.camera_positions,
+            free=free,
         )
 
     def stats(self) -> dict[str, int | float]:
-        """frames_integrated, active_blocks, capacity_blocks, voxel_m, memory_bytes (approximate:
-        the allocated block buffers, which Open3D sizes to the capacity)."""
+        """frames_integrated, active_blocks, capacity_blocks (the TSDF's), voxel_m, memory_bytes
+        (approximate: the allocated block buffers, which Open3D sizes to the capacity, of the
+        TSDF and the free-space grid)."""
         with self._lock:
             hashmap = self._grid.hashmap()
             active, capacity = hashmap.size(), hashmap.capacity()
             frames = len(self._cameras)
+            free_bytes = 0 if self._free is None else self._free.memory_bytes()
         per_block = self.config.block_resolution**3 * BYTES_PER_VOXEL + 3 * 4
         return {
             "frames_integrated": frames,
             "active_blocks": active,
             "capacity_blocks": capacity,
             "voxel_m": self.config.voxel_m,
-            "memory_bytes": capacity * per_block,
+            "memory_bytes": capacity * per_block + free_bytes,
         }

@@ -1,7 +1,9 @@
 """The TSDF map's file (``TSDFMap.save``/``load``): a zip of numpy arrays, deflated, named
 ``FILE_FORMAT`` inside. TSDF values are stored as float16 (-1..1: steps of at most 1/2048 of the
 truncation) and colours as uint8, about a tenth of the float32 grid (a 600-frame room: 64 MB ->
-6 MB). Files in the layout of Open3D's own ``VoxelBlockGrid.save`` (an earlier version's) are
+6 MB). The free-space grid beside it (server/mapping/free_space.py), when the map has one, is
+stored the same way under ``free_*`` names (a reader that knows none of them loads the TSDF
+alone). Files in the layout of Open3D's own ``VoxelBlockGrid.save`` (an earlier version's) are
 read too: ``read_tsdf`` then returns no blocks, for Open3D to load."""
 
 from __future__ import annotations
@@ -24,13 +26,17 @@ class StoredTSDF:
     """What a TSDF map file holds: voxel size (metres) and block resolution, the fused cameras'
     positions (world (N, 3), metres; None in an old file without them), and the blocks: keys
     (N, 3) block coordinates and values per attribute (N, R, R, R, channels) float32, colour on
-    0..255; both None for a file in Open3D's own layout."""
+    0..255; both None for a file in Open3D's own layout. free_keys and free_values (tsdf and
+    weight): the free-space grid's blocks, of voxels free_voxel_m wide (None: none stored)."""
 
     voxel_m: float
     block_resolution: int
     camera_positions: FloatArray | None
     keys: NDArray[np.int32] | None = None
     values: dict[str, Float32Array] | None = None
+    free_voxel_m: float = 0.0
+    free_keys: NDArray[np.int32] | None = None
+    free_values: dict[str, Float32Array] | None = None
 
 
 def write_tsdf(path: str | Path, stored: StoredTSDF) -> None:
@@ -51,6 +57,13 @@ def write_tsdf(path: str | Path, stored: StoredTSDF) -> None:
         "voxel_size": np.array(stored.voxel_m, np.float64),
         "camera_positions": stored.camera_positions,
     }
+    if stored.free_keys is not None and stored.free_values is not None:
+        arrays |= {
+            "free_voxel_size": np.array(stored.free_voxel_m, np.float64),
+            "free_key": stored.free_keys,
+            "free_tsdf": stored.free_values["tsdf"].astype(np.float16),
+            "free_weight": stored.free_values["weight"],
+        }
 
     def write(tmp: str) -> None:
         # Level 1: most of level 6's size (6.4 against 5.8 MB) in half the time (0.5 s).
@@ -78,4 +91,12 @@ def read_tsdf(path: str | Path) -> StoredTSDF:
             "weight": stored["weight"].astype(np.float32),
             "color": stored["color"].astype(np.float32) * np.float32(stored["color_scale"]),
         }
-        return StoredTSDF(voxel_m, resolution, cameras, stored["key"], values)
+        out = StoredTSDF(voxel_m, resolution, cameras, stored["key"], values)
+        if "free_key" in stored:
+            out.free_voxel_m = float(stored["free_voxel_size"])
+            out.free_keys = stored["free_key"]
+            out.free_values = {
+                "tsdf": stored["free_tsdf"].astype(np.float32),
+                "weight": stored["free_weight"].astype(np.float32),
+            }
+        return out

@@ -232,10 +232,17 @@ class LiveServer:
 
 @pytest.fixture
 def live_server(tmp_path):
+    """live_server(data_dir=None, **settings) -> a server of the test's own, stopped after it.
+    Without data_dir, the test's first server has tmp_path/"data" and each further one a data
+    dir of its own: two servers running at once on one data dir is not a setup the server
+    supports (a starting server waits for the session processes still writing there, see
+    SessionStore.wait_for_writers)."""
     servers = []
 
     def start(data_dir: Path | None = None, **settings) -> LiveServer:
-        server = LiveServer(data_dir or tmp_path / "data", **settings)
+        if data_dir is None:
+            data_dir = tmp_path / ("data" if not servers else f"data-{len(servers) + 1}")
+        server = LiveServer(data_dir, **settings)
         servers.append(server)
         return server
 

@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from server.errors import DroneSimError
-from server.protocol.spec import ERROR_NAMES, ERRORS, MAX_SEQ
+from server.protocol.spec import ERROR_NAMES, ERRORS, LIMITS, MAX_SEQ
 
 
 class ProtocolError(DroneSimError):
@@ -55,6 +55,18 @@ class ProtocolError(DroneSimError):
         return make_error(
             self.code, self.message, seq=self.seq if valid else None, command_id=command_id
         )
+
+
+def check_raw(data: object, max_bytes: int | None = None) -> bytes | bytearray | memoryview:
+    """``data`` itself, once it is what any message must be before it is read: bytes (a text
+    frame is not), at most ``max_bytes`` long (the protocol's limit when None). Raises
+    ProtocolError (malformed_message, message_too_big)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError("malformed_message", f"need binary data, got {type(data).__name__}")
+    limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
+    if len(data) > limit:
+        raise ProtocolError("message_too_big", f"{len(data)} bytes, limit {limit}")
+    return data
 
 
 def new_message(kind: str, **fields: Any) -> dict:

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from server.protocol.codecs import encode_depth, encode_jpeg
-from server.protocol.errors import ProtocolError
+from server.protocol.errors import ProtocolError, check_raw
 from server.protocol.errors import floats as _floats
 from server.protocol.errors import new_message as _message
 from server.protocol.schema import validate
@@ -30,11 +30,7 @@ def encode(message: dict, *, max_bytes: int | None = None) -> bytes:
 def decode(data: object, *, direction: str | None = None, max_bytes: int | None = None) -> dict:
     """Unpack and validate one message; the size limit is checked before unpacking. ``data`` is
     whatever the socket gave: anything but bytes (a text frame) is a malformed_message."""
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise ProtocolError("malformed_message", f"need binary data, got {type(data).__name__}")
-    limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
-    if len(data) > limit:
-        raise ProtocolError("message_too_big", f"{len(data)} bytes, limit {limit}")
+    check_raw(data, max_bytes)
     try:
         message = msgpack.unpackb(data, raw=False, strict_map_key=True)
     except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:

@@ -14,8 +14,7 @@ from typing import NamedTuple
 
 import msgpack
 
-from server.protocol.errors import ProtocolError
-from server.protocol.spec import LIMITS
+from server.protocol.errors import ProtocolError, check_raw
 
 # Fields read one by one at most; a map with more entries (no message of this version has
 # that many) is unpacked whole, in C, as ``decode`` would, so that a message of many tiny
@@ -35,13 +34,9 @@ def peek(data: object, *, max_bytes: int | None = None) -> Peek:
     Raises ProtocolError: ``message_too_big``; ``malformed_message`` when ``data`` is not
     bytes, not one msgpack map (garbage, cut short, trailing bytes), or has no str ``type``.
     Whatever else ``decode`` would refuse (unknown types, fields) is not checked here."""
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise ProtocolError("malformed_message", f"need binary data, got {type(data).__name__}")
-    limit = LIMITS["max_message_bytes"] if max_bytes is None else max_bytes
-    if len(data) > limit:
-        raise ProtocolError("message_too_big", f"{len(data)} bytes, limit {limit}")
+    raw = check_raw(data, max_bytes)
     try:
-        kind, seq = _read(memoryview(data).cast("B"))
+        kind, seq = _read(memoryview(raw).cast("B"))
     except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
         raise ProtocolError("malformed_message", f"not one msgpack map: {exc}") from exc
     if not isinstance(kind, str):

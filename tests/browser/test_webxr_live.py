@@ -255,6 +255,35 @@ def tap_start(page, refused_before: int = 0) -> None:
     page.page.tap("#btn-stream")
 
 
+# The app starts late (its protocol comes 1.5 s after the page loaded).
+LATE_START_JS = """(() => {
+  const fetch_ = window.fetch;
+  window.fetch = (url, ...rest) => String(url).endsWith("/protocol.json")
+    ? new Promise((r) => setTimeout(r, 1500)).then(() => fetch_(url, ...rest)) : fetch_(url, ...rest);
+})();"""
+
+
+def test_a_live_link_waits_for_the_tap_however_late_the_app_starts(
+    live_server, open_page, sequence, tmp_path
+):
+    """Opened from a link, a page has no user activation: ?autostart=live asks for the tap even
+    when the app starts well after the page loaded, the time the test harness once filled with
+    Playwright polls (each runs as a user gesture) and so let AR start with no tap."""
+    device = prepare(sequence, CAMERA_DENIED, tmp_path / CAMERA_DENIED.name, max_frames=30)
+    files = FileServer(device.folder)
+    try:
+
+        def init(context) -> None:
+            install(context, device.config, files.url)
+            context.add_init_script(script=LATE_START_JS)
+
+        page = open_page(live_server(), "/?autostart=live", init=init, **PHONE)
+        tap_start(page)  # the banner asked for the tap, and no session was refused
+        page.wait("window.__xrDevice.state.sessions === 1", 20, "AR started from the tap")
+    finally:
+        files.close()
+
+
 # What the page and the device counted so far: frames sent, captures skipped and why, depth
 # images given, the live source's own counts and what it told the user.
 PLAY_STATE_JS = """() => {

@@ -43,6 +43,10 @@ PHONE = {
 DESKTOP = {"viewport": {"width": 1280, "height": 800}}
 REPLAY_PATH = "/?mode=demo-small"  # the page with the small demo preselected
 APP_READY = "window.dronesim && window.dronesim.protocol && window.dronesim.pilot"
+READY_TEXT = "test: the app started"
+# Once the module scripts ran (the load event), the app's start is window.dronesim.ready.
+READY_SIGNAL = f"""addEventListener("load", () => Promise.resolve(window.dronesim?.ready)
+  .then(() => console.debug({READY_TEXT!r})));"""
 
 
 class Page:
@@ -52,13 +56,19 @@ class Page:
         self.context = browser.new_context(**context)
         if init is not None:
             init(self.context)  # e.g. an emulated device's scripts, before the page loads
+        self.context.add_init_script(script=READY_SIGNAL)
         self.page = self.context.new_page()
         self.errors: list[str] = []
         self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
         self.page.on(
             "console", lambda m: m.type == "error" and self.errors.append(f"console: {m.text}")
         )
-        self.page.goto(f"{server.url}{path}")
+        # Wait for the app's start without running script in the page: Playwright runs every
+        # evaluate (and wait_for_function's polls) as a user gesture, which would give the page
+        # the transient activation a real page opened from a link does not have (?autostart=live
+        # would then start AR with no tap). The page says it started on its console.
+        with self.page.expect_console_message(lambda m: m.text == READY_TEXT, timeout=20_000):
+            self.page.goto(f"{server.url}{path}")
         self.page.wait_for_function(APP_READY, timeout=20_000)
 
     def snapshot(self) -> dict:

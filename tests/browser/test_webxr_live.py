@@ -259,7 +259,8 @@ def tap_start(page, refused_before: int = 0) -> None:
 LATE_START_JS = """(() => {
   const fetch_ = window.fetch;
   window.fetch = (url, ...rest) => String(url).endsWith("/protocol.json")
-    ? new Promise((r) => setTimeout(r, 1500)).then(() => fetch_(url, ...rest)) : fetch_(url, ...rest);
+    ? new Promise((r) => setTimeout(r, 1500)).then(() => fetch_(url, ...rest))
+    : fetch_(url, ...rest);
 })();"""
 
 

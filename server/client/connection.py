@@ -65,6 +65,8 @@ async def dial(url: str, token: str | None, *, ssl: Any = None, **kwargs: Any) -
     token (None: without one, as a stranger would try). Raises websockets.InvalidHandshake when
     the server refuses the upgrade."""
     query = "" if token is None else f"?token={token}"
+    # No permessage-deflate, whatever the server offers: frames are JPEG and zlib already.
+    kwargs.setdefault("compression", None)
     return await websockets.connect(f"{url}{query}", max_size=None, ssl=ssl, **kwargs)
 
 

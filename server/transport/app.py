@@ -264,6 +264,10 @@ def make_server(config: Config, app: FastAPI | None = None, **uvicorn_options) -
         port=settings.port,
         proxy_headers=True,
         forwarded_allow_ips=settings.forwarded_allow_ips,
+        # No permessage-deflate: a frame is JPEG and zlib depth already, which deflate cannot
+        # shrink, and deflating every frame again cost a phone's browser or the load tester
+        # ~70 % of its CPU and the server as much again to inflate (issue 34).
+        ws_per_message_deflate=False,
         **uvicorn_options,
     )
     return Server(server_config)

@@ -762,7 +762,8 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     """A recording played at 200 fps, far beyond what the server tracks: the page says recorded
     in its hello, keeps as many frames in flight as the welcome's queued_frames (2) and holds
     the next one until there is room instead of skipping it, says so in the HUD, and neither
-    side drops a frame: every seq gets its pose, in order, none missing."""
+    side drops a frame: every seq gets its pose, in order, none missing. Its socket carries the
+    frames as they are (no permessage-deflate)."""
     server = live_server()
     page = open_page(server, "/?autostart=demo-small&fps=200", **PHONE)
     page.wait("window.dronesim.seen.poses >= 40", 120, "40 poses")
@@ -775,6 +776,8 @@ def test_a_replay_faster_than_the_server_waits_for_it_and_drops_nothing(live_ser
     queued = page.page.evaluate("window.dronesim.client.welcome.queued_frames")
     assert queued == 2 and s["counts"]["maxInFlight"] == queued, (queued, s["counts"])
     assert s["heldBack"] or s["heldBackMs"] > 0
+    # Chromium offers permessage-deflate; the server declines it: frames are not deflated again.
+    assert page.page.evaluate("window.dronesim.client.ws.extensions") == ""
     # No gaps: the newest pose's seq is one less than the poses received (seqs start at 0).
     assert s["lastPose"]["seq"] == s["poses"] - 1, (s["lastPose"]["seq"], s["poses"])
     assert not s["errors"], s["errors"]

@@ -297,6 +297,25 @@ def test_a_client_gone_right_after_its_bye_is_not_an_error(live_server, shared_d
     assert asyncio.run(back_again())["seq"] == 3
 
 
+def test_frames_cross_the_socket_without_a_second_compression(live_server, shared_data):
+    """A frame is JPEG and zlib depth already: the server declines permessage-deflate, which a
+    browser (and websockets' client) offers by default, so nobody deflates a frame again.
+    Frames still stream and get their poses."""
+    server = live_server()
+    sid, token = server.create_session()
+    url = f"{server.ws_url}/ws/sessions/{sid}?token={token}"
+
+    async def offered_deflate() -> tuple[str | None, list]:
+        async with websockets.connect(url, compression="deflate") as ws:
+            return ws.response.headers.get("Sec-WebSocket-Extensions"), ws.protocol.extensions
+
+    header, extensions = asyncio.run(offered_deflate())
+    assert header is None and extensions == [], (header, extensions)
+    ds = open_dataset(shared_data / "synthetic_room0")
+    got = stream(server, sid, token, ds, n=5)
+    assert len(got.poses) == 5 and not got.errors, got.errors
+
+
 def test_a_reconnecting_client_may_number_its_frames_from_zero_again(live_server, shared_data):
     """A reloaded page starts seq at 0: the session goes on instead of refusing every frame."""
     ds = open_dataset(shared_data / "synthetic_room0")

@@ -60,6 +60,40 @@ def test_slow_draws_lower_the_pixel_ratio_and_the_hud_says_the_page_is_busy(live
     assert not page.errors, page.errors
 
 
+# The views held to one draw every 800 ms (the budget's longest), the budget's own adapting off.
+SELDOM_DRAWS = """() => {
+  const budget = window.dronesim.budget;
+  budget.update = () => {};
+  budget.streamBehind = false;
+  budget.intervalMs = 800;
+}"""
+
+
+def test_a_page_that_draws_seldom_reads_the_depth_only_of_frames_it_draws(live_server, open_page):
+    """Poses come faster than the AR view draws (a slow page): the replay's depth PNGs, read for
+    occlusion, are read only for the frame shown last before a draw, not for every frame; the
+    frame left on screen gets its depth."""
+    page = open_page(live_server(), "/?mode=demo-small&view=ar", **PHONE)
+    page.page.evaluate(SELDOM_DRAWS)
+    page.page.tap("#btn-stream")
+    page.wait("window.dronesim.seen.poses >= 3", 90, "the first poses")
+    before = page.snapshot()
+    page.wait(f"window.dronesim.seen.poses >= {before['poses'] + 20}", 60, "20 more poses")
+    page.page.evaluate("window.dronesim.streamer.stop()")
+    page.wait(
+        "window.dronesim.snapshot().occlusion.depthSeq === window.dronesim.ar.frame?.seq",
+        10,
+        "the depth of the frame left on screen",
+    )
+    after = page.snapshot()
+    shown = after["poses"] - before["poses"]
+    reads = after["occlusion"]["depthReads"] - before["occlusion"]["depthReads"]
+    assert after["budget"]["drawIntervalMs"] == 800, after["budget"]
+    assert 1 <= reads <= 0.5 * shown, (reads, shown)
+    assert after["occlusion"]["depthFailures"] == 0
+    assert not page.errors, page.errors
+
+
 def test_fpv_shows_the_map_points_and_says_the_map_is_loading_before_its_mesh(
     live_server, open_page, tmp_path
 ):

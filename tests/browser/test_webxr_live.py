@@ -48,6 +48,7 @@ from __future__ import annotations
 import base64
 import math
 import time
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -270,17 +271,26 @@ def test_a_live_link_waits_for_the_tap_however_late_the_app_starts(
     """Opened from a link, a page has no user activation: ?autostart=live asks for the tap even
     when the app starts well after the page loaded, the time the test harness once filled with
     Playwright polls (each runs as a user gesture) and so let AR start with no tap."""
-    device = prepare(sequence, CAMERA_DENIED, tmp_path / CAMERA_DENIED.name, max_frames=30)
+    with _phone_page(
+        live_server, open_page, sequence, tmp_path, CAMERA_DENIED, LATE_START_JS
+    ) as page:
+        tap_start(page)  # the banner asked for the tap, and no session was refused
+        page.wait("window.__xrDevice.state.sessions === 1", 20, "AR started from the tap")
+
+
+@contextmanager
+def _phone_page(live_server, open_page, sequence, tmp_path, profile, script: str):
+    """A phone page opened with ?autostart=live on ``profile``'s emulated device (the first 30
+    frames of ``sequence``), ``script`` run before the page's own."""
+    device = prepare(sequence, profile, tmp_path / profile.name, max_frames=30)
     files = FileServer(device.folder)
     try:
 
         def init(context) -> None:
             install(context, device.config, files.url)
-            context.add_init_script(script=LATE_START_JS)
+            context.add_init_script(script=script)
 
-        page = open_page(live_server(), "/?autostart=live", init=init, **PHONE)
-        tap_start(page)  # the banner asked for the tap, and no session was refused
-        page.wait("window.__xrDevice.state.sessions === 1", 20, "AR started from the tap")
+        yield open_page(live_server(), "/?autostart=live", init=init, **PHONE)
     finally:
         files.close()
 
@@ -424,17 +434,11 @@ def test_live_ar_refused_says_what_to_do(profile, says, live_server, open_page, 
     no depth. The page starts AR only from the user's tap (the device refuses a request
     without one, as Chrome does), and when the session lacks what live AR needs it ends it and
     says why and what to do, on screen and in Setup; no session is opened on the server."""
-    device = prepare(sequence, profile, tmp_path / profile.name, max_frames=30)
-    files = FileServer(device.folder)
-    try:
-
-        def init(context) -> None:
-            install(context, device.config, files.url)
-            # Without a tap the browser refuses an immersive session (asked here as the page
-            # loads: Playwright's evaluate runs as a user gesture).
-            context.add_init_script(script=REQUEST_AT_LOAD_JS)
-
-        page = open_page(live_server(), "/?autostart=live", init=init, **PHONE)
+    # Without a tap the browser refuses an immersive session: asked by a script as the page
+    # loads (Playwright's evaluate runs as a user gesture).
+    with _phone_page(
+        live_server, open_page, sequence, tmp_path, profile, REQUEST_AT_LOAD_JS
+    ) as page:
         page.wait("window.__atLoad !== undefined", 20, "the request made at load")
         assert page.page.evaluate("window.__atLoad") == "SecurityError"
         tap_start(page, refused_before=1)
@@ -447,8 +451,6 @@ def test_live_ar_refused_says_what_to_do(profile, says, live_server, open_page, 
               active: window.__xrDevice.active(), sessions: window.__xrDevice.state.sessions,
               session: window.dronesim.client.session, sent: window.dronesim.snapshot().sent })"""
         )
-    finally:
-        files.close()
     print(f"{profile.name}: {got['banner']!r}")
     assert got["setup"] == got["banner"], got
     assert got["sessions"] == 1 and not got["active"], got  # started from the tap, then ended

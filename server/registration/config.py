@@ -113,7 +113,7 @@ class KeyframeConfig:
     """When to start a new keyframe."""
 
     min_tracked_ratio: float = 0.5  # of the keyframe's features still tracked
-    min_tracked: int = 80
+    min_tracked: int = 80  # at 640x480; less on smaller images (keyframes.min_tracked)
     max_translation_m: float = 0.25
     max_rotation_deg: float = 15.0
     recent_keyframes: int = 8  # kept for relocalisation after a lost frame

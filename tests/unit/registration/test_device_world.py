@@ -11,6 +11,7 @@ from server.datasets import open_dataset
 from server.evaluation.metrics import ate
 from server.evaluation.trajectory import Trajectory
 from server.registration.tracker import Tracker, TrackingState
+from tests.support.reference_tracking import offline_ate_at
 
 pytestmark = pytest.mark.slow  # unit, not in the fast tier (tests/conftest.py)
 
@@ -27,20 +28,7 @@ def sequence(shared_data):
 def offline_ate(sequence) -> float:
     """ATE (rmse, metres) of tracking the sequence offline at the page's rate (every 2nd frame
     of the 30 Hz recording), full frames, no device pose: the reference the live runs meet."""
-    tracker = Tracker(sequence.intrinsics)
-    stamps, poses = [], []
-    for i in range(0, len(sequence), round(30 / PAGE_FPS)):
-        frame = sequence[i]
-        result = tracker.track(frame.colour, frame.depth)
-        tracker.update_keyframe()
-        if result.state is not TrackingState.LOST:
-            stamps.append(frame.timestamp)
-            poses.append(result.T_world_camera)
-    gt = sequence.ground_truth
-    idx = [int(np.argmin(np.abs(gt.timestamps - t))) for t in stamps]
-    return ate(
-        Trajectory(np.array(stamps), gt.poses[idx]), Trajectory(np.array(stamps), np.array(poses))
-    )["rmse"]
+    return offline_ate_at(sequence, PAGE_FPS)
 
 
 def _track_through_a_jump(sequence, new_world: bool) -> tuple[float, dict]:

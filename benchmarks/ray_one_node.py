@@ -39,7 +39,6 @@ import statistics
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,8 +48,7 @@ from capacity import (  # noqa: E402
     TreeSampler,
     scan_tree,
     server_environment,
-    snapshot_tree,
-    tree_cpu_s,
+    wait_until_settled,
 )
 from provenance import git_commit, utc_stamp  # noqa: E402
 
@@ -61,19 +59,6 @@ from server.datasets import open_dataset  # noqa: E402
 
 KINDS = ("process", "ray", "ray-base")
 SETTLE_CORES = {"process": 0.1, "ray": 0.35, "ray-base": 0.35}  # Ray's processes never rest
-
-
-def settle(pid: int, below_cores: float, window_s: float = 1.0, timeout_s: float = 60.0) -> float:
-    """Seconds waited until the server's tree used less than ``below_cores`` over a window."""
-    t0 = time.monotonic()
-    before, _ = snapshot_tree(pid)
-    while time.monotonic() - t0 < timeout_s:
-        time.sleep(window_s)
-        after, _ = snapshot_tree(pid)
-        if not after or tree_cpu_s(after) - tree_cpu_s(before) < below_cores * window_s:
-            break
-        before = after
-    return time.monotonic() - t0
 
 
 class MapperCount:
@@ -130,7 +115,7 @@ def run_row(
         finally:
             server_process.IMPORT_ROOT = ours
         try:
-            settle_s = settle(server.pid, SETTLE_CORES[kind])
+            settle_s = wait_until_settled(server.pid, SETTLE_CORES[kind], window_s=1.0)
             load_before = os.getloadavg()[0]
             cfg = LoadTestConfig(
                 url=server.url,

@@ -151,9 +151,12 @@ def switch_keyframe(
     near = sorted(candidates, key=lambda k: pose_distance(k.T_world_keyframe, T_world_cur))
     if c.switch_order == "oldest":
         near.sort(key=lambda k: k.id)
+    tries = 0
     for kf in near:
         if kf is current:
             continue
+        if tries == c.switch_tries:
+            break
         T_kf_cur = invert(kf.T_world_keyframe) @ T_world_cur
         if np.linalg.norm(T_kf_cur[:3, 3]) > c.switch_reach * c.max_translation_m:
             if c.switch_order == "nearest":
@@ -161,6 +164,7 @@ def switch_keyframe(
             continue
         if rotation_angle_deg(T_kf_cur) > c.switch_reach * c.max_rotation_deg:
             continue
+        tries += 1
         reg = track_keyframe(kf, grey, depth, T_world_cur, K, cfg)
         if reg is None or judge(reg.solution, cfg.state) is not TrackingState.OK:
             continue

@@ -41,3 +41,36 @@ def test_a_phones_narrow_view_is_not_rekeyed_after_losing_a_few_corners():
     assert needs_keyframe(phone, still, 61, c)
     big = keyframe(640, 288, 200)
     assert needs_keyframe(big, still, 99, c) and not needs_keyframe(big, still, 100, c)
+
+
+def test_a_keyframe_change_registers_at_most_switch_tries_earlier_keyframes(monkeypatch):
+    """Each try to go back to an earlier keyframe is a whole registration; past the nearest
+    they failed on a phone's view (7scenes_a at 640x288: 105 tries in 41 changes, none kept),
+    so a change tries ``switch_tries`` of them, nearest first."""
+    from dataclasses import replace
+
+    from server.geometry import Intrinsics
+    from server.registration import keyframes as kf_module
+    from server.registration.config import RegistrationConfig
+
+    tried: list[int] = []
+    monkeypatch.setattr(kf_module, "track_keyframe", lambda kf, *args: tried.append(kf.id) or None)
+    earlier = []
+    for i in range(1, 5):
+        kf = keyframe(640, 480, 170)
+        kf.id, kf.T_world_keyframe = i, np.eye(4)
+        kf.T_world_keyframe[0, 3] = 0.01 * i  # all within reach, nearer the higher the id
+        earlier.append(kf)
+    current = keyframe(640, 480, 170)
+    current.id = 9
+    here = np.eye(4)
+    here[0, 3] = 0.05
+    K = Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
+    grey, depth = np.zeros((480, 640), np.uint8), np.ones((480, 640), np.float32)
+    for tries, expected in ((1, [4]), (2, [4, 3]), (9, [4, 3, 2, 1])):
+        cfg = RegistrationConfig()
+        cfg = replace(cfg, keyframes=replace(cfg.keyframes, switch_tries=tries))
+        tried.clear()
+        args = (grey, depth, here, K, cfg)
+        assert kf_module.switch_keyframe(earlier, [], current, 0, *args) is None
+        assert tried == expected

@@ -31,7 +31,9 @@ class TSDFConfig:
     block_search_width_px: the blocks a frame touches are found from every n-th pixel of a depth
     image wider than this, each way (n the smallest that brings it to this width: 640x480 ->
     320x240), one voxel beyond the truncation band; every pixel is fused into them
-    (server/mapping/frame_input.py). 0: found from every pixel."""
+    (server/mapping/frame_input.py). 0: found from every pixel. settle_after: frames that touch
+    a block before it counts as settled (0: never); settled_every: a settled block is fused on
+    every n-th frame that touches it only (server/mapping/settled_blocks.py)."""
 
     voxel_m: float = 0.02
     block_resolution: int = 8
@@ -43,6 +45,8 @@ class TSDFConfig:
     carve_every: int = 3
     carve_voxels: int = 2
     block_search_width_px: int = 320
+    settle_after: int = 32
+    settled_every: int = 4
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
@@ -54,6 +58,8 @@ class TSDFConfig:
             raise ConfigError(f"TSDF carve_voxels must be at least 1: {self}")
         if self.block_search_width_px < 0:
             raise ConfigError(f"TSDF block_search_width_px must be >= 0 (0: every pixel): {self}")
+        if self.settle_after < 0 or self.settled_every < 1:
+            raise ConfigError(f"TSDF settle_after must be >= 0 and settled_every >= 1: {self}")
         if self.block_resolution < 2 or self.block_count < 1:
             raise ConfigError(f"TSDF block resolution < 2 or block count < 1: {self}")
 

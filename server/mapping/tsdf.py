@@ -42,6 +42,7 @@ from server.mapping.occupancy import (
     unpack_keys,
     voxel_cells,
 )
+from server.mapping.settled_blocks import SettledBlocks
 from server.mapping.tsdf_files import StoredTSDF, read_tsdf, write_tsdf
 from server.mapping.voxel_blocks import (
     BYTES_PER_VOXEL,
@@ -105,6 +106,7 @@ class TSDFMap:
         self._occupancy_dirty = self._dirty.copy()
         self._occupancy_cameras = 0  # cameras [0, this) were in an occupancy_update already
         self._sent = np.empty(0, np.int64)  # voxel keys of the points already previewed
+        self._settled = SettledBlocks(config.settle_after, config.settled_every)
         self._integrations = 0  # frames with depth integrated by this object (for carve_every)
         self._rng = np.random.default_rng(0)
 
@@ -160,7 +162,7 @@ class TSDFMap:
                 cfg.depth_max_m,
                 frame.search_band_voxels,
             )
-            keys = np.unique(pack_keys(blocks.cpu().numpy()))
+            keys = self._settled.to_fuse(np.unique(pack_keys(blocks.cpu().numpy())))
             if self._free is not None and self._integrations % cfg.carve_every == 0:
                 self._free.carve(depth_img, frame, T)
             self._integrations += 1

@@ -94,6 +94,8 @@ class ServerConfig(BaseModel):
     flights_kept: int = Field(default=20, ge=1, le=1000)
     # Viewer links (read-only watchers of a live session) at once per session.
     max_viewers: int = Field(default=8, ge=0, le=64)
+    # Phones in one shared room (the owner's session and those that joined it with an invite).
+    max_room_phones: int = Field(default=3, ge=1, le=16)
     # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
     # cores among the live sessions, rebalanced as they come and go.
     worker_threads: int = Field(default=0, ge=0, le=256)

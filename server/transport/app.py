@@ -50,6 +50,7 @@ _STATUS = {
     "session_closed": 409,
     "too_many_viewers": 409,
     "room_unavailable": 409,
+    "room_full": 409,
     "rate_limited": 429,
     "server_full": 503,
 }
@@ -91,6 +92,7 @@ def create_app(config: Config | None = None) -> FastAPI:
         settings.max_sessions,
         workers=workers,
         threads=settings.worker_threads,
+        max_room_phones=settings.max_room_phones,
     )
 
     @contextlib.asynccontextmanager

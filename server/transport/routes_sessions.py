@@ -27,6 +27,7 @@ from server.transport.connections import end_connection
 from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation_allowed
 from server.transport.schemas import (
     CourseBest,
+    InviteCreated,
     SessionCreate,
     SessionCreated,
     SessionStatus,
@@ -83,7 +84,12 @@ _NO_MAP: _Responses = {
         503: error_response("`server_full`: the server holds its maximum of live sessions"),
         401: error_response("`unauthorized`: `room` given without the room's token"),
         404: error_response("`not_found`: no closed session `room` for this token"),
-        409: error_response("`room_unavailable`: the session `room` saved no room"),
+        409: error_response(
+            "`room_unavailable`: the session `room` saved no room, or the live room `join` has "
+            "mapped nothing yet; `room_full`: the room `join` holds the server's "
+            "max_room_phones"
+        ),
+        422: error_response("`room` and `join` both given"),
     },
 )
 def create_session(
@@ -107,23 +113,31 @@ def create_session(
 
     `{"loop_closure": true}` (or false) asks for online loop closure in this session whatever
     the server's `registration.loops.live`; the answer's `loop_closure` says whether it runs
-    (never in a room's session, nor when the server keeps no rooms)."""
+    (never in a room's session, nor when the server keeps no rooms).
+
+    With `{"join": "<id>"}` and a join token of that live session's room (`POST /api/sessions/
+    {id}/invites`) as `Authorization: Bearer`, the new session joins the room: it continues in
+    the room as it stands now, as above (placed by place recognition, then tracked in the
+    room's world frame, its own drone), and the room's status lists it."""
+    join = None if body is None else body.join
+    owner = None if join is None else manager.rooms.room_to_join(join, token)
     room = None if body is None or body.room is None else manager.room_of(body.room, token)
     loops = None if body is None else body.loop_closure
-    session, new_token = manager.create(room, loop_closure=loops)
+    session, new_token = manager.create(room, loop_closure=loops, joining=owner)
     scheme = "wss" if request.url.scheme == "https" else "ws"
     answer = {
         "id": session.id,
         "token": new_token,
         "websocket": f"{scheme}://{request.url.netloc}/ws/sessions/{session.id}",
         "room": None if body is None else body.room,
-        "loop_closure": manager.closes_loops(room, loops),
+        "loop_closure": manager.closes_loops(room, loops) and owner is None,
+        "join": join,
     }
     return JSONResponse(answer, status_code=status.HTTP_201_CREATED)
 
 
 @router.get("/{session_id}", response_model=SessionStatus, responses=_TOKEN_ERRORS)
-def session_status(session: SessionDep) -> JSONResponse:
+def session_status(session: SessionDep, manager: ManagerDep) -> JSONResponse:
     """Statistics of a live or closed session (fields in the schema below).
 
     `closed` stays false after a client's `bye`: the session waits for a reconnect until it
@@ -135,7 +149,36 @@ def session_status(session: SessionDep) -> JSONResponse:
     body = session.status()
     if body.get("closed"):  # answered from the final snapshot while the worker stops
         body.setdefault("tracking_lost", False)
+    owner = manager.rooms.owner_of(session.id) or session.id
+    phones = manager.rooms.phones(owner)
+    if phones:
+        body["shared_room"] = {"owner": owner, "phones": phones}
     return JSONResponse(body)
+
+
+@router.post(
+    "/{session_id}/invites",
+    status_code=status.HTTP_201_CREATED,
+    response_model=InviteCreated,
+    responses=_TOKEN_ERRORS
+    | {
+        409: error_response(
+            "`room_unavailable`: the session is closed, or joined another session's room"
+        )
+    },
+)
+def create_invite(
+    session_id: str, manager: ManagerDep, token: Annotated[str | None, Depends(bearer_token)]
+) -> JSONResponse:
+    """Invite a phone into this live session's room: **201** with `{join_token, join}`. The
+    phone opens a session of its own with `POST /api/sessions` `{"join": "<id>"}` and the join
+    token as `Authorization: Bearer`; at most the server's max_room_phones phones share a
+    room (this one included). Each call makes another token; all open nothing once this
+    session has ended."""
+    join_token = manager.rooms.invite(manager.authorize(session_id, token))
+    return JSONResponse(
+        {"join_token": join_token, "join": session_id}, status_code=status.HTTP_201_CREATED
+    )
 
 
 @router.delete(

@@ -23,6 +23,7 @@ from server import protocol as proto
 from server.errors import ConfigError
 from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
+from server.rooms.continuation import RoomTracker
 from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError
 from server.sessions.processes.mapper import MapperClient
@@ -168,7 +169,10 @@ class SessionHost:
     def status(self) -> dict:
         tracker = self.session.tracker
         lost = tracker is not None and tracker.lost
-        return self.session.status() | {"tracking_lost": bool(lost), "threads": self.args.threads}
+        status = self.session.status() | {"tracking_lost": bool(lost), "threads": self.args.threads}
+        if isinstance(tracker, RoomTracker):  # in a room: placed once a frame was recognised
+            status["placed"] = tracker.relocalised
+        return status
 
     def meta(self) -> dict:
         return self.session.meta()
@@ -186,6 +190,11 @@ class SessionHost:
 
     def snapshot(self) -> None:
         self.session.snapshot()
+
+    def share_room(self, folder: str) -> bool:
+        """The room as it stands, into ``folder``, for a phone joining it (``Session.
+        share_room``); False when nothing is mapped yet."""
+        return self.session.share_room(Path(folder))
 
     def save_meta(self) -> None:
         """Write the session's meta now (a new session is on disk from its first moment)."""

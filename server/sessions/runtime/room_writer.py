@@ -127,10 +127,13 @@ class RoomWriter:
         K: Intrinsics,
         worlds: Worlds | None,
         course_best: Path | None,
+        into: Path | None = None,
     ) -> bool:
         """Make the session's folder a room (``room/``: the keyframes, each at its pose in the
-        latest corrected world when ``worlds``, and the session's final map); False when there
-        is no keyframe or no map. The course's best list (``course_best``) goes with it."""
+        latest corrected world when ``worlds``, and the session's latest snapshot of its map);
+        False when there is no keyframe or no map. The course's best list (``course_best``)
+        goes with it. ``into``: another folder to write the room into (a live session's room,
+        shared with a phone joining it), the keyframe files linked from this one."""
         with self._lock:
             keyframes = list(self._keyframes)
             kf_worlds = dict(self._worlds)
@@ -139,10 +142,13 @@ class RoomWriter:
         session_map = self.session_folder / MAP_FILE
         if not keyframes or not session_map.is_file():
             return False
-        room = self.folder
+        room = self.folder if into is None else into
         room.mkdir(parents=True, exist_ok=True)
         if self.base_dir is not None:
             link_keyframes(self.base_dir, room, self._base_ids)
+        if room != self.folder:
+            base = set(self._base_ids)
+            link_keyframes(self.folder, room, [i for i, _, _ in keyframes if i not in base])
         (room / MAP_FILE).unlink(missing_ok=True)
         os.link(session_map, room / MAP_FILE)
         (room / COURSE_BEST_FILE).unlink(missing_ok=True)

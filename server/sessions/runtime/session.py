@@ -322,6 +322,19 @@ class Session:
             self.id, self.intrinsics, worlds, course_best_path(self.store, self.id)
         )
 
+    def share_room(self, folder: Path) -> bool:
+        """This live session's room as it stands, written into ``folder`` for a phone that
+        joins it: a snapshot is taken now, and its map and the keyframes so far make the room
+        (``RoomWriter.save``). False when there is no keyframe or no map yet. Raises
+        SnapshotError when the disk refuses."""
+        if not self.config.save_room or self.intrinsics is None or self.room is None:
+            return False
+        self.snapshot()
+        worlds = None if self.loops is None else self.loops.worlds
+        return self.room.save(
+            self.id, self.intrinsics, worlds, course_best_path(self.store, self.id), into=folder
+        )
+
     def fail(self, reason: str) -> None:
         """The session cannot go on (its map is gone): frames are refused from now on, and the
         client is told (SessionFailed); the web side then stops and saves the session."""

@@ -4,6 +4,7 @@ written whole or not at all, periodically from the mapping thread and once when 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -38,6 +39,9 @@ class Snapshots:
         self.meta = meta
         self.error: str | None = None
         self._last = time.monotonic()
+        # The mapping thread's periodic snapshot and one asked for (REST, a room shared with a
+        # joining phone) share one staging folder: one at a time.
+        self._lock = threading.Lock()
 
     def take(self) -> None:
         """Write the files and the meta as one snapshot: staged beside the previous one, then
@@ -46,6 +50,10 @@ class Snapshots:
         Raises SnapshotError when the disk refuses (full, gone): the previous snapshot stays
         whole, everything stays in memory, and ``error`` says why until a later snapshot
         succeeds."""
+        with self._lock:
+            self._take()
+
+    def _take(self) -> None:
         with self.counts.lock:
             self.counts.dirty = False
         try:

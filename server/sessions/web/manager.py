@@ -22,8 +22,11 @@ from server.sessions.runtime.host import HostArgs
 from server.sessions.runtime.session import ROOM_FOLDER
 from server.sessions.store import SessionStore, StoreError, hash_token
 from server.sessions.web.live import LiveSession, SessionWorker
+from server.sessions.web.shared_rooms import SharedRooms
 
 log = logging.getLogger(__name__)
+
+JOINED_ROOM = "joined_room"  # in a joined session's folder: the room as it stood at the join
 
 _NO_SESSION_HASH = hash_token(secrets.token_urlsafe(32))  # compared against for unknown ids
 
@@ -94,6 +97,7 @@ class SessionManager:
         max_sessions: int = 16,
         workers: WorkerBackend | None = None,
         threads: int = 0,
+        max_room_phones: int = 3,
     ) -> None:
         self.store = store
         self.config = config or SessionConfig.from_config()
@@ -105,6 +109,7 @@ class SessionManager:
         self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
         self._closing: set[str] = set()  # live sessions being stopped and saved
         self._lock = threading.Lock()
+        self.rooms = SharedRooms(max_room_phones, self.live_session)
 
     # ------------------------------------------------------------------ lifecycle
     def load_saved(self, writers_timeout_s: float = 60.0) -> int:
@@ -163,12 +168,17 @@ class SessionManager:
         return folder
 
     def create(
-        self, room: Path | None = None, loop_closure: bool | None = None
+        self,
+        room: Path | None = None,
+        loop_closure: bool | None = None,
+        joining: LiveSession | None = None,
     ) -> tuple[LiveSession, str]:
         """A new live session, its worker started, and its secret token (shown once; only its
         hash is kept). room: a room folder (``room_of``) for the session to continue in.
         loop_closure: online loop closure on or off in this session (None: the server's
-        ``registration.loops.live``); ``closes_loops`` says whether it runs."""
+        ``registration.loops.live``); ``closes_loops`` says whether it runs. joining: a live
+        session (``SharedRooms.room_to_join``) whose room, as it stands, the new session
+        continues in (SessionError room_unavailable while that room has mapped nothing)."""
         with self._lock:
             if len(self._live) + len(self._closing) >= self.max_sessions:
                 raise SessionError(
@@ -181,6 +191,13 @@ class SessionManager:
                 sid = secrets.token_hex(8)
             self._closing.add(sid)  # holds its place while the worker starts
             threads = self._threads_each(len(self._live) + 1)
+        if joining is not None:
+            try:
+                room = self.rooms.share(joining, self.store.folder(sid) / JOINED_ROOM)
+            except BaseException:
+                with self._lock:
+                    self._closing.discard(sid)
+                raise
         token = secrets.token_urlsafe(32)
         args = HostArgs(
             sid,
@@ -209,6 +226,8 @@ class SessionManager:
         with self._lock:
             self._closing.discard(sid)
             self._live[sid] = session
+        if joining is not None:
+            self.rooms.joined(joining.id, sid)
         self._rebalance()
         return session, token
 

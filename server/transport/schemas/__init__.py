@@ -23,6 +23,7 @@ from server.transport.schemas.flights import (
 )
 from server.transport.schemas.phone import PhoneLinkBody
 from server.transport.schemas.recordings import RecordingCreated, RecordingFrame, RecordingIndex
+from server.transport.schemas.rooms import InviteCreated, SharedRoom
 from server.transport.schemas.sessions import (
     CourseBest,
     CourseResult,
@@ -56,6 +57,7 @@ __all__ = [
     "FlightRecordingBody",
     "FlightSummary",
     "Intrinsics",
+    "InviteCreated",
     "LoopClosure",
     "MapStats",
     "PhoneLinkBody",
@@ -65,6 +67,7 @@ __all__ = [
     "SessionCreate",
     "SessionCreated",
     "SessionStatus",
+    "SharedRoom",
     "TrackingRecovery",
     "ViewerCreated",
     "ViewerList",

@@ -18,7 +18,9 @@ class ErrorDetail(WireModel):
         "the same answer), rate_limited (429, with a Retry-After header in seconds), "
         "server_full (503: the server holds its maximum of live sessions), map_unavailable "
         "(409: no map surface fused yet), room_unavailable (409: the session named as a room "
-        "saved none, or is still live), session_failed (400: the session's worker died "
+        "saved none, or is still live; a live room to join has mapped nothing yet; a phone "
+        "that joined a room asked to invite), room_full (409: the live room to join holds "
+        "max_room_phones phones), session_failed (400: the session's worker died "
         "during the request), session_closed (409: a viewer link asked of a closed session), "
         "too_many_viewers (409: the session has max_viewers links)"
     )

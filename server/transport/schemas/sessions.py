@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from server.transport.schemas.common import WireModel
 
@@ -27,6 +27,21 @@ class SessionCreate(WireModel):
         "null: the server's setting (`registration.loops.live`). Not in a session continuing "
         "in a room",
     )
+    join: str | None = Field(
+        None,
+        description="join the room of this live session (its id): the request's "
+        "`Authorization: Bearer <token>` must be a join token of that room (`POST /api/"
+        "sessions/{id}/invites`). The new session has its own tracker, drone and token; it "
+        "places its first frames in the room as it stood at the join by place recognition "
+        "(no pose guess), then tracks in the room's world frame; its map starts as the room's",
+        pattern="^[0-9a-f]{16}$",
+    )
+
+    @model_validator(mode="after")
+    def _one_room(self) -> SessionCreate:
+        if self.room is not None and self.join is not None:
+            raise ValueError("give `room` (a saved room) or `join` (a live one), not both")
+        return self
 
 
 class SessionCreated(WireModel):
@@ -51,6 +66,7 @@ class SessionCreated(WireModel):
     loop_closure: bool = Field(
         False, description="loop closure runs in this session (asked for, or the server's setting)"
     )
+    join: str | None = Field(None, description="the live room this session joined, or null")
 
 
 class CourseResult(WireModel):

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from server.transport.schemas.common import WireModel
+from server.transport.schemas.rooms import SharedRoom
 
 
 class Intrinsics(WireModel):
@@ -284,6 +285,17 @@ class SessionStatus(WireModel):
     )
     worker: WorkerInfo | None = Field(
         None, description="live sessions only: where the session runs"
+    )
+    shared_room: SharedRoom | None = Field(
+        None,
+        description="live sessions only: the shared room it invited phones into, or joined; "
+        "absent otherwise",
+    )
+    placed: bool | None = Field(
+        None,
+        description="a session continuing in a room (saved, or joined live): whether a frame "
+        "was recognised in the room yet (until then its frames are answered `lost` and fuse "
+        "nothing); absent otherwise",
     )
     failures: Failures | None = Field(
         None,

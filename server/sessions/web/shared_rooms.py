@@ -1,0 +1,118 @@
+"""Rooms that several phones share: the owner of a live session invites (a join token), and a
+phone that shows the token opens a session of its own, placed in the owner's room.
+
+The joined session has its own tracker and drone. It continues in the owner's room as it stood
+when the phone joined (``Session.share_room``: the keyframes and a snapshot of the map): its
+first frames are placed by place recognition, then it tracks in the owner's world frame. Its
+map starts as the owner's and grows with its own frames (one map fused by every phone of the
+room is the next step). Join tokens are kept as their SHA-256 only, like session tokens, and
+open nothing once the owner's session has ended.
+"""
+
+from __future__ import annotations
+
+import hmac
+import secrets
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from server.sessions.errors import SessionError
+from server.sessions.store import hash_token
+from server.sessions.web.live import LiveSession
+
+
+@dataclass
+class _Room:
+    invites: list[str] = field(default_factory=list)  # SHA-256 of each join token
+    joined: list[str] = field(default_factory=list)  # ids of the sessions that joined
+
+
+class SharedRooms:
+    """The invitations and the joined phones of every live session's room (web process).
+    max_phones: phones in one room, its owner's included."""
+
+    def __init__(self, max_phones: int, live_session: Callable[[str], LiveSession | None]) -> None:
+        """live_session: the live session with an id, or None."""
+        self.max_phones = max_phones
+        self.live_session = live_session
+        self._rooms: dict[str, _Room] = {}
+        self._owner_of: dict[str, str] = {}  # joined session id -> the room owner's
+        self._lock = threading.Lock()
+
+    def invite(self, owner: LiveSession | dict) -> str:
+        """A new join token for the room of ``owner`` (a session its token opened; shown
+        once). SessionError ``room_unavailable`` for a closed session, or one that itself
+        joined a room: only the room's owner invites."""
+        if not isinstance(owner, LiveSession) or owner.closed:
+            raise SessionError("room_unavailable", "only a live session invites into its room")
+        owner_id = owner.id
+        with self._lock:
+            if owner_id in self._owner_of:
+                raise SessionError(
+                    "room_unavailable",
+                    "this phone joined another session's room: only that room's owner invites",
+                )
+            token = secrets.token_urlsafe(32)
+            self._rooms.setdefault(owner_id, _Room()).invites.append(hash_token(token))
+        return token
+
+    def room_to_join(self, owner_id: str, token: str | None) -> LiveSession:
+        """The live session whose room ``token`` (a join token) lets one more phone join.
+        SessionError ``unauthorized`` without a token, ``not_found`` for a token that is not
+        one of this room's (or a room that is gone: the same answer), ``room_full`` at
+        ``max_phones``."""
+
+        def live(sid: str) -> bool:
+            return self.live_session(sid) is not None
+
+        if token is None:
+            raise SessionError("unauthorized", "joining a room needs its join token")
+        digest = hash_token(token)
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            invited = room is not None and any(
+                hmac.compare_digest(digest, h) for h in room.invites
+            )
+            if not invited or not live(owner_id):
+                raise SessionError("not_found", "no room to join with this id for this token")
+            assert room is not None
+            phones = 1 + sum(live(sid) for sid in room.joined)
+            if phones >= self.max_phones:
+                raise SessionError(
+                    "room_full", f"the room holds its maximum of {self.max_phones} phones"
+                )
+        owner = self.live_session(owner_id)
+        if owner is None:
+            raise SessionError("not_found", "no room to join with this id for this token")
+        return owner
+
+    @staticmethod
+    def share(owner: LiveSession, folder: Path) -> Path:
+        """The owner's room as it stands, written into ``folder`` by its worker
+        (``Session.share_room``). SessionError ``room_unavailable`` while it has mapped
+        nothing."""
+        if not owner.worker.call("share_room", str(folder), timeout_s=60):
+            raise SessionError(
+                "room_unavailable",
+                "the room has mapped nothing yet: let its owner map a little more, then join",
+            )
+        return folder
+
+    def joined(self, owner_id: str, session_id: str) -> None:
+        """``session_id`` was opened in ``owner_id``'s room."""
+        with self._lock:
+            self._rooms.setdefault(owner_id, _Room()).joined.append(session_id)
+            self._owner_of[session_id] = owner_id
+
+    def owner_of(self, session_id: str) -> str | None:
+        """The id of the room's owner that ``session_id`` joined, or None."""
+        with self._lock:
+            return self._owner_of.get(session_id)
+
+    def phones(self, owner_id: str) -> list[str]:
+        """The sessions that joined ``owner_id``'s room, in the order they joined."""
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            return [] if room is None else list(room.joined)

@@ -1,0 +1,126 @@
+"""Several phones in one room, over the real server: the owner of a live session invites, a
+second phone joins with the join token, is placed in the owner's room by place recognition and
+tracks in the owner's world frame; every wrong use is refused with its documented code."""
+
+from __future__ import annotations
+
+import asyncio
+
+import httpx
+import numpy as np
+
+from server.datasets import open_dataset
+from server.evaluation.metrics import ate
+from server.evaluation.trajectory import Trajectory
+from server.geometry import invert
+from server.pipeline import ground_truth_pose_at
+from tests.conftest import Stream, auth
+from tests.support.rest import map_caught_up, wait_for_status
+
+
+def _stream(server, sid: str, token: str, ds, first: int, n: int) -> Stream:
+    """Frames ``first``.. of ``ds`` as seqs 0..n-1, each waiting for its pose."""
+
+    async def run() -> Stream:
+        s = await Stream(server.ws_url, sid, token, ds).open()
+        await s.send_range(range(n), first_index=first)
+        await s.close()
+        return s
+
+    return asyncio.run(run())
+
+
+def _status(server, sid: str, token: str) -> dict:
+    r = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token))
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _error(response: httpx.Response, status: int, code: str) -> None:
+    assert response.status_code == status, response.text
+    assert response.json()["error"]["code"] == code, response.text
+
+
+def _trajectory(ds, first: int, stream: Stream) -> tuple[Trajectory, Trajectory]:
+    """(truth in the owner's frame, estimate) for the placed poses of a stream of ``ds``
+    from frame ``first``: the owner's first camera (frame 0) is the room's origin."""
+    T_room_gt = invert(ground_truth_pose_at(ds, ds[0].timestamp))
+    placed = [k for k, p in enumerate(stream.poses) if p["state"] != "lost"]
+    stamps = np.array([ds[first + k].timestamp for k in placed])
+    truth = np.array([T_room_gt @ ground_truth_pose_at(ds, t) for t in stamps])
+    return Trajectory(stamps, truth), Trajectory(stamps, stream.matrices()[placed])
+
+
+def _joined(a: Trajectory, b: Trajectory) -> Trajectory:
+    return Trajectory(
+        np.concatenate([a.timestamps, b.timestamps]), np.concatenate([a.poses, b.poses])
+    )
+
+
+def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, shared_data, tmp_path):
+    server = live_server(tmp_path / "data", max_room_phones=2)
+    ds = open_dataset(shared_data / "7scenes_a")
+    sessions = f"{server.url}/api/sessions"
+
+    # 1. The owner maps frames 0-39 and stays live (a session outlives its socket for the TTL).
+    a, token_a = server.create_session()
+    s_a = _stream(server, a, token_a, ds, 0, 40)
+    wait_for_status(server.url, a, token_a, map_caught_up, "the owner's map")
+
+    # 2. Only the owner's token invites; each call is a new join token.
+    other, token_other = server.create_session()
+    assert httpx.post(f"{sessions}/{a}/invites").status_code == 401
+    _error(httpx.post(f"{sessions}/{a}/invites", headers=auth(token_other)), 404, "not_found")
+    r = httpx.post(f"{sessions}/{a}/invites", headers=auth(token_a))
+    assert r.status_code == 201, r.text
+    join_token = r.json()["join_token"]
+    assert r.json()["join"] == a and join_token not in (token_a, token_other)
+
+    # 3. Joining needs that token: none is 401; the owner's own token, or another room's join
+    # token, opens nothing (404, as an unknown id); `room` and `join` together are refused.
+    assert httpx.post(sessions, json={"join": a}).status_code == 401
+    _error(httpx.post(sessions, json={"join": a}, headers=auth(token_a)), 404, "not_found")
+    empty_room = httpx.post(f"{sessions}/{other}/invites", headers=auth(token_other))
+    other_join = empty_room.json()["join_token"]
+    _error(httpx.post(sessions, json={"join": a}, headers=auth(other_join)), 404, "not_found")
+    # A room that has mapped nothing yet cannot be joined (nothing to place a phone in).
+    r = httpx.post(sessions, json={"join": other}, headers=auth(other_join))
+    _error(r, 409, "room_unavailable")
+    both = httpx.post(sessions, json={"join": a, "room": a}, headers=auth(join_token))
+    assert both.status_code == 422
+
+    r = httpx.post(sessions, json={"join": a}, headers=auth(join_token))
+    assert r.status_code == 201, r.text
+    b, token_b = r.json()["id"], r.json()["token"]
+    assert r.json()["join"] == a and token_b not in (token_a, join_token)
+
+    # 4. The room lists its phones on both sessions; the joined one is not placed yet, may not
+    # invite, and the room (max_room_phones=2) is full.
+    assert _status(server, a, token_a)["shared_room"] == {"owner": a, "phones": [b]}
+    status_b = _status(server, b, token_b)
+    assert status_b["shared_room"] == {"owner": a, "phones": [b]}
+    assert "shared_room" not in _status(server, other, token_other)
+    _error(httpx.post(f"{sessions}/{b}/invites", headers=auth(token_b)), 409, "room_unavailable")
+    _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 409, "room_full")
+
+    # 5. The second phone streams a later stretch: answered lost until a frame is recognised
+    # in the room (no pose guess), then tracked in the owner's world frame.
+    s_b = _stream(server, b, token_b, ds, 60, 20)
+    states = [p["state"] for p in s_b.poses]
+    first_ok = next(k for k, st in enumerate(states) if st != "lost")
+    assert first_ok <= 5 and states.count("lost") == first_ok, states
+    assert _status(server, b, token_b)["placed"] is True
+    truth_b, estimate_b = _trajectory(ds, 60, s_b)
+    errors = np.linalg.norm(truth_b.poses[:, :3, 3] - estimate_b.poses[:, :3, 3], axis=1)
+    assert errors.max() < 0.05, errors  # in the owner's frame as it is, no alignment
+
+    # 6. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
+    # of the worse of each phone's own.
+    truth_a, estimate_a = _trajectory(ds, 0, s_a)
+    own = max(ate(truth_a, estimate_a)["rmse"], ate(truth_b, estimate_b)["rmse"])
+    together = ate(_joined(truth_a, truth_b), _joined(estimate_a, estimate_b))["rmse"]
+    assert together <= 1.5 * own, (together, own)
+
+    # 7. Once the owner's session has ended, its join tokens open nothing.
+    assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
+    _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 404, "not_found")

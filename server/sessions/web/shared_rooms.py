@@ -72,9 +72,7 @@ class SharedRooms:
         digest = hash_token(token)
         with self._lock:
             room = self._rooms.get(owner_id)
-            invited = room is not None and any(
-                hmac.compare_digest(digest, h) for h in room.invites
-            )
+            invited = room is not None and any(hmac.compare_digest(digest, h) for h in room.invites)
             if not invited or not live(owner_id):
                 raise SessionError("not_found", "no room to join with this id for this token")
             assert room is not None

@@ -14,7 +14,7 @@ class InviteCreated(WireModel):
     join_token: str = Field(
         description="the invitation's secret (256 bits, URL-safe base64), shown only here; "
         "the server keeps only its SHA-256. A phone opens a session of its own in the room "
-        "with `POST /api/sessions` `{\"join\": \"<id>\"}` and this token as `Authorization: "
+        'with `POST /api/sessions` `{"join": "<id>"}` and this token as `Authorization: '
         "Bearer`. It opens nothing else, and nothing once the room's session has ended"
     )
     join: str = Field(

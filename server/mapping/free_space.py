@@ -106,9 +106,14 @@ class FreeSpace:
         self._dirty = np.union1d(self._dirty, keys)
 
     def take_dirty(self) -> Int64Array:
-        """Keys (N, 3) of the blocks integrated since the last call (all of them at first)."""
-        dirty, self._dirty = unpack_keys(self._dirty), np.empty(0, np.int64)
+        """Packed keys (``occupancy.pack_keys``) of the blocks integrated since the last call
+        (all of them at first)."""
+        dirty, self._dirty = self._dirty, np.empty(0, np.int64)
         return dirty
+
+    def all_keys(self) -> Int64Array:
+        """Packed keys of every block, sorted."""
+        return np.sort(pack_keys(active_keys(self._grid)))
 
     def read(
         self, select: Callable[[Int64Array], BoolArray] | None = None

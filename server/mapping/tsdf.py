@@ -28,6 +28,7 @@ from server.atomic import atomic_write
 from server.errors import ConfigError, DroneSimError
 from server.geometry import Intrinsics
 from server.geometry.arrays import BoolArray, FloatArray, GreyImage, Int64Array, RealArray
+from server.mapping.change_readers import ChangeReaders
 from server.mapping.config import TSDFConfig
 from server.mapping.frame_input import fusion_frame
 from server.mapping.free_space import FreeSpace
@@ -101,10 +102,9 @@ class TSDFMap:
         self._dirty = np.sort(
             pack_keys(active_keys(self._grid))
         )  # blocks touched since the last preview
-        # Blocks touched, and cameras added, since the last occupancy_update (all at first, so
-        # that the first update is the whole grid).
-        self._occupancy_dirty = self._dirty.copy()
-        self._occupancy_cameras = 0  # cameras [0, this) were in an occupancy_update already
+        # Blocks touched, and cameras added, since each reader's last occupancy_update (a new
+        # reader's first update is the whole grid).
+        self._readers = ChangeReaders()
         self._sent = np.empty(0, np.int64)  # voxel keys of the points already previewed
         self._settled = SettledBlocks(config.settle_after, config.settled_every)
         self._integrations = 0  # frames with depth integrated by this object (for carve_every)
@@ -184,7 +184,7 @@ class TSDFMap:
                 cfg.trunc_voxels,
             )
             self._dirty = np.union1d(self._dirty, keys)
-            self._occupancy_dirty = np.union1d(self._occupancy_dirty, keys)
+            self._readers.fused(keys)
             return hashmap.size() - before
 
     def _image(self, array: np.ndarray, dtype: o3c.Dtype) -> o3d.t.geometry.Image:
@@ -268,7 +268,7 @@ class TSDFMap:
         return grid
 
     def occupancy_update(
-        self, voxel_m: float = 0.05, R_grid_world: RealArray | None = None
+        self, voxel_m: float = 0.05, R_grid_world: RealArray | None = None, reader: str = ""
     ) -> tuple[FloatArray, BoolArray, BoolArray] | None:
         """The part of ``occupancy(voxel_m, R_grid_world)`` that what was fused since the last
         call can have changed, or None when nothing can have.
@@ -284,20 +284,27 @@ class TSDFMap:
         sampled, ``occupancy.seen_cells``), a cell seen only through surface voxels that have
         left the surface band (unobserved now, where it was occupied: blocked either way).
 
-        The first call returns the whole grid. Each call restarts what the next one covers, so
-        a map has one such reader (the session's drone), which passes the same voxel_m and
-        R_grid_world every time; ``occupancy`` restarts nothing.
+        A reader's first call returns the whole grid. Each call restarts what that reader's
+        next one covers: ``reader`` names a drone reading the map (each phone sharing it has
+        one), which passes the same voxel_m and R_grid_world every time; ``occupancy``
+        restarts nothing.
         """
         check_cell(voxel_m)
         cfg = self.config
         with self._lock:
-            dirty = unpack_keys(self._occupancy_dirty)
             free = self._free
-            free_dirty = np.empty((0, 3), np.int64) if free is None else free.take_dirty()
+            if free is not None:
+                self._readers.carved(free.take_dirty())
+            none = np.empty(0, np.int64)
             cameras = np.array(self._cameras).reshape(-1, 3)
-            new_cameras = cameras[self._occupancy_cameras :]
-            self._occupancy_dirty = np.empty(0, np.int64)
-            self._occupancy_cameras = len(cameras)
+            blocks, free_blocks, first_camera = self._readers.take(
+                reader,
+                len(cameras),
+                lambda: np.sort(pack_keys(active_keys(self._grid))),
+                lambda: none if free is None else free.all_keys(),
+            )
+            dirty, free_dirty = unpack_keys(blocks), unpack_keys(free_blocks)
+            new_cameras = cameras[first_camera:]
             if len(dirty) == 0 and len(free_dirty) == 0 and len(new_cameras) == 0:
                 return None
             reach = [block_cells(dirty, voxel_m, R_grid_world, cfg)]

@@ -116,9 +116,10 @@ def create_session(
     (never in a room's session, nor when the server keeps no rooms).
 
     With `{"join": "<id>"}` and a join token of that live session's room (`POST /api/sessions/
-    {id}/invites`) as `Authorization: Bearer`, the new session joins the room: it continues in
-    the room as it stands now, as above (placed by place recognition, then tracked in the
-    room's world frame, its own drone), and the room's status lists it."""
+    {id}/invites`) as `Authorization: Bearer`, the new session joins the room: placed by place
+    recognition in the room's keyframes as they stand now, then tracked in the room's world
+    frame with a drone of its own, its frames fused into the room's one map (PROTOCOL.md, "A
+    shared room"); the room's status lists it."""
     join = None if body is None else body.join
     owner = None if join is None else manager.rooms.room_to_join(join, token)
     room = None if body is None or body.room is None else manager.room_of(body.room, token)

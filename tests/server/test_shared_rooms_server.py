@@ -1,6 +1,7 @@
 """Several phones in one room, over the real server: the owner of a live session invites, a
-second phone joins with the join token, is placed in the owner's room by place recognition and
-tracks in the owner's world frame; every wrong use is refused with its documented code."""
+second phone joins with the join token, is placed in the owner's room by place recognition,
+tracks in the owner's world frame and fuses into the owner's map, the one map of the room;
+every wrong use is refused with its documented code."""
 
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     # 1. The owner maps frames 0-39 and stays live (a session outlives its socket for the TTL).
     a, token_a = server.create_session()
     s_a = _stream(server, a, token_a, ds, 0, 40)
-    wait_for_status(server.url, a, token_a, map_caught_up, "the owner's map")
+    owner_map = wait_for_status(server.url, a, token_a, map_caught_up, "the owner's map")["map"]
 
     # 2. Only the owner's token invites; each call is a new join token.
     other, token_other = server.create_session()
@@ -114,13 +115,38 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     errors = np.linalg.norm(truth_b.poses[:, :3, 3] - estimate_b.poses[:, :3, 3], axis=1)
     assert errors.max() < 0.05, errors  # in the owner's frame as it is, no alignment
 
-    # 6. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
+    # 6. One map: the joined phone's frames went into the owner's map (both sessions report
+    # that map, now holding more frames than the owner fused), and its drone flies in it.
+    joined = wait_for_status(server.url, b, token_b, map_caught_up, "the joined phone's fusion")
+    shared = _status(server, a, token_a)["map"]
+    assert shared["frames_integrated"] == joined["map"]["frames_integrated"]
+    assert shared["frames_integrated"] > owner_map["frames_integrated"], (shared, owner_map)
+    assert shared["active_blocks"] >= owner_map["active_blocks"]
+    wait_for_status(
+        server.url,
+        b,
+        token_b,
+        lambda st: (st["drone"] or {}).get("map_frames", 0) >= 1,
+        "the joined phone's drone map",
+    )
+
+    # 7. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
     # of the worse of each phone's own.
     truth_a, estimate_a = _trajectory(ds, 0, s_a)
     own = max(ate(truth_a, estimate_a)["rmse"], ate(truth_b, estimate_b)["rmse"])
     together = ate(_joined(truth_a, truth_b), _joined(estimate_a, estimate_b))["rmse"]
     assert together <= 1.5 * own, (together, own)
 
-    # 7. Once the owner's session has ended, its join tokens open nothing.
+    # 8. Once the owner's session has ended, its join tokens open nothing, and the room's map
+    # is gone: the joined phone's session fails, as one whose mapping process died.
     assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
     _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 404, "not_found")
+    ended = wait_for_status(
+        server.url,
+        b,
+        token_b,
+        lambda st: st.get("failure") is not None,
+        "the joined phone's failure",
+        timeout_s=30,
+    )
+    assert "map" in ended["failure"], ended["failure"]

@@ -30,6 +30,7 @@ from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
 from server.sessions.processes.ipc import Proxy, prepare_child, serve
 from server.sessions.processes.priority import MAPPING_NICE
+from server.sessions.processes.room_map import RoomAddress, serve_room
 from server.sessions.store import hold_writers_lock
 
 log = logging.getLogger(__name__)
@@ -98,6 +99,9 @@ class Mapper:
         self.map = TSDFMap(config.tsdf)
         self.preview = MapPreview()
         self.preview_points = config.preview_points
+        # The previews of the phones that joined this map's room (server/sessions/processes/
+        # room_map.py), by reader name: each phone is sent what its own frames show first.
+        self.joined_previews: dict[str, MapPreview] = {}
         self._rebuild: _Rebuild | None = None
         self._lock = threading.Lock()
 
@@ -109,26 +113,35 @@ class Mapper:
         T_world_camera: np.ndarray,
         occupancy: tuple[float, np.ndarray] | None = None,
         rebuild_pose: np.ndarray | None = None,
+        reader: str = "",
     ) -> Fused:
         """Integrate a frame (colour RGB uint8, depth metres at K's size, T_world_camera 4x4);
         ``occupancy``: (cell edge in metres, R_flight_world) to also return the drone's grid
         for what changed, or None. ``rebuild_pose``: while a rebuild is in progress, also fuse
-        the frame into the new map at this pose (its T_world_camera in the corrected world)."""
+        the frame into the new map at this pose (its T_world_camera in the corrected world).
+        ``reader``: the phone whose frame it is, "" for the session's own (a phone that joined
+        the room has its own preview and drone: ``TSDFMap.occupancy_update``)."""
         with self._lock:
             rebuild = self._rebuild
             if rebuild is not None and rebuild_pose is not None:
                 self._rebuild_fuse(rebuild, colour, depth, K, rebuild_pose)
             self.map.integrate(colour, depth, K, T_world_camera)
-            points, colours = self.preview.new_points(
+            preview = self.preview if not reader else self.joined_previews[reader]
+            points, colours = preview.new_points(
                 colour, depth, K, T_world_camera, self.preview_points
             )
             grid, error = None, None
             if occupancy is not None:
                 try:
-                    grid = self.map.occupancy_update(*occupancy)
+                    grid = self.map.occupancy_update(*occupancy, reader=reader)
                 except Exception as exc:  # the drone's map misses this one; the TSDF has it
                     error = f"{type(exc).__name__}: {exc}"
-            return Fused(points, colours, self.preview.total, grid, error, self.map.stats())
+            return Fused(points, colours, preview.total, grid, error, self.map.stats())
+
+    def add_reader(self, name: str) -> None:
+        """A phone that joined the room fuses into this map as reader ``name`` (``fuse``)."""
+        with self._lock:
+            self.joined_previews.setdefault(name, MapPreview())
 
     # ---- a rebuild after a loop closure -------------------------------------------------------
     def rebuild_start(
@@ -215,13 +228,14 @@ class Mapper:
         rebuild.cpu_s += time.thread_time() - cpu0
 
     def occupancy(
-        self, voxel_m: float, R_flight_world: np.ndarray
+        self, voxel_m: float, R_flight_world: np.ndarray, reader: str = ""
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The drone's occupancy for the region the frames fused since the last request changed
         (as ``Fused.occupancy``), or None when nothing changed: the catch-up after the last
-        frames, which asked for none (it is asked for at most every flight_map_interval_s)."""
+        frames, which asked for none (it is asked for at most every flight_map_interval_s).
+        ``reader``: as ``fuse``'s."""
         with self._lock:
-            return self.map.occupancy_update(voxel_m, R_flight_world)
+            return self.map.occupancy_update(voxel_m, R_flight_world, reader=reader)
 
     def load(self, path: str) -> None:
         """Start from a saved map (a room's ``map.npz``) instead of an empty one; its voxel
@@ -279,18 +293,28 @@ class MapperLost(SessionError):
 
 
 def mapper_main(
-    conn, config: MappingConfig, threads: int, session_id: str = "", data_dir: str | None = None
+    conn,
+    config: MappingConfig,
+    threads: int,
+    session_id: str = "",
+    data_dir: str | None = None,
+    room: RoomAddress | None = None,
 ) -> None:
     """Entry point of a session's mapping process: serve ``Mapper`` calls until the pipe
     closes (its session stopped, or died). ``data_dir``: where it writes its session's
-    snapshots, whose writers lock it holds while it lives (``store.hold_writers_lock``)."""
+    snapshots, whose writers lock it holds while it lives (``store.hold_writers_lock``).
+    ``room``: where the phones that join the session's room reach this map too."""
     prepare_child(MAPPING_NICE)  # the session's worker decides when it ends
     if data_dir is not None:  # a restarted server cleans only after this process ends
         hold_writers_lock(data_dir)
     import open3d as o3d
 
     o3d.utility.set_max_threads(threads)
-    serve(Mapper(config), conn, SessionLog(log, session_id))
+    mapper = Mapper(config)
+    session_log = SessionLog(log, session_id)
+    if room is not None:
+        serve_room(mapper, room, session_log)
+    serve(mapper, conn, session_log)
 
 
 class MapperClient:

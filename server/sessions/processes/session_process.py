@@ -32,6 +32,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.room_map import RoomAddress
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,10 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
     sender.start()
     try:
         # A dead mapper fails the session, which then ends cleanly: stopped and saved by the
-        # web side (Session.fail), this process serving it to the end.
+        # web side (Session.fail), this process serving it to the end. A phone that joined a
+        # room fuses into the room's map, in its owner's mapping process.
+        if args.room_map is not None:
+            mapper_conn = args.room_map.connect()
         mapper = MapperClient(mapper_conn)
         host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper, loops_conn)
     except Exception as exc:
@@ -133,7 +137,14 @@ class ProcessWorker:
 
         ctx = _context()
         self._conn, child = ctx.Pipe(duplex=True)
-        to_mapper, mapper_end = ctx.Pipe(duplex=True)
+        # Its own map (which phones joining its room reach at ``room_map`` too), or, for a
+        # phone that joined a room, none: it fuses into the room's.
+        self.room_map: RoomAddress | None = None
+        self.mapper_process = None
+        to_mapper = mapper_end = None
+        if args.room_map is None:
+            self.room_map = RoomAddress.new(args.session_id)
+            to_mapper, mapper_end = ctx.Pipe(duplex=True)
         # The loop closer apart from tracking too: in the worker it would share the tracker's GIL
         # (server/sessions/processes/loop_process.py). Siblings, as a worker (a daemon) may not
         # fork.
@@ -149,12 +160,20 @@ class ProcessWorker:
             )
         # Tracking and mapping in two processes: Open3D's fusion holds the GIL for its whole
         # call, which in one process would stall tracking (server/sessions/processes/mapper.py).
-        self.mapper_process = ctx.Process(
-            target=mapper_main,
-            daemon=True,
-            name=f"session-{args.session_id}-map",
-            args=(mapper_end, args.config.mapping, 1, args.session_id, args.data_dir),
-        )
+        if mapper_end is not None:
+            self.mapper_process = ctx.Process(
+                target=mapper_main,
+                daemon=True,
+                name=f"session-{args.session_id}-map",
+                args=(
+                    mapper_end,
+                    args.config.mapping,
+                    1,
+                    args.session_id,
+                    args.data_dir,
+                    self.room_map,
+                ),
+            )
         self.process = ctx.Process(
             target=_worker_main,
             args=(child, args, to_mapper, to_loops),
@@ -173,7 +192,8 @@ class ProcessWorker:
         self.max_waiting_frames = max_waiting_frames
         self.dropped = 0  # frames dropped here, before the worker saw them
         self._wake = threading.Condition(self._lock)
-        self.mapper_process.start()
+        if self.mapper_process is not None:
+            self.mapper_process.start()
         if self.loops_process is not None:
             self.loops_process.start()
         self.process.start()
@@ -195,7 +215,7 @@ class ProcessWorker:
         return {
             "kind": self.kind,
             **self.info,
-            "mapper_pid": self.mapper_process.pid,
+            "mapper_pid": None if self.mapper_process is None else self.mapper_process.pid,
             "loops_pid": None if loops is None else loops.pid,
         }
 

@@ -282,8 +282,11 @@ class SessionFusion:
         """No frame to fuse (the phone holds still, or the stream ended): hand the drone the
         occupancy of the frames fused since its last update. Those frames asked for none (one
         is asked for at most every flight_map_interval_s), so without this the drone would
-        refuse to fly into space they saw free until the next frame came."""
-        if self.flight is None or self._flight_map_fused == self._fused:
+        refuse to fly into space they saw free until the next frame came. Asked for even when
+        this session fused nothing since: in a shared room another phone's frames change the
+        map (server/sessions/processes/room_map.py); the mapper answers None at once when
+        nothing did."""
+        if self.flight is None:
             return
         request = self._occupancy_request()
         if request is None:

@@ -27,6 +27,7 @@ from server.rooms.continuation import RoomTracker
 from server.sessions.config import SessionConfig
 from server.sessions.errors import SessionError
 from server.sessions.processes.mapper import MapperClient
+from server.sessions.processes.room_map import RoomAddress
 from server.sessions.runtime.faults import inject
 from server.sessions.runtime.session import Session
 from server.sessions.store import SessionStore
@@ -62,6 +63,9 @@ class HostArgs:
     # Tests only: stage -> the calls that fail (server/sessions/runtime/faults.py); None in service.
     faults: dict[str, list[int]] | None = None
     room_dir: str | None = None  # a saved room the session continues in (server/rooms/)
+    # A live room the session joined: its map, which this session fuses into instead of a map
+    # of its own (server/sessions/processes/room_map.py); None: a map of its own.
+    room_map: RoomAddress | None = None
 
 
 class SessionHost:

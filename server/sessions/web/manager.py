@@ -208,6 +208,8 @@ class SessionManager:
             threads,
             self.faults,
             None if room is None else str(room),
+            # The room's one map, where the room's worker offers one (process workers do).
+            room_map=None if joining is None else getattr(joining.worker, "room_map", None),
         )
         try:
             session = LiveSession(

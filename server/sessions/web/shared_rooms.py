@@ -1,12 +1,12 @@
 """Rooms that several phones share: the owner of a live session invites (a join token), and a
 phone that shows the token opens a session of its own, placed in the owner's room.
 
-The joined session has its own tracker and drone. It continues in the owner's room as it stood
-when the phone joined (``Session.share_room``: the keyframes and a snapshot of the map): its
-first frames are placed by place recognition, then it tracks in the owner's world frame. Its
-map starts as the owner's and grows with its own frames (one map fused by every phone of the
-room is the next step). Join tokens are kept as their SHA-256 only, like session tokens, and
-open nothing once the owner's session has ended.
+The joined session has its own tracker and drone. It continues in the owner's room: its first
+frames are placed by place recognition in the room's keyframes as they stood when the phone
+joined (``Session.share_room``), then it tracks in the owner's world frame and fuses into the
+owner's map, the room's one map (server/sessions/processes/room_map.py; under Ray, a copy of
+it). Join tokens are kept as their SHA-256 only, like session tokens, and open nothing once the
+owner's session has ended.
 """
 
 from __future__ import annotations

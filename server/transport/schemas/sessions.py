@@ -33,7 +33,7 @@ class SessionCreate(WireModel):
         "`Authorization: Bearer <token>` must be a join token of that room (`POST /api/"
         "sessions/{id}/invites`). The new session has its own tracker, drone and token; it "
         "places its first frames in the room as it stood at the join by place recognition "
-        "(no pose guess), then tracks in the room's world frame; its map starts as the room's",
+        "(no pose guess), then tracks in the room's world frame and fuses into the room's map",
         pattern="^[0-9a-f]{16}$",
     )
 

@@ -288,3 +288,39 @@ def shared(a: FlightMap, b: FlightMap) -> tuple[tuple[slice, ...], tuple[slice, 
         tuple(slice(i, i + k) for i, k in zip(at_a, n, strict=True)),
         tuple(slice(i, i + k) for i, k in zip(at_b, n, strict=True)),
     )
+
+
+def _merged(grid, box) -> None:
+    """Write the update ``box`` (origin, occupied, observed) into ``grid`` (same lattice)."""
+    at = np.round((box[0] - grid[0]) / 0.05).astype(int)
+    assert np.all(at >= 0) and np.all(at + box[1].shape <= grid[1].shape)
+    region = tuple(slice(a, a + n) for a, n in zip(at, box[1].shape, strict=True))
+    grid[1][region], grid[2][region] = box[1], box[2]
+
+
+def test_two_drones_reading_one_map_each_get_every_change(room):
+    """Two readers of one map (two phones' drones in a shared room): one reading does not
+    take the changes from the other. A reader's first update is the whole grid, whenever it
+    comes; each then gets the boxes of what was fused since its own last update, which merge
+    into the full grid; nothing fused since its own last update gives None."""
+    cell, R = 0.05, np.eye(3)
+    tsdf = TSDFMap(small_config())
+    fuse(room, tsdf, [0, 3])
+    first = tsdf.occupancy_update(cell, R, reader="owner")
+    fuse(room, tsdf, [40])
+    later = tsdf.occupancy_update(cell, R, reader="joined")  # its first: the whole map now
+    full = tsdf.occupancy(cell, R)
+    np.testing.assert_array_equal(later[1], full[1])
+    np.testing.assert_array_equal(later[2], full[2])
+    assert tsdf.occupancy_update(cell, R, reader="joined") is None
+    box = tsdf.occupancy_update(cell, R, reader="owner")  # frame 40's changes, still unread
+    assert box is not None
+    # The owner's grid, grown to the full grid's extent, then updated with its box.
+    grid = (full[0], np.zeros_like(full[1]), np.zeros_like(full[2]))
+    _merged(grid, first)
+    _merged(grid, box)
+    np.testing.assert_array_equal(grid[1], full[1])
+    np.testing.assert_array_equal(grid[2], full[2])
+    fuse(room, tsdf, [80])
+    assert tsdf.occupancy_update(cell, R, reader="owner") is not None
+    assert tsdf.occupancy_update(cell, R, reader="joined") is not None  # not taken by owner's

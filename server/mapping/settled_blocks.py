@@ -51,4 +51,5 @@ class SettledBlocks:
             self._keys = merged[order]
             self._touches = np.concatenate([self._touches, np.ones(fresh.size, np.int64)])[order]
         self.skipped += int(keys.size - fuse.sum())
-        return keys[fuse]
+        kept: Int64Array = keys[fuse]
+        return kept

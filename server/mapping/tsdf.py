@@ -297,13 +297,13 @@ class TSDFMap:
                 self._readers.carved(free.take_dirty())
             none = np.empty(0, np.int64)
             cameras = np.array(self._cameras).reshape(-1, 3)
-            blocks, free_blocks, first_camera = self._readers.take(
+            blocks, unread_free, first_camera = self._readers.take(
                 reader,
                 len(cameras),
                 lambda: np.sort(pack_keys(active_keys(self._grid))),
                 lambda: none if free is None else free.all_keys(),
             )
-            dirty, free_dirty = unpack_keys(blocks), unpack_keys(free_blocks)
+            dirty, free_dirty = unpack_keys(blocks), unpack_keys(unread_free)
             new_cameras = cameras[first_camera:]
             if len(dirty) == 0 and len(free_dirty) == 0 and len(new_cameras) == 0:
                 return None

@@ -251,7 +251,7 @@ def live_server(tmp_path):
         server.stop()
 
 
-UNASKED = {"map_chunk", "drone_state", "drone_event"}  # what the server sends unasked
+UNASKED = {"map_chunk", "drone_state", "drone_event", "room"}  # what the server sends unasked
 
 
 class Stream:

@@ -298,6 +298,28 @@ def make_course(
     )
 
 
+def make_room(
+    pilots: Sequence[str],
+    you: int,
+    placed: Sequence[bool],
+    modes: Sequence[str],
+    drones: ArrayLike,
+    cameras: ArrayLike,
+) -> dict:
+    """drones, cameras: (N, 7) world frame, per pilot a centre (m) and a unit quaternion
+    [qx, qy, qz, qw]; zeros where there is none."""
+    n = len(pilots)
+    return _message(
+        "room",
+        pilots=[str(name)[:64] for name in pilots],
+        you=int(you),
+        placed=[bool(p) for p in placed],
+        modes=[str(m) for m in modes],
+        drones=_floats(drones, 7 * n, "drones"),
+        cameras=_floats(cameras, 7 * n, "cameras"),
+    )
+
+
 def make_map_chunk(
     points: np.ndarray,
     colours: np.ndarray,

@@ -18,6 +18,7 @@ from server.sessions.updates import (
     MapCorrected,
     MapUpdate,
     PoseUpdate,
+    RoomUpdate,
     SessionFailed,
 )
 from server.sessions.web.live import LiveSession, SessionTakenOver
@@ -33,6 +34,7 @@ __all__ = [
     "MapCorrected",
     "MapUpdate",
     "PoseUpdate",
+    "RoomUpdate",
     "Session",
     "SessionError",
     "SessionFailed",

@@ -80,6 +80,21 @@ class PoseUpdate:
 
 
 @dataclass
+class RoomUpdate:
+    """The phones of a shared room and their drones, in the room's world frame, as one of its
+    sessions is told (``you``: that session's index). Per pilot, in ``names``' order (the owner
+    first): placed, the drone's mode ("none": no drone yet), and (N, 7) drone and camera poses
+    (centre in metres and quaternion x, y, z, w; zeros where there is none)."""
+
+    names: list[str]
+    you: int
+    placed: list[bool]
+    modes: list[str]
+    drones: np.ndarray
+    cameras: np.ndarray
+
+
+@dataclass
 class MapUpdate:
     """New map preview points, sent as they are fused (after the frame's pose). ``reset``: the
     map was rebuilt (loop closure): the preview restarts with these points (a map_chunk with

@@ -19,7 +19,7 @@ import logging
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from server import protocol as proto
-from server.sessions import DroneUpdate, LiveSession, MapUpdate, PoseUpdate
+from server.sessions import DroneUpdate, LiveSession, MapUpdate, PoseUpdate, RoomUpdate
 from server.sessions.failures import SessionLog
 from server.sessions.store import SESSION_ID
 from server.sessions.web.viewers import ViewerSocket, merged_map
@@ -39,7 +39,7 @@ _REFUSED = (
 
 def viewer_outbox(size: int = OUTBOX) -> Outbox:
     """A viewer's queue: it needs only the newest pose and drone state of those waiting."""
-    return Outbox(size, latest_only=(PoseUpdate, DroneUpdate))
+    return Outbox(size, latest_only=(PoseUpdate, DroneUpdate, RoomUpdate))
 
 
 class _Ending:

@@ -28,6 +28,7 @@ from server.sessions import (
     MapCorrected,
     MapUpdate,
     PoseUpdate,
+    RoomUpdate,
     SessionError,
     SessionFailed,
     SessionTakenOver,
@@ -108,7 +109,7 @@ async def session_socket(ws: WebSocket, session_id: str, token: str | None = Non
             return
     connection = connections[session_id] = Connection()
     loop = asyncio.get_running_loop()
-    outbox = Outbox(_OUTBOX, latest_only=(DroneUpdate,))
+    outbox = Outbox(_OUTBOX, latest_only=(DroneUpdate, RoomUpdate))
 
     def deliver(item) -> None:  # any thread
         loop.call_soon_threadsafe(outbox.put, item)
@@ -210,6 +211,11 @@ def update_messages(
         return [corrected], chunk
     if isinstance(item, DroneUpdate):
         return [_drone_state(item)], chunk
+    if isinstance(item, RoomUpdate):
+        room = proto.make_room(
+            item.names, item.you, item.placed, item.modes, item.drones, item.cameras
+        )
+        return [room], chunk
     if isinstance(item, DroneNotice):
         event = proto.make_drone_event(
             item.event, item.timestamp, item.position, item.message, item.command_id

@@ -6,17 +6,19 @@ every wrong use is refused with its documented code."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import numpy as np
 
+from server import protocol as P
 from server.datasets import open_dataset
 from server.evaluation.metrics import ate
 from server.evaluation.trajectory import Trajectory
 from server.geometry import invert
 from server.pipeline import ground_truth_pose_at
 from tests.conftest import Stream, auth
-from tests.support.rest import map_caught_up, wait_for_status
+from tests.support.rest import drone_spawned, map_caught_up, wait_for_status
 
 
 def _stream(server, sid: str, token: str, ds, first: int, n: int) -> Stream:
@@ -27,6 +29,29 @@ def _stream(server, sid: str, token: str, ds, first: int, n: int) -> Stream:
         await s.send_range(range(n), first_index=first)
         await s.close()
         return s
+
+    return asyncio.run(run())
+
+
+def _listen(server, sid: str, token: str, ds, seconds: float = 1.5):
+    """The ``room`` messages a socket of the session gets over ``seconds`` (no frames sent),
+    and the last drone pose its drone_state messages gave (T_world_drone) or None."""
+
+    async def run():
+        s = await Stream(server.ws_url, sid, token, ds).open()
+        rooms, own = [], None
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                msg = await s.conn.receive(left)
+            except asyncio.TimeoutError:
+                break
+            if msg["type"] == "room":
+                rooms.append(msg)
+            elif msg["type"] == "drone_state":
+                own = P.pose_matrix(msg, "T_world_drone")
+        await s.close()
+        return rooms, own
 
     return asyncio.run(run())
 
@@ -122,22 +147,30 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     assert shared["frames_integrated"] == joined["map"]["frames_integrated"]
     assert shared["frames_integrated"] > owner_map["frames_integrated"], (shared, owner_map)
     assert shared["active_blocks"] >= owner_map["active_blocks"]
-    wait_for_status(
-        server.url,
-        b,
-        token_b,
-        lambda st: (st["drone"] or {}).get("map_frames", 0) >= 1,
-        "the joined phone's drone map",
-    )
+    wait_for_status(server.url, b, token_b, drone_spawned, "the joined phone's drone")
+    wait_for_status(server.url, a, token_a, drone_spawned, "the owner's drone")
 
-    # 7. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
+    # 7. Everyone sees everyone: each phone's socket gets the room's state, itself named by
+    # `you`, every drone where its own drone_state puts it.
+    for sid, token, you in ((a, token_a, 0), (b, token_b, 1)):
+        rooms, own = _listen(server, sid, token, ds)
+        assert len(rooms) >= 3, rooms  # about 5 a second
+        room = rooms[-1]
+        assert room["you"] == you and len(room["pilots"]) == 2 and room["pilots"][you] == "test"
+        assert room["placed"] == [True, True] and "none" not in room["modes"], room
+        drones = np.reshape(room["drones"], (2, 7))
+        assert own is not None
+        assert np.allclose(drones[you, :3], own[:3, 3], atol=0.05), (drones, own)
+        assert np.linalg.norm(drones[0, :3] - drones[1, :3]) > 0  # two drones, not one twice
+
+    # 8. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
     # of the worse of each phone's own.
     truth_a, estimate_a = _trajectory(ds, 0, s_a)
     own = max(ate(truth_a, estimate_a)["rmse"], ate(truth_b, estimate_b)["rmse"])
     together = ate(_joined(truth_a, truth_b), _joined(estimate_a, estimate_b))["rmse"]
     assert together <= 1.5 * own, (together, own)
 
-    # 8. Once the owner's session has ended, its join tokens open nothing, and the room's map
+    # 9. Once the owner's session has ended, its join tokens open nothing, and the room's map
     # is gone: the joined phone's session fails, as one whose mapping process died.
     assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
     _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 404, "not_found")

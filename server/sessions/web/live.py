@@ -76,6 +76,7 @@ class LiveSession:
         self._on_failed = on_failed
         self.sends_failed = 0  # connections ended because sending an update failed (web side)
         self.viewers = Viewers()  # read-only watchers (viewer links), fed by ``deliver``
+        self.client_name = ""  # the latest hello's
         self.worker = start_worker(self)
 
     @property
@@ -123,6 +124,7 @@ class LiveSession:
         if self.closed:
             raise SessionError("session_closed", "this session is closed; create a new one")
         self.worker.call("configure", hello)  # a new connection numbers its frames afresh
+        self.client_name = str(hello.get("client_name", ""))
         self.last_seen = time.monotonic()
 
     def start(self, on_update: Callable[[object], None] | None) -> None:

@@ -414,6 +414,7 @@ class SessionManager:
     def shutdown(self) -> list[str]:
         """Close every live session, saving each; returns the ids that could not be saved (not
         those another thread, the reaper, is still closing)."""
+        self.rooms.close()
         with self._lock:
             live = list(self._live)
         if live:

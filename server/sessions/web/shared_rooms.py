@@ -18,9 +18,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from server.geometry import quaternion_from_pose
+from server.registration.results import TrackingState
 from server.sessions.errors import SessionError
 from server.sessions.store import hash_token
+from server.sessions.updates import RoomUpdate
 from server.sessions.web.live import LiveSession
+
+ROOM_HZ = 5.0  # room messages per second to each socket of a room with two or more phones
 
 
 @dataclass
@@ -40,6 +47,8 @@ class SharedRooms:
         self._rooms: dict[str, _Room] = {}
         self._owner_of: dict[str, str] = {}  # joined session id -> the room owner's
         self._lock = threading.Lock()
+        self._closed = threading.Event()
+        self._ticker: threading.Thread | None = None
 
     def invite(self, owner: LiveSession | dict) -> str:
         """A new join token for the room of ``owner`` (a session its token opened; shown
@@ -99,10 +108,50 @@ class SharedRooms:
         return folder
 
     def joined(self, owner_id: str, session_id: str) -> None:
-        """``session_id`` was opened in ``owner_id``'s room."""
+        """``session_id`` was opened in ``owner_id``'s room; from now on every phone of the
+        room is told about the others (``tell``, ROOM_HZ times a second)."""
         with self._lock:
             self._rooms.setdefault(owner_id, _Room()).joined.append(session_id)
             self._owner_of[session_id] = owner_id
+            if self._ticker is None:
+                self._ticker = threading.Thread(target=self._tick, name="rooms", daemon=True)
+                self._ticker.start()
+
+    def close(self) -> None:
+        """The server stops: no more room messages."""
+        self._closed.set()
+
+    def _tick(self) -> None:
+        while not self._closed.wait(1.0 / ROOM_HZ):
+            with self._lock:
+                owners = list(self._rooms)
+            for owner_id in owners:
+                self.tell(owner_id)
+
+    def tell(self, owner_id: str) -> None:
+        """Give every live phone of ``owner_id``'s room (and its viewer links) the room's
+        state: each phone's name, placement, drone and camera, as its latest updates left
+        them, while two or more phones are live."""
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            ids = [owner_id] + ([] if room is None else list(room.joined))
+        members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
+        if len(members) < 2 or members[0].id != owner_id:
+            return
+        n = len(members)
+        placed, modes = [False] * n, ["none"] * n
+        drones, cameras = np.zeros((n, 7)), np.zeros((n, 7))
+        for i, member in enumerate(members):
+            pose, drone = member.viewers.latest()
+            if pose is not None and pose.state is not TrackingState.LOST:
+                placed[i] = True
+                cameras[i] = _centre_and_rotation(pose.T_world_camera)
+            if drone is not None:
+                modes[i] = drone.mode
+                drones[i] = _centre_and_rotation(drone.T_world_drone)
+        names = [m.client_name for m in members]
+        for i, member in enumerate(members):
+            member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras))
 
     def owner_of(self, session_id: str) -> str | None:
         """The id of the room's owner that ``session_id`` joined, or None."""
@@ -114,3 +163,8 @@ class SharedRooms:
         with self._lock:
             room = self._rooms.get(owner_id)
             return [] if room is None else list(room.joined)
+
+
+def _centre_and_rotation(T: np.ndarray) -> np.ndarray:
+    """x, y, z (metres) and the rotation's quaternion x, y, z, w of a 4x4 transform."""
+    return np.concatenate([T[:3, 3], quaternion_from_pose(T)])

@@ -21,11 +21,18 @@ import numpy as np
 
 from server.sessions.errors import SessionError
 from server.sessions.store import hash_token
-from server.sessions.updates import DroneNotice, DroneUpdate, MapCorrected, MapUpdate, PoseUpdate
+from server.sessions.updates import (
+    DroneNotice,
+    DroneUpdate,
+    MapCorrected,
+    MapUpdate,
+    PoseUpdate,
+    RoomUpdate,
+)
 from server.simulation.drone_types import DroneEventKind
 
 # What a viewer is shown; refused frames (the owner's errors) and failures are not for it.
-VIEWED = (PoseUpdate, MapUpdate, MapCorrected, DroneUpdate, DroneNotice)
+VIEWED = (PoseUpdate, MapUpdate, MapCorrected, DroneUpdate, DroneNotice, RoomUpdate)
 MAX_MAP_POINTS = 500_000  # preview points kept for viewers joining later (15 B each: 7.5 MB)
 
 
@@ -115,6 +122,12 @@ class Viewers:
                 if item is not None:
                     backlog.append(item)
         return backlog
+
+    def latest(self) -> tuple[PoseUpdate | None, DroneUpdate | None]:
+        """The session's latest pose and drone state (a shared room shows them to the others:
+        server/sessions/web/shared_rooms.py)."""
+        with self._lock:
+            return self._latest_pose, self._latest_drone
 
     def unlisten(self, socket: ViewerSocket) -> None:
         with self._lock:

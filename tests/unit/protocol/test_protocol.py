@@ -105,6 +105,14 @@ def example_messages() -> dict[str, dict]:
         "map_corrected": P.make_map_corrected(
             2, 120, np.eye(4), [(0, 0, np.eye(4)), (7, 61, np.diag([1.0, -1.0, -1.0, 1.0]))], 3
         ),
+        "room": P.make_room(
+            ["web/1.0 (Pixel 8)", "web/1.0 (Pixel 7)"],
+            1,
+            [True, False],
+            ["hover", "none"],
+            [[0.5, -0.2, 1.5, 0.0, 0.0, 0.0, 1.0], [0.0] * 7],
+            [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], [0.0] * 7],
+        ),
         "error": P.make_error("corrupt_image", "colour: not a complete JPEG", seq=3),
     }
 

@@ -32,8 +32,9 @@ from enum import Enum
 from typing import Protocol, TypeVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from server.geometry.arrays import FloatArray
+from server.geometry.arrays import BoolArray, FloatArray
 from server.simulation.config import SimulationConfig
 from server.simulation.control import Setpoint
 from server.simulation.flight_map import FlightMap
@@ -55,6 +56,19 @@ COLLISION_REPEAT_M = 0.05
 
 
 S = TypeVar("S")  # what a Stepper saves for rewinding
+
+
+class DistanceField(Protocol):
+    """What contact asks of the space the drone flies in: a ``FlightMap``, or one with the
+    room's other drones in it (other_drones.py ``WithDrones``)."""
+
+    def distance_at(self, x: float, y: float, z: float) -> float: ...
+
+    def distance(self, points: ArrayLike) -> FloatArray: ...
+
+    def gradient(self, points: ArrayLike) -> FloatArray: ...
+
+    def segments_free(self, a: ArrayLike, b: ArrayLike, radius_m: float = 0.0) -> BoolArray: ...
 
 
 class Stepper(Protocol[S]):
@@ -86,7 +100,7 @@ class Stepper(Protocol[S]):
 def run_checked(
     stepper: Stepper[S],
     q: Quadrotor,
-    flight_map: FlightMap,
+    flight_map: DistanceField,
     config: SimulationConfig,
     a_max_m_s2: float,
     n: int,
@@ -136,7 +150,7 @@ def run_checked(
 
 
 def first_contact(
-    flight_map: FlightMap, track: Sequence[tuple[float, float, float]], radius_m: float
+    flight_map: DistanceField, track: Sequence[tuple[float, float, float]], radius_m: float
 ) -> int | None:
     """Index of the first step of ``track`` (k + 1 positions (x, y, z), metres) that touches
     the map, or None. Inside an obstacle (the map grew into the drone) it may move out, never
@@ -161,7 +175,7 @@ def first_contact(
 
 
 def _swept_free(
-    flight_map: FlightMap,
+    flight_map: DistanceField,
     a: tuple[float, float, float],
     b: tuple[float, float, float],
     radius_m: float,
@@ -193,7 +207,7 @@ class Contact:
 
 def touch(
     q: Quadrotor,
-    flight_map: FlightMap,
+    flight_map: DistanceField,
     config: SimulationConfig,
     last_free: FloatArray,
     crashed: bool,
@@ -230,7 +244,7 @@ def touch(
     return Contact(Touch.BUMP, last_free, normal, impact)
 
 
-def surface_normal(flight_map: FlightMap, where: FloatArray, v: FloatArray) -> FloatArray:
+def surface_normal(flight_map: DistanceField, where: FloatArray, v: FloatArray) -> FloatArray:
     """Unit normal of the map's surface nearest to ``where`` (the distance field's gradient,
     pointing away from it); against the velocity ``v`` where the field is flat."""
     g = flight_map.gradient(where[None])[0]

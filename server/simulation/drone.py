@@ -48,6 +48,7 @@ from server.simulation.drone_types import (
 from server.simulation.flight_map import FlightMap
 from server.simulation.map_regions import Box, Region
 from server.simulation.modes import DroneModes
+from server.simulation.other_drones import WithDrones
 from server.simulation.pilot_modes import FlightMode
 from server.simulation.route import PlanningError, Route
 from server.simulation.route_following import Replanner
@@ -67,6 +68,8 @@ class DroneSimulator:
         self.config = config
         self.flight_map = flight_map
         self._modes = DroneModes(config, flight_map)
+        # The room's other drones, (K, 3) flight frame (``set_others``): spheres to touch.
+        self.other_centres = np.empty((0, 3))
         self._carry_s = 0.0  # simulated time short of a whole step, carried to the next advance
         self.stillness = Stillness(self._modes, flight_map, enabled=skip_still)
 
@@ -286,8 +289,23 @@ class DroneSimulator:
             self._carry_s = span - n * self.config.dt_s
             n = self.stillness.skip(n)  # none while the drone holds still
             if n > 0:
-                run_checked(m, m.quad, self.flight_map, self.config, m.a_max, n)
+                contact_map: FlightMap | WithDrones = self.flight_map
+                if len(self.other_centres):
+                    contact_map = WithDrones(
+                        self.flight_map, self.other_centres, self.config.radius_m
+                    )
+                m.contact_map = contact_map
+                try:
+                    run_checked(m, m.quad, contact_map, self.config, m.a_max, n)
+                finally:
+                    m.contact_map = self.flight_map
         return m.take_events()
+
+    def set_others(self, centres: ArrayLike) -> None:
+        """The other drones of a shared room, (K, 3) centres in the flight frame (metres),
+        where they are now: spheres of this drone's radius that it bumps into or crashes on
+        as on the map (other_drones.py), until the next call."""
+        self.other_centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
 
     def status(self) -> DroneStatus:
         """The drone's state now; raises DroneCommandError before spawn."""

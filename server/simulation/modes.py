@@ -44,6 +44,7 @@ from server.simulation.control import (
 from server.simulation.drone_types import DroneEvent, DroneEventKind, DroneMode
 from server.simulation.flight_map import FlightMap
 from server.simulation.manual_flight import ManualFlight
+from server.simulation.other_drones import WithDrones
 from server.simulation.quadrotor import Quadrotor, QuadrotorParams
 from server.simulation.route import Route
 from server.simulation.route_following import FollowerState, Replan, RouteFollower
@@ -72,6 +73,9 @@ class DroneModes:
     def __init__(self, config: SimulationConfig, flight_map: FlightMap) -> None:
         self.config = config
         self.flight_map = flight_map
+        # What a touch is judged against: the map, with the room's other drones while the
+        # simulator runs steps among them (drone.py, other_drones.py).
+        self.contact_map: FlightMap | WithDrones = flight_map
         params = QuadrotorParams.from_config(config)
         self.quad = Quadrotor(params, config.dt_s)
         limits = ControlLimits.from_config(config)
@@ -153,7 +157,7 @@ class DroneModes:
             self.mode = DroneMode.LANDED
             self.emit(DroneEventKind.LANDED, "touched down, motors off")
             return
-        hit = touch(q, self.flight_map, self.config, last_free, self.mode == DroneMode.CRASHED)
+        hit = touch(q, self.contact_map, self.config, last_free, self.mode == DroneMode.CRASHED)
         if hit.kind == Touch.REST:
             self.sp.hold(last_free, q.yaw_rad)
             self.mode = DroneMode.LANDED

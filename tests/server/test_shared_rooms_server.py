@@ -56,6 +56,31 @@ def _listen(server, sid: str, token: str, ds, seconds: float = 1.5):
     return asyncio.run(run())
 
 
+def _fly_into(server, sid: str, token: str, ds, target: np.ndarray) -> dict:
+    """Send the session's drone to ``target`` (world frame); its first collision or crash
+    event, or the last event when none comes within 15 s."""
+
+    async def run() -> dict:
+        s = await Stream(server.ws_url, sid, token, ds).open()
+        await s.conn.send(P.make_command(1, "takeoff"))
+        await s.conn.send(P.make_command(2, "goto", target=target))
+        last: dict = {}
+        deadline = time.monotonic() + 15.0
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                msg = await s.conn.receive(left)
+            except asyncio.TimeoutError:
+                break
+            if msg["type"] in ("drone_event", "error"):
+                last = msg
+                if msg.get("event") in ("collision", "crash"):
+                    break
+        await s.close()
+        return last
+
+    return asyncio.run(run())
+
+
 def _status(server, sid: str, token: str) -> dict:
     r = httpx.get(f"{server.url}/api/sessions/{sid}", headers=auth(token))
     assert r.status_code == 200, r.text
@@ -163,14 +188,20 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
         assert np.allclose(drones[you, :3], own[:3, 3], atol=0.05), (drones, own)
         assert np.linalg.norm(drones[0, :3] - drones[1, :3]) > 0  # two drones, not one twice
 
-    # 8. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
+    # 8. Drones touch each other: the joined phone's drone sent to the owner's drone's centre
+    # (a route on the map alone, which the other drone is not in) bumps into it on the way.
+    hit = _fly_into(server, b, token_b, ds, drones[0, :3])
+    assert hit["event"] in ("collision", "crash"), hit
+    assert np.linalg.norm(np.array(hit["position"]) - drones[0, :3]) < 2 * 0.12 + 0.1, hit
+
+    # 9. Both phones in one frame: one rigid alignment over all their poses fits within 1.5x
     # of the worse of each phone's own.
     truth_a, estimate_a = _trajectory(ds, 0, s_a)
     own = max(ate(truth_a, estimate_a)["rmse"], ate(truth_b, estimate_b)["rmse"])
     together = ate(_joined(truth_a, truth_b), _joined(estimate_a, estimate_b))["rmse"]
     assert together <= 1.5 * own, (together, own)
 
-    # 9. Once the owner's session has ended, its join tokens open nothing, and the room's map
+    # 10. Once the owner's session has ended, its join tokens open nothing, and the room's map
     # is gone: the joined phone's session fails, as one whose mapping process died.
     assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
     _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 404, "not_found")

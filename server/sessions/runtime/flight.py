@@ -41,6 +41,7 @@ from server.simulation.drone_types import DroneCommandError, DroneEventKind
 from server.simulation.flight_map import FlightMap
 from server.simulation.flight_recording import FlightRecorder
 from server.simulation.map_regions import Region
+from server.simulation.other_drones import OtherDrones
 from server.simulation.pilot_modes import euler_from_rotation
 
 log = logging.getLogger(__name__)
@@ -84,24 +85,22 @@ class Flight:
         self.flight_map = FlightMap(config.voxel_m, unknown_is_free=config.unknown_is_free)
         self.sim = DroneSimulator(config, self.flight_map)
         self.course = CourseControl(self)  # courses: server/sessions/runtime/course_control.py
-        # The one lock over the simulator, its flight map and the course (module docstring).
-        # DroneSimulator takes none of its own: it is used only under this one.
+        # One lock over simulator, flight map and course (module docstring); the sim has none.
         self._lock = threading.Lock()
         # Camera frames and pending map changes have their own locks, taken after this one where
         # both are held: tracking and mapping never wait for planning or physics.
         self.frames = CameraFrames(K, config.standoff_m)
         self.pending = PendingMap(config.voxel_m)
         self.corrections = 0  # corrected worlds the drone moved into
-        # Fused frames the flight map holds (the session's count; for clients that must know
-        # whether the drone's map has caught up with map.frames_integrated).
+        self.others = OtherDrones(config.radius_m)  # a shared room's other drones, flight frame
+        # Fused frames the flight map holds: the session's count, against map.frames_integrated.
         self.map_frames = 0
         self.event_counts: dict[str, int] = {}  # drone events so far, by kind
         self.errors = 0  # flight steps that raised
         self.fault: str | None = None  # why the drone was stopped for good, if it was
         self._failed_steps = RateLimitedLog(self.log)
         self._last_state: DroneUpdate | None = None
-        # Records every flight (server/simulation/flight_recording.py; ``recorder``, set by
-        # the session): commands, steps and the course flown (flight_records.py).
+        # Every flight recorded (flight_recording.py, flight_records.py; ``recorder``: set later).
         self.records = FlightRecords(self._recording_failed)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -122,8 +121,7 @@ class Flight:
     # ------------------------------------------------------------------ frames
     @property
     def lock(self) -> threading.Lock:
-        """The one lock the simulator, its flight map and the course are used under
-        (CourseFlight)."""
+        """The one lock over the simulator, its flight map and the course (CourseFlight)."""
         return self._lock
 
     def to_world(self, p_flight: np.ndarray) -> np.ndarray:
@@ -148,6 +146,12 @@ class Flight:
     def camera_moved(self, seq: int, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
         """A processed frame: its pose (and depth, for tapped pixels). Tracking-thread side."""
         self.frames.add(seq, T_world_camera, depth)
+
+    def others_moved(self, centres: np.ndarray, velocities: np.ndarray) -> None:
+        """The room's other drones as last heard of (world frame, ``FlightView.motion_in_
+        flight``): this drone touches them (other_drones.py)."""
+        with self._lock:
+            self.others.set(*self.view.motion_in_flight(centres, velocities), time.monotonic())
 
     def map_changed(self, origin: np.ndarray, occupied: np.ndarray, observed: np.ndarray) -> None:
         """A new whole occupancy grid in the flight frame (``TSDFMap.occupancy(voxel_m,
@@ -354,6 +358,7 @@ class Flight:
                     self._spawn(camera[1])
             course = []
             if self.spawned:
+                self.sim.set_others(self.others.at(time.monotonic()))
                 events = self.sim.advance(dt)
                 course = self.course.tick(events)  # gate notices and course messages
         notices = [self._notice(e) for e in events] + course

@@ -67,6 +67,15 @@ class FlightView:
         T = self.T_world_flight_shown()
         return np.asarray(p_flight, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
+    def motion_in_flight(
+        self, centres: np.ndarray, velocities: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3) centres (metres) and velocities (m/s) in the client's world -> the same in
+        the flight frame."""
+        T = invert(self.T_world_flight_shown())
+        R = T[:3, :3]
+        return np.reshape(centres, (-1, 3)) @ R.T + T[:3, 3], np.reshape(velocities, (-1, 3)) @ R.T
+
     def direction_to_world(self, v_flight: np.ndarray) -> np.ndarray:
         """Flight-frame directions or velocities ((3,) or (N, 3)) in the client's world."""
         return np.asarray(v_flight, dtype=np.float64) @ self.T_world_flight_shown()[:3, :3].T

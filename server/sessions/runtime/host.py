@@ -166,6 +166,13 @@ class SessionHost:
         """A pilot command; raises CommandRefused."""
         self.session.command(name, command_id, **fields)
 
+    def room_drones(self, centres: np.ndarray, velocities: np.ndarray) -> None:
+        """The other drones of the session's shared room, (K, 3) world centres and velocities
+        (server/sessions/web/shared_rooms.py): this drone touches them."""
+        flight = self.session.flight
+        if flight is not None:
+            flight.others_moved(centres, velocities)
+
     def drain(self, timeout_s: float) -> bool:
         return self.session.drain(timeout_s)
 

@@ -34,6 +34,8 @@ ROOM_HZ = 5.0  # room messages per second to each socket of a room with two or m
 class _Room:
     invites: list[str] = field(default_factory=list)  # SHA-256 of each join token
     joined: list[str] = field(default_factory=list)  # ids of the sessions that joined
+    # Sessions whose drones were told of other drones (to be told of none when they go).
+    told: set[str] = field(default_factory=set)
 
 
 class SharedRooms:
@@ -137,10 +139,12 @@ class SharedRooms:
             ids = [owner_id] + ([] if room is None else list(room.joined))
         members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
         if len(members) < 2 or members[0].id != owner_id:
+            self._tell_drones(room, members, None)
             return
         n = len(members)
         placed, modes = [False] * n, ["none"] * n
         drones, cameras = np.zeros((n, 7)), np.zeros((n, 7))
+        velocities = np.zeros((n, 3))
         for i, member in enumerate(members):
             pose, drone = member.viewers.latest()
             if pose is not None and pose.state is not TrackingState.LOST:
@@ -149,9 +153,40 @@ class SharedRooms:
             if drone is not None:
                 modes[i] = drone.mode
                 drones[i] = _centre_and_rotation(drone.T_world_drone)
+                velocities[i] = drone.velocity
         names = [m.client_name for m in members]
         for i, member in enumerate(members):
             member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras))
+        flying = np.array([m != "none" for m in modes])
+        self._tell_drones(room, members, (flying, drones[:, :3], velocities))
+
+    def _tell_drones(
+        self,
+        room: _Room | None,
+        members: list[LiveSession],
+        drones: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> None:
+        """Each member's drone is told where the others are (``SessionHost.room_drones``),
+        to touch them: ``drones`` = (whether each has one, centres, velocities), world frame;
+        None: there are no others any more (told once, to those told before)."""
+        if room is None:
+            return
+        for i, member in enumerate(members):
+            if drones is None and member.id not in room.told:
+                continue
+            others = np.zeros(0, bool) if drones is None else drones[0].copy()
+            if drones is not None:
+                others[i] = False
+            centres = np.zeros((0, 3)) if drones is None else drones[1][others]
+            velocities = np.zeros((0, 3)) if drones is None else drones[2][others]
+            try:
+                member.worker.post("room_drones", centres, velocities)
+            except SessionError:  # its worker is gone: its own path reports that
+                continue
+            if drones is None:
+                room.told.discard(member.id)
+            else:
+                room.told.add(member.id)
 
     def owner_of(self, session_id: str) -> str | None:
         """The id of the room's owner that ``session_id`` joined, or None."""

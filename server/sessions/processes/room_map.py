@@ -2,7 +2,7 @@
 owner's mapping process also listens on a local socket, and the worker of each phone that
 joins fuses its frames into that map instead of a map of its own.
 
-Each joined phone is a reader of the map of its own (``JoinedMapper``): its map preview is what
+Each joined phone reads and fuses as a reader of its own (``JoinedMapper``): its map preview is what
 its own frames show first, and its drone's occupancy updates cover every change fused since
 its own last one, whoever fused it (``TSDFMap.occupancy_update``). The socket is an abstract
 Unix socket (Linux: no file, no path length limit) with a random key per session, known only
@@ -19,14 +19,15 @@ import threading
 from dataclasses import dataclass
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Listener
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from server.sessions.processes.ipc import serve
 
-if TYPE_CHECKING:
-    from server.sessions.processes.mapper import Fused, Mapper
+# The owner's ``Mapper`` (mapper.py, which imports this module to listen): typed loosely here,
+# so that the two modules do not import each other.
+Mapper = Any
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class JoinedMapper:
         self.name = name
         mapper.add_reader(name)
 
-    def fuse(self, colour, depth, K, T_world_camera, occupancy=None, rebuild_pose=None) -> Fused:
+    def fuse(self, colour, depth, K, T_world_camera, occupancy=None, rebuild_pose=None) -> Any:
         return self.mapper.fuse(colour, depth, K, T_world_camera, occupancy, None, self.name)
 
     def occupancy(self, voxel_m: float, R_flight_world: np.ndarray):

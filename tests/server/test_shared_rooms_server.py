@@ -213,4 +213,4 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
         "the joined phone's failure",
         timeout_s=30,
     )
-    assert "map" in ended["failure"], ended["failure"]
+    assert "ended with the session of the phone that invited" in ended["failure"], ended["failure"]

@@ -286,10 +286,12 @@ class Mapper:
 
 
 class MapperLost(SessionError):
-    """The session's mapping process is gone: the session cannot go on."""
+    """The session's mapping process is gone: the session cannot go on. ``why``: what ended
+    it, when known, as a clause to add to that (", ...")."""
 
-    def __init__(self, message: str) -> None:
+    def __init__(self, message: str, why: str = "") -> None:
         super().__init__("session_failed", message)
+        self.why = why
 
 
 def mapper_main(
@@ -322,8 +324,11 @@ class MapperClient:
     process is gone, every call raises MapperLost: a session without its map cannot go on, and
     the session decides how it ends (``Session.fail``)."""
 
-    def __init__(self, conn) -> None:
-        self._proxy = Proxy(conn, MapperLost, "the session's mapping process")
+    def __init__(self, conn, why_lost: str = "") -> None:
+        """why_lost: what ending the other process would mean (``MapperLost.why``)."""
+        self._proxy = Proxy(
+            conn, lambda message: MapperLost(message, why_lost), "the session's mapping process"
+        )
         self._call = self._proxy.call
 
     def fuse(self, colour, depth, K, T_world_camera, occupancy=None, rebuild_pose=None) -> Fused:

@@ -87,9 +87,11 @@ def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
         # A dead mapper fails the session, which then ends cleanly: stopped and saved by the
         # web side (Session.fail), this process serving it to the end. A phone that joined a
         # room fuses into the room's map, in its owner's mapping process.
+        why_lost = ""
         if args.room_map is not None:
             mapper_conn = args.room_map.connect()
-        mapper = MapperClient(mapper_conn)
+            why_lost = ": the room's map, which ended with the session of the phone that invited"
+        mapper = MapperClient(mapper_conn, why_lost)
         host = SessionHost(args, lambda item: outgoing.put(("update", item)), mapper, loops_conn)
     except Exception as exc:
         outgoing.put(reply(0, False, as_remote(exc)))

@@ -152,8 +152,8 @@ class SessionFusion:
         lower_this_threads_priority(MAPPING_NICE)
         try:
             self._fuse_until_stopped()
-        except MapperLost:
-            self.fail("the session's mapping process died")
+        except MapperLost as exc:
+            self.fail(f"the session's mapping process died{exc.why}")
         except BaseException as exc:  # the thread ends here: say why, and end the session
             self.log.exception("the mapping thread died")
             self.fail(f"the session's mapping thread died ({type(exc).__name__}: {exc})")

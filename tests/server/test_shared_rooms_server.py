@@ -1,12 +1,14 @@
 """Several phones in one room, over the real server: the owner of a live session invites, a
 second phone joins with the join token, is placed in the owner's room by place recognition,
-tracks in the owner's world frame and fuses into the owner's map, the one map of the room;
-every wrong use is refused with its documented code."""
+tracks in the owner's world frame and fuses into the owner's map, the one map of the room,
+which serves it on when the owner leaves; every wrong use is refused with its documented
+code."""
 
 from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -202,15 +204,19 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     assert together <= 1.5 * own, (together, own)
 
     # 10. Once the owner's session has ended, its join tokens open nothing, and the room's map
-    # is gone: the joined phone's session fails, as one whose mapping process died.
+    # serves the joined phone on: it keeps tracking and fusing. The map's process ends (and is
+    # reaped) once the last joined phone has gone.
+    map_pid = _status(server, a, token_a)["worker"]["mapper_pid"]
     assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
     _error(httpx.post(sessions, json={"join": a}, headers=auth(join_token)), 404, "not_found")
-    ended = wait_for_status(
-        server.url,
-        b,
-        token_b,
-        lambda st: st.get("failure") is not None,
-        "the joined phone's failure",
-        timeout_s=30,
-    )
-    assert "ended with the session of the phone that invited" in ended["failure"], ended["failure"]
+    before = _status(server, b, token_b)["map"]["frames_integrated"]
+    s_later = _stream(server, b, token_b, ds, 80, 9)
+    assert all(p["state"] != "lost" for p in s_later.poses), [p["state"] for p in s_later.poses]
+    later = wait_for_status(server.url, b, token_b, map_caught_up, "the map after the owner left")
+    assert later.get("failure") is None and later["map"]["frames_integrated"] > before
+    assert Path(f"/proc/{map_pid}").exists()
+    assert httpx.delete(f"{sessions}/{b}", headers=auth(token_b)).status_code == 204
+    deadline = time.monotonic() + 30
+    while Path(f"/proc/{map_pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not Path(f"/proc/{map_pid}").exists(), "the room's map process outlived its phones"

@@ -314,9 +314,10 @@ def mapper_main(
     o3d.utility.set_max_threads(threads)
     mapper = Mapper(config)
     session_log = SessionLog(log, session_id)
-    if room is not None:
-        serve_room(mapper, room, session_log)
+    phones = None if room is None else serve_room(mapper, room, session_log)
     serve(mapper, conn, session_log)
+    if phones is not None:  # the room's map outlives its owner's session while phones map it
+        phones.wait()
 
 
 class MapperClient:

@@ -6,9 +6,9 @@ Each joined phone reads and fuses as a reader of its own (``JoinedMapper``): its
 its own frames show first, and its drone's occupancy updates cover every change fused since
 its own last one, whoever fused it (``TSDFMap.occupancy_update``). The socket is an abstract
 Unix socket (Linux: no file, no path length limit) with a random key per session, known only
-to the web process and the workers it hands it to. The room's map lives as long as its owner's
-session: when that ends, the joined phones' sessions fail as a session whose mapping process
-died does.
+to the web process and the workers it hands it to. The room's map outlives its owner's session
+while phones that joined map into it: the process ends once the last of them has gone
+(``RoomPhones``; the web process reaps it then: server/sessions/web/shared_rooms.py).
 """
 
 from __future__ import annotations
@@ -85,10 +85,33 @@ class JoinedMapper:
         pass
 
 
-def serve_room(mapper: Mapper, room: RoomAddress, log: logging.LoggerAdapter) -> None:
+class RoomPhones:
+    """The joined phones a room's map serves (``serve_room``): ``wait`` until every one of
+    them has gone. Its owner's session may end first: the map serves on until then."""
+
+    def __init__(self) -> None:
+        self._threads: list[threading.Thread] = []
+        self._lock = threading.Lock()
+
+    def add(self, thread: threading.Thread) -> None:
+        with self._lock:
+            self._threads.append(thread)
+
+    def wait(self) -> None:
+        while True:
+            with self._lock:
+                serving = [t for t in self._threads if t.is_alive()]
+            if not serving:
+                return
+            for thread in serving:
+                thread.join()
+
+
+def serve_room(mapper: Mapper, room: RoomAddress, log: logging.LoggerAdapter) -> RoomPhones:
     """Listen at ``room`` (in a thread of the mapping process) and serve each phone that
     connects, as a reader of its own, until its connection closes."""
     listener = Listener(room.address, family="AF_UNIX", authkey=room.authkey)
+    phones = RoomPhones()
 
     def accept() -> None:
         joined = 0
@@ -102,8 +125,11 @@ def serve_room(mapper: Mapper, room: RoomAddress, log: logging.LoggerAdapter) ->
                 return
             joined += 1
             view = JoinedMapper(mapper, f"phone-{joined}")
-            threading.Thread(
+            thread = threading.Thread(
                 target=serve, args=(view, conn, log), name=f"room-{joined}", daemon=True
-            ).start()
+            )
+            phones.add(thread)
+            thread.start()
 
     threading.Thread(target=accept, name="room-listener", daemon=True).start()
+    return phones

@@ -142,6 +142,9 @@ class ProcessWorker:
         # Its own map (which phones joining its room reach at ``room_map`` too), or, for a
         # phone that joined a room, none: it fuses into the room's.
         self.room_map: RoomAddress | None = None
+        # Phones joined the room and may still map into it: the mapper is not waited for or
+        # killed when this session ends (``keep_room_map``), it ends after them.
+        self.room_shared = False
         self.mapper_process = None
         to_mapper = mapper_end = None
         if args.room_map is None:
@@ -357,8 +360,11 @@ class ProcessWorker:
 
     def _end_helpers(self) -> None:
         """The helper processes (mapper, loops) end when their worker closes its pipes; make
-        sure."""
+        sure. A shared room's mapper serves the phones that joined it on (``room_shared``):
+        whoever reaps it (``SharedRooms``) takes it."""
         for process in self.helpers():
+            if process is self.mapper_process and self.room_shared:
+                continue
             process.join(timeout=10)
             if process.is_alive():
                 process.kill()

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,6 +37,9 @@ class _Room:
     joined: list[str] = field(default_factory=list)  # ids of the sessions that joined
     # Sessions whose drones were told of other drones (to be told of none when they go).
     told: set[str] = field(default_factory=set)
+    # The owner's mapping process, the room's map: it outlives the owner's session while
+    # joined phones map into it, and is reaped here once it has ended (``_reap``).
+    map_process: Any = None
 
 
 class SharedRooms:
@@ -112,9 +116,15 @@ class SharedRooms:
     def joined(self, owner_id: str, session_id: str) -> None:
         """``session_id`` was opened in ``owner_id``'s room; from now on every phone of the
         room is told about the others (``tell``, ROOM_HZ times a second)."""
+        owner = self.live_session(owner_id)
         with self._lock:
-            self._rooms.setdefault(owner_id, _Room()).joined.append(session_id)
+            room = self._rooms.setdefault(owner_id, _Room())
+            room.joined.append(session_id)
             self._owner_of[session_id] = owner_id
+            worker = None if owner is None else owner.worker
+            if getattr(worker, "room_map", None) is not None:  # its map serves the room
+                worker.room_shared = True  # type: ignore[union-attr]
+                room.map_process = worker.mapper_process  # type: ignore[union-attr]
             if self._ticker is None:
                 self._ticker = threading.Thread(target=self._tick, name="rooms", daemon=True)
                 self._ticker.start()
@@ -129,6 +139,20 @@ class SharedRooms:
                 owners = list(self._rooms)
             for owner_id in owners:
                 self.tell(owner_id)
+                self._reap(owner_id)
+
+    def _reap(self, owner_id: str) -> None:
+        """Once the owner's session has ended, its mapping process ends after the last
+        joined phone has gone: collect it then (``is_alive`` waits for an ended child)."""
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            process = None if room is None else room.map_process
+        if process is None or self.live_session(owner_id) is not None or process.is_alive():
+            return
+        process.join(timeout=0)
+        with self._lock:
+            if room is not None:
+                room.map_process = None
 
     def tell(self, owner_id: str) -> None:
         """Give every live phone of ``owner_id``'s room (and its viewer links) the room's
@@ -137,8 +161,9 @@ class SharedRooms:
         with self._lock:
             room = self._rooms.get(owner_id)
             ids = [owner_id] + ([] if room is None else list(room.joined))
+        # The owner's session may have ended: the room's map serves the joined phones on.
         members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
-        if len(members) < 2 or members[0].id != owner_id:
+        if len(members) < 2:
             self._tell_drones(room, members, None)
             return
         n = len(members)

@@ -10,6 +10,8 @@ Starts ``python -m server serve`` (a fresh data dir), then:
 3. every phone streams at once, the owner its second part, each joined phone a part of its own
    (``--parts``: first:last of the recording, a reversed range walks back).
 
+A run per ``--phones`` count (a fresh server each), summed up in one table.
+
 Per phone: frames until placed (the first pose not ``lost``) and seconds from its first frame to
 that pose, poses per second, latency p95, and the ATE of its placed poses against the
 recording's ground truth (in the owner's world: the owner's first camera, frame 0, is the
@@ -19,7 +21,7 @@ frame and per phone, and the room's map (frames fused, blocks).
 
 Target (issue 35): one alignment over all phones within 1.5x of the worst phone's own ATE.
 
-    python benchmarks/shared_room.py [SEQUENCE] [--phones 3] [--fps 15]
+    python benchmarks/shared_room.py [SEQUENCE] [--phones 2 3] [--fps 15]
 
 Writes <out>/shared_room.md and shared_room.json.
 """
@@ -151,17 +153,18 @@ def joined(trajectories: list[Trajectory]) -> Trajectory:
     )
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace, phone_count: int) -> dict:
+    """One run with ``phone_count`` phones (the owner's included)."""
     ds = open_dataset(args.sequence)
     n = len(ds)
     T_room_truth = invert(ground_truth_pose_at(ds, ds.timestamps[0]))
     first = part(args.first, args.step, n)
-    parts = [part(p, args.step, n) for p in args.parts[: args.phones]]
-    if len(parts) < args.phones:
-        raise SystemExit(f"--parts names {len(parts)} parts for {args.phones} phones")
+    parts = [part(p, args.step, n) for p in args.parts[:phone_count]]
+    if len(parts) < phone_count:
+        raise SystemExit(f"--parts names {len(parts)} parts for {phone_count} phones")
     with (
         tempfile.TemporaryDirectory() as tmp,
-        ServerProcess(Path(tmp) / "data", env=server_environment(args.phones + 2)) as server,
+        ServerProcess(Path(tmp) / "data", env=server_environment(phone_count + 2)) as server,
     ):
         wait_until_settled(server.pid)
         sid, token = server.create_session()
@@ -172,11 +175,11 @@ def run(args: argparse.Namespace) -> dict:
         owner_first = owner.trajectory(ds, T_room_truth)
         phones = [Phone("owner", sid, token, server.ws_url)]
         sessions = rest.sessions_url(server.url)
-        for k in range(1, args.phones):
+        for k in range(1, phone_count):
             invite = post(f"{sessions}/{sid}/invites", token)
             created = post(sessions, invite["join_token"], {"join": sid})
             phones.append(Phone(f"phone{k + 1}", created["id"], created["token"], server.ws_url))
-        print(f"{args.phones} phones stream at once ...", flush=True)
+        print(f"{phone_count} phones stream at once ...", flush=True)
 
         async def together() -> None:
             streams = zip(phones, parts, strict=True)
@@ -229,7 +232,26 @@ def run(args: argparse.Namespace) -> dict:
     }
 
 
-def markdown(result: dict, meta: dict) -> str:
+def summary(results: dict[int, dict]) -> list[str]:
+    """One row per run: what a room of that many phones gets."""
+    lines = [
+        "| phones | poses/s per phone (least) | p95 ms (most) | s to placed (most, joined) "
+        "| ATE one alignment cm | worst alone cm | server cores | CPU ms / frame | meets |",
+        "|--:|--:|--:|--:|--:|--:|--:|--:|---|",
+    ]
+    for phones, r in sorted(results.items()):
+        joined = [x["seconds_to_place"] for x in r["rows"][1:]]
+        placed = "-" if None in joined or not joined else f"{max(joined):.2f}"
+        lines.append(
+            f"| {phones} | {min(x['poses_per_s'] for x in r['rows']):.1f} | "
+            f"{max(x['p95_ms'] for x in r['rows']):.0f} | {placed} | "
+            f"{r['ate_together_cm']:.2f} | {r['ate_worst_own_cm']:.2f} | {r['cpu_cores']:.2f} | "
+            f"{r['cpu_ms_per_frame']:.0f} | {'yes' if r['meets'] else 'no'} |"
+        )
+    return lines
+
+
+def markdown(results: dict[int, dict], meta: dict) -> str:
     lines = [
         "# Shared room",
         "",
@@ -238,11 +260,22 @@ def markdown(result: dict, meta: dict) -> str:
         "",
         f"Command: `{meta['command']}`",
         "",
-        f"Sequence {meta['dataset']}: the owner maps frames {meta['first']} alone, then "
-        f"{meta['phones']} phones stream at once at {meta['fps']:g} fps (one recorded frame in "
-        f"{meta['step']}). A phone's first frames are answered `lost` until it is placed in "
-        "the room; the owner is placed from its first frame.",
+        f"Sequence {meta['dataset']}: the owner maps frames {meta['first']} alone, then the "
+        f"phones stream at once at {meta['fps']:g} fps (one recorded frame in {meta['step']}). "
+        "A phone's first frames are answered `lost` until it is placed in the room; the owner "
+        "is placed from its first frame. Target: one alignment over all phones within "
+        f"{TARGET_RATIO}x of the worst phone's own ATE.",
         "",
+        *summary(results),
+        "",
+    ]
+    for phones, result in sorted(results.items()):
+        lines += [f"## {phones} phones", "", *_run_table(result)]
+    return "\n".join(lines)
+
+
+def _run_table(result: dict) -> list[str]:
+    lines = [
         "| phone | frames | sent | poses | poses/s | p95 ms | frames to placed | s to placed "
         "| placed poses | ATE alone cm | failure |",
         "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|---|",
@@ -270,7 +303,7 @@ def markdown(result: dict, meta: dict) -> str:
         f"({result['room_map']['active_blocks']} blocks).",
         "",
     ]
-    return "\n".join(lines)
+    return lines
 
 
 def main() -> int:
@@ -278,7 +311,7 @@ def main() -> int:
     parser.add_argument(
         "sequence", nargs="?", default=str(REPO.parent / "shared" / "data" / "tum_fr1_xyz")
     )
-    parser.add_argument("--phones", type=int, default=3)
+    parser.add_argument("--phones", type=int, nargs="+", default=[2, 3])
     parser.add_argument("--fps", type=float, default=15.0)
     parser.add_argument("--step", type=int, default=2, help="every n-th recorded frame")
     parser.add_argument("--first", default="0:200", help="the owner's part mapped alone")
@@ -303,14 +336,16 @@ def main() -> int:
         "step": args.step,
         "first": args.first,
     }
-    result = run(args)
-    text = markdown(result, meta)
+    results = {phones: run(args, phones) for phones in args.phones}
+    text = markdown(results, meta)
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "shared_room.json").write_text(json.dumps({"meta": meta, **result}, indent=1))
+    runs = {str(k): v for k, v in results.items()}
+    (args.out / "shared_room.json").write_text(json.dumps({"meta": meta, "runs": runs}, indent=1))
     (args.out / "shared_room.md").write_text(text)
     print(f"wrote {args.out / 'shared_room.md'} and shared_room.json")
-    return 0 if result["meets"] and not any(r["failure"] for r in result["rows"]) else 1
+    ok = all(r["meets"] and not any(x["failure"] for x in r["rows"]) for r in results.values())
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@
 import { SessionClient, State } from "./network/connection.js";
 import { PageLoad } from "./network/page_load.js";
 import { Protocol } from "./network/protocol.js";
+import { joinLink } from "./network/session_rest.js";
 import { ViewerClient, viewerLink } from "./network/viewer.js";
 import { SessionControl } from "./session/control.js";
 import { pageSnapshot } from "./session/snapshot.js";
@@ -14,8 +15,10 @@ import { SessionState } from "./session/state.js";
 import { disableControls, downloadMap, setOcclusion, setView, wireControls } from "./ui/controls.js";
 import { FlightsPanel } from "./ui/flights_panel.js";
 import { Hud } from "./ui/hud.js";
+import { Invite } from "./ui/invite.js";
 import { showPhoneLink } from "./ui/phone_link.js";
 import { Pilot } from "./ui/pilot.js";
+import { RoomHud } from "./ui/room_hud.js";
 import { SetupDialog, uploadRecording } from "./ui/setup_dialog.js";
 import { Taps } from "./ui/taps.js";
 import { ARView } from "./views/ar_view.js";
@@ -35,7 +38,8 @@ class App {
     this.hud = new Hud();
     this.protocol = await Protocol.load();
     const watch = viewerLink(); // a viewer link (#watch=...): this page only watches
-    this.client = watch ? new ViewerClient(this.protocol, watch) : new SessionClient(this.protocol);
+    // An invitation (#join=...): this page's session joins the inviting session's shared room.
+    this.client = watch ? new ViewerClient(this.protocol, watch) : new SessionClient(this.protocol, { join: joinLink() });
     // The page's own main-thread work, and what the views may draw (render_budget.js).
     this.load = new PageLoad();
     this.state = new SessionState(this.client, { meter: this.load });
@@ -59,6 +63,8 @@ class App {
     this.course = new CourseView({ client: this.client, state: this.state, ar: this.ar, map: this.map, hud: this.hud });
     this.flights = new FlightsPanel({ client: this.client, map: this.map, hud: this.hud, setView: (view) => this.setView(view) });
     this.setup = new SetupDialog(this.control, this.hud);
+    this.roomHud = new RoomHud({ client: this.client }); // a shared room's pilots
+    this.invite = new Invite({ client: this.client, hud: this.hud });
 
     // Everything that shows the session follows its state. The map first: the AR view reads
     // its floor height after each map update; taps before the HUD: an error they handle is not shown.
@@ -72,6 +78,7 @@ class App {
     this.flights.follow(this.state);
     this.taps.follow(this.state);
     this.hud.follow(this.state);
+    this.roomHud.follow(this.state);
 
     wireControls({ control: this.control, pilot: this.pilot, map: this.map, ar: this.ar, hud: this.hud,
       resumeOptions: () => this.setup.choice() });

@@ -6,7 +6,7 @@ and the bundled demo sequence that the page's replay mode streams.
 | ``/`` | the page (``client_web/index.html``) |
 | ``/check`` | the device check: what a phone's browser offers live AR (``check.html``) |
 | ``/app/{path}`` | the page's own files (``client_web/``: js, css, icons) |
-| ``/vendor/{package}/{path}`` | the npm packages the page imports (three, @msgpack/msgpack) |
+| ``/vendor/{package}/{path}`` | the npm packages the page imports (three, @msgpack/msgpack, uqr) |
 | ``/protocol.json`` | ``shared/protocol.json``, unchanged: the page validates against it |
 | ``/api/demo?preset=`` | a demo sequence's index: camera, sizes, depth scale and frame file URLs |
 | ``/api/demo/files/{path}?preset=`` | one colour JPEG or depth PNG of that sequence |
@@ -53,7 +53,7 @@ CLIENT_DIR = package_folder("client_web")
 VENDOR_DIR = CLIENT_DIR / "node_modules"
 # The very file the server's protocol validator reads (files("shared") / "protocol.json").
 PROTOCOL_FILE = package_folder("shared") / "protocol.json"
-VENDOR_PACKAGES = ("three", "@msgpack/msgpack")  # the only npm packages served
+VENDOR_PACKAGES = ("three", "@msgpack/msgpack", "uqr")  # the only npm packages served
 APP_FOLDERS = ("js", "css", "assets")  # the page's own files; never package.json or node_modules
 DEMO_FOLDERS = ("rgb", "depth")
 MEDIA_TYPES = {

@@ -326,6 +326,7 @@ def test_serve_from_the_wheel_serves_the_page_its_modules_and_the_protocol(insta
         assert "/app/js/network/protocol.js" in served  # one of the page's own modules
         assert "/vendor/three/build/three.module.js" in served
         assert "/vendor/@msgpack/msgpack/dist.esm/index.mjs" in served
+        assert "/vendor/uqr/dist/index.mjs" in served  # the invitation's QR code
 
         status, spec = _get(f"{base}/protocol.json")
         assert status == 200 and spec == (REPO / "shared" / "protocol.json").read_bytes()

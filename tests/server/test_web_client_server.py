@@ -23,6 +23,7 @@ def test_the_server_serves_the_page_its_modules_protocol_and_demo(live_server, d
             "/vendor/three/build/three.module.js",
             "/vendor/three/examples/jsm/controls/OrbitControls.js",
             "/vendor/@msgpack/msgpack/dist.esm/index.mjs",
+            "/vendor/uqr/dist/index.mjs",
         ):
             r = http.get(path)
             assert r.status_code == 200, path

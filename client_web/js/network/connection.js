@@ -5,6 +5,8 @@
 // frames and commands; poses, map chunks, drone state and events back), with flow control
 // (frames in flight until a pose or error with seq >= theirs). The id, token, hello and next
 // seq survive a reload in sessionStorage. A viewer link's client (viewer.js) shares the socket.
+// A page opened from an invitation (#join=...) opens its session in the inviting session's
+// shared room.
 
 import { SERVER_TO_CLIENT } from "./protocol.js";
 import { createSession, downloadFile, sessionStatus } from "./session_rest.js";
@@ -143,9 +145,11 @@ export class SocketClient extends EventTarget {
 }
 
 export class SessionClient extends SocketClient {
+  /** join: an invitation ({id, token}: session_rest.js joinLink) the next new session joins */
   constructor(protocol, { storage = window.sessionStorage, roomStorage = window.localStorage,
-    baseUrl = window.location.origin } = {}) {
+    baseUrl = window.location.origin, join = null } = {}) {
     super(protocol, { baseUrl });
+    this.invitation = join;
     this.storage = storage;
     this.roomStorage = roomStorage; // outlives the tab: a room is for coming back another day
     this.latencies = [];
@@ -157,6 +161,11 @@ export class SessionClient extends SocketClient {
 
   get session() {
     return this.saved ? { id: this.saved.id, token: this.saved.token } : null;
+  }
+
+  /** The id of the session whose shared room this session joined, or null (its own room). */
+  get joined() {
+    return this.saved?.join ?? null;
   }
 
   get maxInFlight() {
@@ -191,14 +200,19 @@ export class SessionClient extends SocketClient {
    * Open a session for this hello: the saved one when it is still live on the server and was
    * started with the same camera (the server keeps its map and trajectory), else a new one.
    * With `room`, a new session in the room the saved (closed) session left: it relocalises in
-   * that room's map and tracks in its frame (docs/OFFLINE.md, "Rooms"). `loopClosure` true or false
-   * asks a new session to close loops or not (null: the server's setting).
+   * that room's map and tracks in its frame (docs/OFFLINE.md, "Rooms"). A page opened from an
+   * invitation joins the inviting session's shared room (a new session, unless the saved one
+   * joined it already). `loopClosure` true or false asks a new session to close loops or not
+   * (null: the server's setting).
    * @returns {Promise<{id: string, token: string, resumed: boolean}>}
    */
   async open(hello, { fresh = false, room = false, loopClosure = null } = {}) {
     this.close();
     let resumed = false;
-    const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello));
+    const join = room ? null : this.invitation;
+    // A session saved before the invitation was opened is not in its room: a new one is.
+    const same = this.saved && JSON.stringify(this.saved.camera) === JSON.stringify(cameraOf(hello)) &&
+      (this.saved.join ?? null) === (join?.id ?? null);
     if (room) {
       // The room of the last session ended here, else of the session still remembered.
       const last = JSON.parse(this.roomStorage.getItem(ROOM_KEY) ?? "null") ?? this.saved;
@@ -212,7 +226,12 @@ export class SessionClient extends SocketClient {
         resumed = false;
       }
     }
-    if (!resumed && !room) {
+    if (!resumed && join) {
+      const created = await createSession(this.baseUrl, { join: join.id, token: join.token }).catch((exc) => {
+        throw Object.assign(new Error(`Could not join the shared room: ${exc.message}`), { status: exc.status });
+      });
+      this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello), join: join.id };
+    } else if (!resumed && !room) {
       const created = await createSession(this.baseUrl, { loopClosure });
       this.saved = { id: created.id, token: created.token, nextSeq: 0, camera: cameraOf(hello) };
     }

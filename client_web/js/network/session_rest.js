@@ -25,12 +25,31 @@ async function request(baseUrl, method, path, token, json = undefined) {
 
 /**
  * A new session: {id, token, ...}. With `room` (an ended session's id, and its `token`), a new
- * session in the room that session left; `loopClosure` true or false asks it to close loops or
- * not (null: the server's setting).
+ * session in the room that session left; with `join` (a live session's id, and a join token of
+ * its invitation as `token`), a session of this phone's own in that session's shared room;
+ * `loopClosure` true or false asks it to close loops or not (null: the server's setting; a
+ * joined session keeps the room's keyframes, so it sends none).
  */
-export function createSession(baseUrl, { token = null, room = undefined, loopClosure = null } = {}) {
-  const body = room === undefined ? { loop_closure: loopClosure } : { room, loop_closure: loopClosure };
+export function createSession(baseUrl, { token = null, room = undefined, join = undefined, loopClosure = null } = {}) {
+  let body = { loop_closure: loopClosure };
+  if (room !== undefined) body = { room, loop_closure: loopClosure };
+  if (join !== undefined) body = { join };
   return request(baseUrl, "POST", "/api/sessions", token, body);
+}
+
+/** An invitation into a live session's shared room: {join_token, join}. Only the session's
+ * own token invites (a joined phone's is refused: 409 room_unavailable). */
+export function inviteToRoom(baseUrl, { id, token }) {
+  return request(baseUrl, "POST", `/api/sessions/${encodeURIComponent(id)}/invites`, token);
+}
+
+/** The invitation of a page's fragment (#join=<owner id>&token=<join token>), or null: a link
+ * another phone opened (the fragment never travels to a server). */
+export function joinLink(hash = window.location.hash) {
+  const params = new URLSearchParams(hash.replace(/^#/, ""));
+  const id = params.get("join");
+  const token = params.get("token");
+  return id && token ? { id, token } : null;
 }
 
 /** A session's status ({closed, ...}); throws when the server does not know it. */

@@ -36,5 +36,8 @@ export function pageSnapshot(app) {
     viewer: client.viewer === true,
     ...flights.snapshot(),
     course: course.snapshot(),
+    // A shared room: its pilots, and the other pilots' drones drawn (AR: with their pixels).
+    room: { ...app.roomHud.snapshot(), others_drawn: map.others.drones.size, ar_others: ar.lastDraw.others ?? [],
+      map_others: map.others.drawn(), map_cameras: map.others.camerasDrawn(), invite: app.invite.link },
   };
 }

@@ -15,16 +15,20 @@
 //   "drone"       a drone_state message
 //   "drone_event" a drone_event message
 //   "course"      a course message
+//   "room"        the shared room's pilots (session/room.js roomPilots), or null: no room
+//                 message for a while (the room has fewer than two live phones), or a reset
 //   "error"       an error message (cancelable: a listener that handles it calls preventDefault)
 //   "reset"       no detail: a new session, or the session ended; the views clear
 
 import { mapChunkArrays } from "../network/protocol.js";
+import { STALE_MS, roomPilots } from "./room.js";
 
 const KEPT = { events: 200, errors: 200, modeLog: 100, corrections: 50 };
 
 function emptySeen() {
   return { poses: 0, states: {}, recovery: {}, lastPose: null, droneStates: 0, lastDrone: null, modeLog: [], events: [], errors: [],
-    chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [], mapResets: 0 };
+    chunks: 0, chunkPoints: 0, mapPoints: 0, serverDropped: 0, serverFailures: {}, shownSeq: null, corrections: [], mapResets: 0,
+    rooms: 0, lastRoom: null };
 }
 
 function keep(list, item, most) {
@@ -43,6 +47,7 @@ export class SessionState extends EventTarget {
     this.client = client;
     this.meter = meter;
     this.seen = emptySeen();
+    this.room = null; // the shared room's pilots (room.js), while its messages come
     const on = (type, fn) => client.addEventListener(type, ({ detail }) => fn(detail));
     on("status", (status) => this.#emit("status", status));
     on("pose", (pose) => (meter ? meter.time("receive", () => this.#pose(pose)) : this.#pose(pose)));
@@ -54,6 +59,7 @@ export class SessionState extends EventTarget {
       this.#emit("drone_event", event);
     });
     on("course", (course) => this.#emit("course", course));
+    on("room", (room) => this.#room(room));
     on("error", (error) => {
       keep(this.seen.errors, error, KEPT.errors);
       this.dispatchEvent(new CustomEvent("error", { detail: error, cancelable: true }));
@@ -68,6 +74,7 @@ export class SessionState extends EventTarget {
   /** A new session, or none: the counters start again and the views clear. */
   reset() {
     this.seen = emptySeen();
+    this.#roomGone();
     this.#emit("reset", null);
   }
 
@@ -120,6 +127,23 @@ export class SessionState extends EventTarget {
     keep(this.seen.corrections, { loops: correction.loops, from_seq: correction.from_seq,
       keyframes: correction.keyframes.length }, KEPT.corrections);
     this.#emit("corrected", correction);
+  }
+
+  /** A room message: the room's pilots; forgotten when the next does not come in time. */
+  #room(message) {
+    this.seen.rooms += 1;
+    this.seen.lastRoom = message;
+    this.room = roomPilots(message);
+    clearTimeout(this.roomTimer);
+    this.roomTimer = setTimeout(() => this.#roomGone(), STALE_MS);
+    this.#emit("room", this.room);
+  }
+
+  #roomGone() {
+    clearTimeout(this.roomTimer);
+    if (!this.room) return;
+    this.room = null;
+    this.#emit("room", null);
   }
 
   #drone(drone) {

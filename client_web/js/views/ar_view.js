@@ -1,6 +1,7 @@
 // AR view: the camera image of the latest processed frame, full size, with a three.js overlay
 // whose camera has that frame's intrinsics: the drone at T_camera_drone, its ground marker, the
-// planned route and the target. Tapping the image reports the pixel in colour-image coordinates.
+// planned route and the target; in a shared room, the other pilots' drones (room_pilots.js).
+// Tapping the image reports the pixel in colour-image coordinates.
 //
 // Frames: the overlay's objects live in `root`, the three.js camera frame of the shown frame
 // (CV_TO_GL * camera frame). Replay: the three camera sits at the origin with the intrinsics'
@@ -14,6 +15,7 @@ import { LineMaterial } from "three/addons/lines/LineMaterial.js";
 import { createDrone, createGroundMarker, createTargetMarker } from "./drone_model.js";
 import { CV_TO_GL, matrixFromRowMajor, pointsFromFlat, projectPoint, upFromGravity } from "./geometry.js";
 import { Occlusion } from "./occlusion.js";
+import { RoomPilots } from "./room_pilots.js";
 import { projectionFromIntrinsics } from "../capture/packing.js";
 import { RENDER_BUDGET, fitRenderer } from "./render_budget.js";
 
@@ -71,6 +73,10 @@ export class ARView {
     this.world = new THREE.Group();
     this.world.matrixAutoUpdate = false;
     this.root.add(this.world);
+    // The other pilots' drones in a shared room: world objects too (not hidden by real
+    // surfaces: occlusion covers this page's own drone).
+    this.others = new RoomPilots();
+    this.world.add(this.others.group);
     for (const name of ["drone", "marker", "target"]) {
       this[name] = { drone: createDrone, marker: createGroundMarker, target: createTargetMarker }[name]();
       this[name].matrixAutoUpdate = false;
@@ -88,6 +94,7 @@ export class ARView {
     this.colourSize = null;
     this.frame = null; // {seq, T_world_camera, T_camera_world, bitmap}
     this.droneState = null;
+    this.tracked = false; // a pose of this session was tracked (not lost) since it began
     this.up = new THREE.Vector3(0, -1, 0);
     this.groundHeight = null; // height of the floor along `up`, metres (from the map)
     this.xrAnchor = null; // live mode: (seq) => Matrix4 XR pose of that frame's GL camera
@@ -123,6 +130,7 @@ export class ARView {
     state.addEventListener("map", () => this.setGroundHeight(groundHeight()));
     state.addEventListener("drone", ({ detail }) => this.setDroneState(detail));
     state.addEventListener("reset", () => this.clearDrone());
+    state.addEventListener("room", ({ detail: room }) => this.setRoom(room));
     mesh.addEventListener("mesh", ({ detail: geometry }) => {
       this.occlusion.setMesh(geometry);
       this.dirty = true;
@@ -173,7 +181,8 @@ export class ARView {
   tick(now, minMs = this.budget?.drawIntervalMs ?? RENDER_BUDGET.drawMs) {
     const ratio = this.budget?.pixelRatio ?? Math.min(window.devicePixelRatio || 1, 2);
     if (fitRenderer(this.renderer, this.buffer, ...this.cssSize, ratio, now)) this.dirty = true;
-    const spinning = this.drone.visible && !["landed", "crashed"].includes(this.droneState?.mode);
+    const spinning = (this.drone.visible && !["landed", "crashed"].includes(this.droneState?.mode)) ||
+      (this.frame !== null && this.others.spinning);
     if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
     const dt = Math.min(0.1, (now - this.lastRender) / 1000);
     if (this.budget) this.budget.draw(() => this.render(dt), this.meter);
@@ -193,6 +202,9 @@ export class ARView {
     }
     const Twc = matrixFromRowMajor(T_world_camera);
     this.frame = { seq, T_world_camera: Twc, T_camera_world: Twc.clone().invert() };
+    // A phone that joined a room has lost poses at the identity until placed: world objects
+    // (the other pilots' drones) wait for its first tracked pose.
+    if (state !== "lost") this.tracked = true;
     this.dirty = true;
   }
 
@@ -203,7 +215,13 @@ export class ARView {
 
   clearDrone() {
     this.droneState = null;
+    this.tracked = false;
     this.dirty = true;
+  }
+
+  /** The shared room's pilots (session/room.js), or null: their drones are drawn, not ours. */
+  setRoom(room) {
+    if (this.others.set(room)) this.dirty = true;
   }
 
   /** T_camera_drone (OpenCV camera of the shown frame) as a Matrix4, or null. */
@@ -239,6 +257,11 @@ export class ARView {
       const pixel = projectPoint(this.intrinsics ?? [1, 1, 0, 0], [p.x, p.y, p.z]);
       this.lastDraw = { droneVisible: true, seq: frame.seq, cameraPoint: p.toArray(), pixel };
     }
+    // The other pilots' drones, with the pixel each centre projects to (the tests look there).
+    this.others.group.visible = this.tracked;
+    this.others.update(dt);
+    this.lastDraw.others = frame && this.tracked ?
+      this.others.drawn({ T_camera_world: frame.T_camera_world, intrinsics: this.intrinsics }) : [];
     if (this.dirty) {
       // Marker and route change only with the state, the frame, up or the ground: not at the
       // 30-60 Hz that rotor spin and XR frames render at (the route is a new GPU buffer).

@@ -17,11 +17,12 @@ function mesh(geometry, material, position = [0, 0, 0]) {
   return m;
 }
 
-/** A small quadrotor. `update(dt, spinning)` turns the rotors. */
-export function createDrone() {
+/** A small quadrotor. `update(dt, spinning)` turns the rotors. `colour`, `emissive`: its paint
+ * (another pilot's drone in a shared room wears another colour: room_pilots.js). */
+export function createDrone({ colour = DRONE_COLOUR, emissive = 0x8a0070 } = {}) {
   const drone = new THREE.Group();
   drone.name = "drone";
-  const paint = new THREE.MeshLambertMaterial({ color: DRONE_COLOUR, emissive: 0x8a0070 });
+  const paint = new THREE.MeshLambertMaterial({ color: colour, emissive });
   const dark = new THREE.MeshLambertMaterial({ color: 0x222222, emissive: 0x111111 });
   const bladeMat = new THREE.MeshBasicMaterial({ color: 0xffffff, transparent: true, opacity: 0.85 });
   const discMat = new THREE.MeshBasicMaterial({

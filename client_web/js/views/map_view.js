@@ -1,12 +1,14 @@
 // Map view: the fused map preview (map_chunk points) as a point cloud coloured by height (a heat
 // map, or the points' own colours), the camera trajectory and current camera, the drone with its
-// route and target; orbit, pan and zoom by touch or mouse; a tap picks a 3D point of the cloud.
+// route and target, and in a shared room the other pilots' drones and cameras (room_pilots.js);
+// orbit, pan and zoom by touch or mouse; a tap picks a 3D point of the cloud.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { DRONE_COLOUR, createDrone, createTargetMarker } from "./drone_model.js";
 import { matrixFromRowMajor, pointsFromFlat, turbo, upFromGravity } from "./geometry.js";
 import { fitRenderer } from "./render_budget.js";
+import { RoomPilots } from "./room_pilots.js";
 
 const TAP_MAX_MOVE_PX = 10;
 const TAP_MAX_MS = 600;
@@ -85,6 +87,8 @@ export class MapView {
     this.route.frustumCulled = false;
     this.route.visible = false;
     this.scene.add(this.route);
+    this.others = new RoomPilots({ cameras: true, halo: true }); // the room's other phones
+    this.scene.add(this.others.group);
 
     this.#makeControls();
     this.dirty = true;
@@ -112,6 +116,7 @@ export class MapView {
       this.clear();
       this.setDroneState(null);
     });
+    state.addEventListener("room", ({ detail: room }) => this.setRoom(room));
   }
 
   get pointCount() {
@@ -257,6 +262,11 @@ export class MapView {
     }
   }
 
+  /** The shared room's pilots (session/room.js), or null: the others' drones and cameras. */
+  setRoom(room) {
+    if (this.others.set(room)) this.dirty = true;
+  }
+
   /** Frame the map (or the trajectory) from above and behind. */
   fit() {
     const box = new THREE.Box3();
@@ -283,9 +293,11 @@ export class MapView {
     this.controls.update(); // damping: fires "change" while the view still moves
     const ratio = this.budget?.pixelRatio ?? Math.min(window.devicePixelRatio || 1, 2);
     if (this.cssSize && fitRenderer(this.renderer, this.buffer, ...this.cssSize, ratio, now)) this.dirty = true;
-    const spinning = this.drone.visible && this.drone.userData.spinning;
+    const spinning = (this.drone.visible && this.drone.userData.spinning) || this.others.spinning;
     if (now - this.lastRender < minMs || !(this.dirty || spinning)) return;
-    this.drone.userData.update(Math.min(0.1, (now - this.lastRender) / 1000), spinning);
+    const dt = Math.min(0.1, (now - this.lastRender) / 1000);
+    this.drone.userData.update(dt, this.drone.visible && this.drone.userData.spinning);
+    this.others.update(dt);
     const draw = () => this.renderer.render(this.scene, this.camera);
     if (this.budget) this.budget.draw(draw, this.meter);
     else draw();

@@ -1,0 +1,34 @@
+// A shared room's phones (PROTOCOL.md, "A shared room"; the `room` message): who flies in the
+// room with this session, where their drones and cameras are. The server sends the message
+// about 5 times a second while the room has two or more live phones, and stops when it has
+// fewer: a room not heard of for STALE_MS is gone from the page (its drones would stand still).
+
+export const STALE_MS = 3000;
+
+/** 7 numbers [x, y, z, qx, qy, qz, qw] of a flat list, or null when they are all zero. */
+function poseAt(flat, index) {
+  const pose = flat.slice(7 * index, 7 * index + 7);
+  if (pose.length < 7 || pose.every((v) => v === 0)) return null;
+  return { position: pose.slice(0, 3), quaternion: pose.slice(3, 7) };
+}
+
+/**
+ * A `room` message as plain data: {you, pilots: [{index, name, you, placed, mode, drone,
+ * camera}]}; drone and camera are {position, quaternion} in the room's world frame, or null
+ * (no drone: mode "none"; not placed: no camera).
+ */
+export function roomPilots(message) {
+  const pilots = message.pilots.map((name, index) => {
+    const mode = message.modes[index] ?? "none";
+    const placed = message.placed[index] === true;
+    return { index, name, you: index === message.you, placed, mode,
+      drone: mode === "none" ? null : poseAt(message.drones, index),
+      camera: placed ? poseAt(message.cameras, index) : null };
+  });
+  return { you: message.you, pilots };
+}
+
+/** A pilot's name as the page shows it: the hello's client_name, else its place in the room. */
+export function pilotLabel(pilot) {
+  return pilot.name || (pilot.index === 0 ? "owner" : `phone ${pilot.index + 1}`);
+}

@@ -12,6 +12,7 @@ owner's session has ended.
 from __future__ import annotations
 
 import hmac
+import logging
 import secrets
 import threading
 from collections.abc import Callable
@@ -27,6 +28,8 @@ from server.sessions.errors import SessionError
 from server.sessions.store import hash_token
 from server.sessions.updates import RoomUpdate
 from server.sessions.web.live import LiveSession
+
+log = logging.getLogger(__name__)
 
 ROOM_HZ = 5.0  # room messages per second to each socket of a room with two or more phones
 
@@ -138,8 +141,27 @@ class SharedRooms:
             with self._lock:
                 owners = list(self._rooms)
             for owner_id in owners:
-                self.tell(owner_id)
-                self._reap(owner_id)
+                try:
+                    self.tell(owner_id)
+                    self._reap(owner_id)
+                    self._forget_if_over(owner_id)
+                except Exception:  # one room's bug must not silence every other room
+                    log.exception("shared room %s: telling its phones failed", owner_id)
+
+    def _forget_if_over(self, owner_id: str) -> None:
+        """A room whose sessions have all ended, its map process reaped, is forgotten (a
+        server running for months must not keep every room it ever had)."""
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            ids = [] if room is None else [owner_id, *room.joined]
+        if room is None or room.map_process is not None:
+            return
+        if any(self.live_session(sid) is not None for sid in ids):
+            return
+        with self._lock:
+            self._rooms.pop(owner_id, None)
+            for sid in ids:
+                self._owner_of.pop(sid, None)
 
     def _reap(self, owner_id: str) -> None:
         """Once the owner's session has ended, its mapping process ends after the last

@@ -93,7 +93,6 @@ class SessionFusion:
         # Mapping thread only: frames fused so far, how many of them the drone's map has been
         # asked to include, and when it last was.
         self._fused = 0
-        self._flight_map_fused = 0
         self._flight_map_at = -np.inf
 
     # ------------------------------------------------------------------ the tracking thread's
@@ -263,8 +262,6 @@ class SessionFusion:
         if error is not None:
             self.log.error("the drone's map missed the rebuilt map (%s)", error)
             self.counts.failed("flight_map_failed")
-            return
-        self._flight_map_fused = self._fused
 
     def _finish_loops(self) -> None:
         """The session stops (after the last fusion): the loop thread takes the keyframes
@@ -319,8 +316,6 @@ class SessionFusion:
         if error is not None:
             self.log.error("the drone's map missed %s (%s)", what, error)
             self.counts.failed("flight_map_failed")
-            return
-        self._flight_map_fused = self._fused
 
     def _occupancy_request(self, now: bool = False) -> tuple[float, np.ndarray] | None:
         """Ask the mapper for the drone's occupancy at most every flight_map_interval_s: a fused

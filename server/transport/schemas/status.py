@@ -59,9 +59,11 @@ class DroneSummary(WireModel):
     errors: int = Field(0, description="simulation steps that failed (flight_errors)")
     map_frames: int = Field(
         0,
-        description="fused frames the drone's flight map holds; it has caught up with the map "
-        "when this equals map.frames_integrated (it is updated at most every "
-        "flight_map_interval_s while frames come, and once more when they stop)",
+        description="frames this session fused that the drone's flight map holds; in a "
+        "session of its own it has caught up with the map when this equals "
+        "map.frames_integrated (it is updated at most every flight_map_interval_s while frames "
+        "come, and once more when they stop); in a room, map.frames_integrated also counts the "
+        "room's frames and the other phones'",
     )
     fault: str | None = Field(
         None,

@@ -305,10 +305,26 @@ def make_room(
     modes: Sequence[str],
     drones: ArrayLike,
     cameras: ArrayLike,
+    race: Mapping | None = None,
 ) -> dict:
     """drones, cameras: (N, 7) world frame, per pilot a centre (m) and a unit quaternion
-    [qx, qy, qz, qw]; zeros where there is none."""
+    [qx, qy, qz, qw]; zeros where there is none. race: the room's race (RaceStandings'
+    fields: race, number, starts_in_s, gates, and per pilot passed, missed, time_s,
+    finished, rank), or None."""
     n = len(pilots)
+    fields: dict = {}
+    if race is not None:
+        fields = {
+            "race": str(race["race"]),
+            "race_number": int(race["number"]),
+            "race_starts_in_s": max(0.0, float(race["starts_in_s"])),
+            "race_gates": int(race["gates"]),
+            "race_passed": [int(v) for v in race["passed"]],
+            "race_missed": [int(v) for v in race["missed"]],
+            "race_time_s": [max(0.0, float(v)) for v in race["time_s"]],
+            "race_finished": [bool(v) for v in race["finished"]],
+            "race_rank": [int(v) for v in race["rank"]],
+        }
     return _message(
         "room",
         pilots=[str(name)[:64] for name in pilots],
@@ -317,6 +333,7 @@ def make_room(
         modes=[str(m) for m in modes],
         drones=_floats(drones, 7 * n, "drones"),
         cameras=_floats(cameras, 7 * n, "cameras"),
+        **fields,
     )
 
 

@@ -92,6 +92,7 @@ class RoomUpdate:
     modes: list[str]
     drones: np.ndarray
     cameras: np.ndarray
+    race: dict | None = None  # the room's race standings (server/sessions/web/room_race.py)
 
 
 @dataclass

@@ -39,6 +39,7 @@ from server.simulation.course import (
     CourseSpec,
     Gate,
     join_polylines,
+    plan_course_route,
     plan_leg,
     run_through,
     timed,
@@ -237,3 +238,25 @@ def _search(
         gates.append(gate)
         legs.append(leg)
         left.append(options(gates))
+
+
+def course_through(
+    flight_map: FlightMap,
+    start: ArrayLike,
+    gates: tuple[Gate, ...],
+    spec: CourseSpec,
+    seed: int,
+    config: SimulationConfig,
+    speed_m_s: float | None = None,
+) -> Course:
+    """The course through ``gates`` as laid elsewhere (a shared room's race: the owner's
+    gates, for every drone of the room), from this drone's ``start`` (flight frame): its route
+    planned from here and its par that route's time. Raises CourseError when no route reaches
+    them."""
+    start = np.asarray(start, dtype=float).reshape(3)
+    try:
+        route = plan_course_route(flight_map, start, gates, LEAD_M, config, speed_m_s)
+    except PlanningError as exc:
+        raise CourseError(f"no route from this drone through the course's gates: {exc}") from None
+    course = Course(spec, int(seed), tuple(gates), start.copy(), LEAD_M, route)
+    return replace(course, par_s=judge_path(course, route.path, route.times).elapsed_s())

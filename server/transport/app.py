@@ -51,6 +51,7 @@ _STATUS = {
     "too_many_viewers": 409,
     "room_unavailable": 409,
     "room_full": 409,
+    "race_unavailable": 409,
     "rate_limited": 429,
     "server_full": 503,
 }

@@ -28,6 +28,8 @@ from server.transport.deps import ManagerDep, SessionDep, bearer_token, creation
 from server.transport.schemas import (
     CourseBest,
     InviteCreated,
+    RaceStart,
+    RaceStarted,
     SessionCreate,
     SessionCreated,
     SessionStatus,
@@ -135,6 +137,41 @@ def create_session(
         "join": join,
     }
     return JSONResponse(answer, status_code=status.HTTP_201_CREATED)
+
+
+@router.post(
+    "/{session_id}/race",
+    status_code=status.HTTP_201_CREATED,
+    response_model=RaceStarted,
+    responses=_TOKEN_ERRORS
+    | {
+        409: error_response(
+            "`room_unavailable`: the session is closed, or joined another session's room; "
+            "`race_unavailable`: no course fits where its drone is (no drone yet, too little "
+            "mapped)"
+        )
+    },
+)
+def start_race(
+    session_id: str,
+    manager: ManagerDep,
+    token: Annotated[str | None, Depends(bearer_token)],
+    body: RaceStart | None = None,
+) -> JSONResponse:
+    """Start a race in this live session's room: **201** with `{race, gates, difficulty, seed,
+    starts_in_s}`. The course is laid from where this session's drone is; after `countdown_s`
+    every live phone of the room flies its gates, each from where its own drone is (each
+    phone's course message gives the gates, the same in the room's world frame), and every
+    `room` message carries the standings (PROTOCOL.md, "A shared room")."""
+    body = body or RaceStart.model_validate({})
+    started = manager.rooms.start_race(
+        manager.authorize(session_id, token),
+        body.difficulty,
+        body.seed,
+        body.countdown_s,
+        body.autopilot,
+    )
+    return JSONResponse(started, status_code=status.HTTP_201_CREATED)
 
 
 @router.get("/{session_id}", response_model=SessionStatus, responses=_TOKEN_ERRORS)

@@ -213,7 +213,7 @@ def update_messages(
         return [_drone_state(item)], chunk
     if isinstance(item, RoomUpdate):
         room = proto.make_room(
-            item.names, item.you, item.placed, item.modes, item.drones, item.cameras
+            item.names, item.you, item.placed, item.modes, item.drones, item.cameras, item.race
         )
         return [room], chunk
     if isinstance(item, DroneNotice):

@@ -12,9 +12,11 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from websockets.exceptions import ConnectionClosed
 
 from server import protocol as P
 from server.datasets import open_dataset
+from server.datasets.demo import demo_sequence_path
 from server.evaluation.metrics import ate
 from server.evaluation.trajectory import Trajectory
 from server.geometry import invert
@@ -220,3 +222,108 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     while Path(f"/proc/{map_pid}").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not Path(f"/proc/{map_pid}").exists(), "the room's map process outlived its phones"
+
+
+def _room_until(server, sid: str, token: str, ds, done, timeout_s: float) -> list[dict]:
+    """The ``room`` messages a socket of the session gets until ``done(message)`` (or the
+    timeout): the last one holds. A socket that sends nothing is closed after the protocol's
+    idle_timeout_s: it connects again then, as a phone does."""
+
+    async def run() -> list[dict]:
+        rooms: list[dict] = []
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            s = await Stream(server.ws_url, sid, token, ds).open()
+            try:
+                while (left := deadline - time.monotonic()) > 0:
+                    msg = await s.conn.receive(left)
+                    if msg["type"] == "room":
+                        rooms.append(msg)
+                        if done(msg):
+                            await s.close()
+                            return rooms
+            except asyncio.TimeoutError:
+                break
+            except ConnectionClosed:
+                continue
+        return rooms
+
+    return asyncio.run(run())
+
+
+def test_a_race_in_a_shared_room_has_every_drone_fly_the_same_gates_and_a_winner(
+    live_server, tmp_path
+):
+    """The owner starts a race (autopilots, easy course, 1 s countdown): the room counts down,
+    both drones fly the same gates from where each is, the standings follow, and the race ends
+    with both finished, ranked 1 and 2 by time, no gate missed. The bundled demo room: a
+    course needs more free space than a few frames of a real room map."""
+    from server.transport.routes_client import DEMO_PRESETS
+
+    ds = open_dataset(demo_sequence_path(DEMO_PRESETS["small"], progress=False), "tum")
+    server = live_server(tmp_path / "data")
+    sessions = f"{server.url}/api/sessions"
+    a, token_a = server.create_session()
+    _stream_frames(server, a, token_a, ds, list(range(0, len(ds), 2)))
+    join_token = httpx.post(f"{sessions}/{a}/invites", headers=auth(token_a)).json()["join_token"]
+    created = httpx.post(sessions, json={"join": a}, headers=auth(join_token)).json()
+    b, token_b = created["id"], created["token"]
+    _stream_frames(server, b, token_b, ds, list(range(1, 41, 2)))
+    for sid, token in ((a, token_a), (b, token_b)):
+        wait_for_status(server.url, sid, token, drone_spawned, "a drone")
+        wait_for_status(server.url, sid, token, map_caught_up, "a map")
+
+    # Only the room's owner starts it; a joined phone is refused.
+    body = {"difficulty": "easy", "countdown_s": 1.0, "autopilot": True}
+    r = httpx.post(f"{sessions}/{b}/race", json=body | {"seed": 0}, headers=auth(token_b))
+    _error(r, 409, "room_unavailable")
+    for sid, token in ((a, token_a), (b, token_b)):  # the autopilot flies a flying drone
+        _command(server, sid, token, ds, P.make_command(1, "takeoff"), settle_s=2.0)
+    for seed in range(4):  # the map differs a little from run to run: a course must fit it
+        r = httpx.post(
+            f"{sessions}/{a}/race", json=body | {"seed": seed}, headers=auth(token_a), timeout=60
+        )
+        if r.status_code != 409:
+            break
+        _error(r, 409, "race_unavailable")
+    assert r.status_code == 201, r.text
+    started = r.json()
+    assert started["gates"] == 3 and started["difficulty"] == "easy"
+
+    rooms = _room_until(server, a, token_a, ds, lambda m: m.get("race") == "finished", 90)
+    states = [m.get("race") for m in rooms]
+    assert states[0] == "countdown" and "running" in states, states
+    last = rooms[-1]
+    assert last["race"] == "finished", last
+    assert last["race_finished"] == [True, True] and last["race_missed"] == [0, 0], last
+    assert last["race_passed"] == [3, 3] and sorted(last["race_rank"]) == [1, 2], last
+    winner = last["race_rank"].index(1)
+    assert last["race_time_s"][winner] <= last["race_time_s"][1 - winner]
+    for sid, token in ((a, token_a), (b, token_b)):  # each judged by its own session
+        events = _status(server, sid, token)["drone"]["events"]
+        assert events.get("course_finished", 0) >= 1, events
+
+
+def _stream_frames(server, sid: str, token: str, ds, frames: list[int]) -> Stream:
+    """Frames ``frames`` of ``ds`` as seqs 0.., each waiting for its pose."""
+
+    async def run() -> Stream:
+        s = await Stream(server.ws_url, sid, token, ds).open()
+        for seq, index in enumerate(frames):
+            await s.send(seq, index=index)
+        await s.close()
+        return s
+
+    return asyncio.run(run())
+
+
+def _command(server, sid: str, token: str, ds, command: dict, settle_s: float) -> None:
+    """Send one command on the session's socket and keep the socket open ``settle_s``."""
+
+    async def run() -> None:
+        s = await Stream(server.ws_url, sid, token, ds).open()
+        await s.conn.send(command)
+        await asyncio.sleep(settle_s)
+        await s.close()
+
+    asyncio.run(run())

@@ -34,7 +34,7 @@ from server.sessions.errors import CommandRefused
 from server.sessions.updates import DroneNotice
 from server.simulation.config import SimulationConfig
 from server.simulation.course import Course, CourseError, course_spec, plan_course_route
-from server.simulation.course_generation import generate_course
+from server.simulation.course_generation import course_through, generate_course
 from server.simulation.course_judge import CourseRun, GateEvent
 from server.simulation.drone import DroneSimulator
 from server.simulation.drone_types import DroneCommandError, DroneEvent, DroneEventKind, DroneMode
@@ -133,8 +133,30 @@ class CourseControl:
         self._retries = 0  # autopilot routes resumed in this course
 
     # ------------------------------------------------------------------ commands
-    def command(self, name: str, command_id: int, **options: Any) -> None:
-        """course_start or course_stop (protocol names and fields); raises CommandRefused."""
+    def plan(self, difficulty: str, seed: int | None) -> Course:
+        """A course laid from where the drone is, not started: a shared room's race, whose
+        gates every drone of the room then flies (``command`` with ``through``). Raises
+        CommandRefused."""
+        try:
+            spec = course_spec(difficulty or "medium")
+        except CourseError as exc:
+            raise CommandRefused("bad_command", str(exc)) from None
+        sim = self.flight.sim
+        with self.flight.lock:
+            if not sim.spawned:
+                raise CommandRefused("bad_command", "no drone yet: it spawns with the first map")
+            start = sim.status().T_flight_drone[:3, 3]
+            snapshot = copy.deepcopy(self.flight.flight_map)
+        seed = secrets.randbelow(2**31) if seed is None else int(seed)
+        try:
+            return generate_course(snapshot, start, spec, seed, sim.config)
+        except CourseError as exc:
+            raise CommandRefused("bad_command", str(exc)) from None
+
+    def command(self, name: str, command_id: int | None, **options: Any) -> None:
+        """course_start or course_stop (protocol names and fields); raises CommandRefused.
+        ``through``: the course's gates (flight frame), laid elsewhere (a race: ``plan``),
+        instead of a course generated here; its route is planned from this drone."""
 
         if name == "course_stop":
             with self.flight.lock:
@@ -171,8 +193,12 @@ class CourseControl:
             start = sim.status().T_flight_drone[:3, 3]
             snapshot = copy.deepcopy(self.flight.flight_map)
         t0 = time.perf_counter()
+        through = options.get("through")
         try:
-            course = generate_course(snapshot, start, spec, seed, sim.config, speed)
+            if through is None:
+                course = generate_course(snapshot, start, spec, seed, sim.config, speed)
+            else:
+                course = course_through(snapshot, start, through, spec, seed, sim.config, speed)
         except CourseError as exc:
             raise CommandRefused("bad_command", str(exc)) from None
         self.flight.log.info(

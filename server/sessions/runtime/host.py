@@ -25,13 +25,15 @@ from server.evaluation.trajectory import write_tum
 from server.geometry import Intrinsics
 from server.rooms.continuation import RoomTracker
 from server.sessions.config import SessionConfig
-from server.sessions.errors import SessionError
+from server.sessions.errors import CommandRefused, SessionError
 from server.sessions.processes.mapper import MapperClient
 from server.sessions.processes.room_map import RoomAddress
 from server.sessions.runtime.faults import inject
+from server.sessions.runtime.flight import Flight
 from server.sessions.runtime.session import Session
 from server.sessions.store import SessionStore
 from server.sessions.updates import FrameData, FrameRefused
+from server.simulation.course import Gate
 
 DOWNLOADS = ("map.ply", "mesh.ply", "trajectory.tum")
 
@@ -165,6 +167,41 @@ class SessionHost:
     def command(self, name: str, command_id: int, fields: dict) -> None:
         """A pilot command; raises CommandRefused."""
         self.session.command(name, command_id, **fields)
+
+    def plan_race(self, difficulty: str, seed: int | None) -> dict:
+        """A course for a shared room's race, laid from where this drone is and not started
+        (``CourseControl.plan``): {gates: (N, 7) world frame rows (centre, unit normal, ring
+        radius; metres), difficulty, seed}. Raises CommandRefused (no drone yet, no room)."""
+        flight = self._flight()
+        course = flight.course.plan(difficulty, seed)
+        rows = course.rows()
+        centres, normals = flight.to_world(rows[:, :3]), flight.direction_to_world(rows[:, 3:6])
+        gates = np.column_stack([centres, normals, rows[:, 6]])
+        return {"gates": gates, "difficulty": course.spec.name, "seed": course.seed}
+
+    def race(self, gates: np.ndarray, difficulty: str, seed: int, autopilot: bool) -> None:
+        """Start the race's course (``plan_race``'s gates, world frame) from where this drone
+        is: a course_start through those gates. Raises CommandRefused."""
+        flight = self._flight()
+        rows = np.asarray(gates, dtype=np.float64).reshape(-1, 7)
+        centres, normals = flight.view.motion_in_flight(rows[:, :3], rows[:, 3:6])
+        through = tuple(
+            Gate(c, n, float(r)) for c, n, r in zip(centres, normals, rows[:, 6], strict=True)
+        )
+        flight.course.command(
+            "course_start",
+            None,
+            difficulty=difficulty,
+            seed=seed,
+            autopilot=autopilot,
+            through=through,
+        )
+
+    def _flight(self) -> Flight:
+        flight = self.session.flight
+        if flight is None:
+            raise CommandRefused("bad_command", "no drone in this session yet (no hello)")
+        return flight
 
     def room_drones(self, centres: np.ndarray, velocities: np.ndarray) -> None:
         """The other drones of the session's shared room, (K, 3) world centres and velocities

@@ -77,6 +77,8 @@ class LiveSession:
         self.sends_failed = 0  # connections ended because sending an update failed (web side)
         self.viewers = Viewers()  # read-only watchers (viewer links), fed by ``deliver``
         self.client_name = ""  # the latest hello's
+        # The latest course message and when it came (monotonic): a shared room's race reads it.
+        self.latest_course: tuple[float, dict] | None = None
         self.worker = start_worker(self)
 
     @property
@@ -99,6 +101,8 @@ class LiveSession:
             item.failures["sends_failed"] = self.sends_failed
         elif isinstance(item, SessionTakenOver) and item.closed:
             self.closed = True  # ended by another front-end: the reaper lets go of it here
+        elif isinstance(item, dict) and item.get("type") == "course":
+            self.latest_course = (time.monotonic(), item)
         elif isinstance(item, SessionFailed):  # the worker lives on, to stop and save it
             self.closed = True
             if self._on_failed is not None:

@@ -15,6 +15,7 @@ import hmac
 import logging
 import secrets
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from server.sessions.errors import SessionError
 from server.sessions.store import hash_token
 from server.sessions.updates import RoomUpdate
 from server.sessions.web.live import LiveSession
+from server.sessions.web.room_race import Race
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +45,8 @@ class _Room:
     # The owner's mapping process, the room's map: it outlives the owner's session while
     # joined phones map into it, and is reaped here once it has ended (``_reap``).
     map_process: Any = None
+    race: Race | None = None  # the latest race (server/sessions/web/room_race.py)
+    races: int = 0
 
 
 class SharedRooms:
@@ -128,9 +132,13 @@ class SharedRooms:
             if getattr(worker, "room_map", None) is not None:  # its map serves the room
                 worker.room_shared = True  # type: ignore[union-attr]
                 room.map_process = worker.mapper_process  # type: ignore[union-attr]
-            if self._ticker is None:
-                self._ticker = threading.Thread(target=self._tick, name="rooms", daemon=True)
-                self._ticker.start()
+            self._start_ticker()
+
+    def _start_ticker(self) -> None:
+        """The rooms thread, from the first join or race on (the caller holds the lock)."""
+        if self._ticker is None:
+            self._ticker = threading.Thread(target=self._tick, name="rooms", daemon=True)
+            self._ticker.start()
 
     def close(self) -> None:
         """The server stops: no more room messages."""
@@ -142,6 +150,7 @@ class SharedRooms:
                 owners = list(self._rooms)
             for owner_id in owners:
                 try:
+                    self._start_race_if_due(owner_id)
                     self.tell(owner_id)
                     self._reap(owner_id)
                     self._forget_if_over(owner_id)
@@ -163,6 +172,76 @@ class SharedRooms:
             for sid in ids:
                 self._owner_of.pop(sid, None)
 
+    # ------------------------------------------------------------------ races
+    def start_race(
+        self,
+        owner: LiveSession | dict,
+        difficulty: str,
+        seed: int | None,
+        countdown_s: float,
+        autopilot: bool,
+    ) -> dict:
+        """The room's owner starts a race: its drone's session lays a course (not started),
+        and after ``countdown_s`` every live phone of the room flies its gates. Returns {race,
+        gates, difficulty, seed, starts_in_s}. SessionError room_unavailable for a closed
+        session or a joined phone; race_unavailable (its session's reason) when no course can
+        be laid."""
+        if not isinstance(owner, LiveSession) or owner.closed or owner.id in self._owner_of:
+            raise SessionError(
+                "room_unavailable", "only a live room's owner starts its race (this is not one)"
+            )
+        try:
+            plan = owner.worker.call("plan_race", difficulty, seed, timeout_s=60)
+        except SessionError as exc:
+            if exc.code == "session_failed":
+                raise
+            raise SessionError("race_unavailable", f"no course for the race: {exc}") from None
+        gates = np.asarray(plan["gates"], dtype=np.float64).reshape(-1, 7)
+        with self._lock:
+            room = self._rooms.setdefault(owner.id, _Room())
+            room.races += 1
+            room.race = Race(
+                room.races,
+                gates,
+                plan["difficulty"],
+                int(plan["seed"]),
+                autopilot,
+                time.monotonic() + countdown_s,
+            )
+            self._start_ticker()
+        return {
+            "race": room.races,
+            "gates": len(gates),
+            "difficulty": plan["difficulty"],
+            "seed": int(plan["seed"]),
+            "starts_in_s": countdown_s,
+        }
+
+    def _start_race_if_due(self, owner_id: str) -> None:
+        """At the end of the countdown, every live phone of the room gets the race's course
+        (``SessionHost.race``), in a thread of its own: laying a course plans a route."""
+        with self._lock:
+            room = self._rooms.get(owner_id)
+            race = None if room is None else room.race
+            if race is None or not race.due(time.monotonic()):
+                return
+            race.started_at = time.monotonic()
+            ids = [owner_id, *room.joined]  # type: ignore[union-attr]
+        members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
+        race.pilots = [m.id for m in members]
+
+        def start(member: LiveSession) -> None:
+            try:
+                member.worker.call(
+                    "race", race.gates, race.difficulty, race.seed, race.autopilot, timeout_s=60
+                )
+            except SessionError as exc:  # that pilot is out of this race; the others fly
+                race.refused[member.id] = str(exc)
+                log.warning("race %d: session %s could not start: %s", race.number, member.id, exc)
+
+        for member in members:
+            threading.Thread(target=start, args=(member,), name="race-start", daemon=True).start()
+
     def _reap(self, owner_id: str) -> None:
         """Once the owner's session has ended, its mapping process ends after the last
         joined phone has gone: collect it then (``is_alive`` waits for an ended child)."""
@@ -183,9 +262,10 @@ class SharedRooms:
         with self._lock:
             room = self._rooms.get(owner_id)
             ids = [owner_id] + ([] if room is None else list(room.joined))
+            race = None if room is None else room.race
         # The owner's session may have ended: the room's map serves the joined phones on.
         members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
-        if len(members) < 2:
+        if len(members) < 2 and race is None:
             self._tell_drones(room, members, None)
             return
         n = len(members)
@@ -202,10 +282,14 @@ class SharedRooms:
                 drones[i] = _centre_and_rotation(drone.T_world_drone)
                 velocities[i] = drone.velocity
         names = [m.client_name for m in members]
+        standings = None if race is None else race.standings(members, time.monotonic())
         for i, member in enumerate(members):
-            member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras))
+            member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras, standings))
         flying = np.array([m != "none" for m in modes])
-        self._tell_drones(room, members, (flying, drones[:, :3], velocities))
+        # While a race runs the drones are ghosts to each other, as in a racing game's time
+        # trial: all fly the same line through the same gates, and none may block another.
+        racing = standings is not None and standings["race"] != "finished"
+        self._tell_drones(room, members, None if racing else (flying, drones[:, :3], velocities))
 
     def _tell_drones(
         self,

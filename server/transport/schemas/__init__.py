@@ -23,7 +23,7 @@ from server.transport.schemas.flights import (
 )
 from server.transport.schemas.phone import PhoneLinkBody
 from server.transport.schemas.recordings import RecordingCreated, RecordingFrame, RecordingIndex
-from server.transport.schemas.rooms import InviteCreated, SharedRoom
+from server.transport.schemas.rooms import InviteCreated, RaceStart, RaceStarted, SharedRoom
 from server.transport.schemas.sessions import (
     CourseBest,
     CourseResult,
@@ -61,6 +61,8 @@ __all__ = [
     "LoopClosure",
     "MapStats",
     "PhoneLinkBody",
+    "RaceStart",
+    "RaceStarted",
     "RecordingCreated",
     "RecordingFrame",
     "RecordingIndex",

@@ -20,7 +20,8 @@ class ErrorDetail(WireModel):
         "(409: no map surface fused yet), room_unavailable (409: the session named as a room "
         "saved none, or is still live; a live room to join has mapped nothing yet; a phone "
         "that joined a room asked to invite), room_full (409: the live room to join holds "
-        "max_room_phones phones), session_failed (400: the session's worker died "
+        "max_room_phones phones), race_unavailable (409: no course for the race can be laid "
+        "where the owner's drone is), session_failed (400: the session's worker died "
         "during the request), session_closed (409: a viewer link asked of a closed session), "
         "too_many_viewers (409: the session has max_viewers links)"
     )

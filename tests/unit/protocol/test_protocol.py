@@ -112,6 +112,17 @@ def example_messages() -> dict[str, dict]:
             ["hover", "none"],
             [[0.5, -0.2, 1.5, 0.0, 0.0, 0.0, 1.0], [0.0] * 7],
             [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], [0.0] * 7],
+            {
+                "race": "running",
+                "number": 2,
+                "starts_in_s": 0.0,
+                "gates": 5,
+                "passed": [3, 1],
+                "missed": [0, 1],
+                "time_s": [7.5, 9.25],
+                "finished": [False, False],
+                "rank": [0, 0],
+            },
         ),
         "error": P.make_error("corrupt_image", "colour: not a complete JPEG", seq=3),
     }

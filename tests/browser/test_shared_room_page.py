@@ -127,9 +127,9 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
     # drone per other pilot with a mode, a camera per other placed pilot, "placing…" for a
     # phone not placed; a pilot gone or without a drone loses its drone; a room not heard of
     # for 3 s is gone.
-    def room(pilots, placed, modes, drones, cameras):
+    def room(pilots, placed, modes, drones, cameras, race=None):
         message = dict(type="room", pilots=pilots, you=0, placed=placed, modes=modes)
-        message.update(drones=drones, cameras=cameras)
+        message.update(drones=drones, cameras=cameras, **(race or {}))
         early.page.evaluate(
             "(m) => window.dronesim.client.dispatchEvent(new CustomEvent('room', {detail: m}))",
             message,
@@ -148,6 +148,18 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
     assert [d["index"] for d in seen["map_others"]] == [1] and len(seen["listed"]) == 2, seen
     seen = room(["me", "b"], [True, True], ["hover", "none"], pose + [0.0] * 7, pose + moved)
     assert seen["others_drawn"] == 0 and "no drone" in seen["listed"][1], seen
+    # A race: the countdown, then each pilot's gates, time and place, and the winner.
+    race = dict(race="countdown", race_number=1, race_starts_in_s=2.4, race_gates=3)
+    race.update(race_passed=[0, 0], race_missed=[0, 0], race_time_s=[0.0, 0.0])
+    race.update(race_finished=[False, False], race_rank=[0, 0])
+    seen = room(["me", "b"], [True, True], ["hover", "hover"], pose + moved, pose + moved, race)
+    assert seen["race"] == "Race 1 starts in 3 s" and "/3" not in seen["listed"][0], seen
+    race.update(race="finished", race_starts_in_s=0.0, race_passed=[3, 2], race_time_s=[6.2, 9.0])
+    race.update(race_finished=[True, False], race_rank=[1, 0])
+    seen = room(["me", "b"], [True, True], ["hover", "hover"], pose + moved, pose + moved, race)
+    assert seen["race"] == "Race 1 won by me", seen
+    assert seen["listed"][0].endswith("3/3 · 6.2 s · #1"), seen["listed"]
+    assert seen["listed"][1].endswith("2/3 · 9.0 s"), seen["listed"]
     early.wait(f"{ROOM}.pilots.length === 0", 6, "the room forgotten")
     assert not early.page.is_visible("#room-row")
     early.close()

@@ -12,10 +12,20 @@ function poseAt(flat, index) {
   return { position: pose.slice(0, 3), quaternion: pose.slice(3, 7) };
 }
 
+/** A pilot's place in the room's race (the message's race_* lists), or null: no race. */
+function raceOf(message, index) {
+  if (!message.race) return null;
+  return { passed: message.race_passed[index] ?? 0, missed: message.race_missed[index] ?? 0,
+    time: message.race_time_s[index] ?? 0, finished: message.race_finished[index] === true,
+    rank: message.race_rank[index] ?? 0 };
+}
+
 /**
  * A `room` message as plain data: {you, pilots: [{index, name, you, placed, mode, drone,
- * camera}]}; drone and camera are {position, quaternion} in the room's world frame, or null
- * (no drone: mode "none"; not placed: no camera).
+ * camera, race}], race}; drone and camera are {position, quaternion} in the room's world frame,
+ * or null (no drone: mode "none"; not placed: no camera). race: {state (countdown, running,
+ * finished), number, startsIn (s), gates} and each pilot's {passed, missed, time, finished,
+ * rank}, or null without a race.
  */
 export function roomPilots(message) {
   const pilots = message.pilots.map((name, index) => {
@@ -23,9 +33,11 @@ export function roomPilots(message) {
     const placed = message.placed[index] === true;
     return { index, name, you: index === message.you, placed, mode,
       drone: mode === "none" ? null : poseAt(message.drones, index),
-      camera: placed ? poseAt(message.cameras, index) : null };
+      camera: placed ? poseAt(message.cameras, index) : null, race: raceOf(message, index) };
   });
-  return { you: message.you, pilots };
+  const race = message.race ? { state: message.race, number: message.race_number,
+    startsIn: message.race_starts_in_s, gates: message.race_gates } : null;
+  return { you: message.you, pilots, race };
 }
 
 /** A pilot's name as the page shows it: the hello's client_name, else its place in the room. */

@@ -19,6 +19,7 @@ export class RoomHud {
     this.row = root.querySelector("#room-row");
     this.list = root.querySelector("#room-pilots");
     this.hint = root.querySelector("#place-hint");
+    this.raceChip = root.querySelector("#room-race");
     this.hint.textContent = PLACE_HINT;
     this.room = null;
     this.placed = false; // this joined session has had a pose in the room
@@ -60,14 +61,30 @@ export class RoomHud {
       const you = this.client.viewer ? " (watched)" : " (you)"; // a viewer link watches that pilot
       const label = pilotLabel(pilot);
       const name = label.length > NAME_CHARS ? `${label.slice(0, NAME_CHARS - 1)}…` : label; // a chip, not a line
-      const text = `${name}${pilot.you ? you : ""} · ${what}`;
+      // In a race: gates passed of the course's, the time, and the place once finished.
+      const r = pilot.race;
+      const standing = r && room.race.state !== "countdown" ?
+        ` · ${r.passed}/${room.race.gates} · ${r.time.toFixed(1)} s${r.rank ? ` · #${r.rank}` : ""}` : "";
+      const text = `${name}${pilot.you ? you : ""} · ${what}${standing}`;
       if (chip.textContent !== text) chip.textContent = text;
       chip.style.borderColor = pilot.you ? "" : hex(pilotColour(pilot.index));
       chip.title = `${label}: ${pilot.you ? "this phone's drone (magenta)" : "another phone in this room; its drone wears this colour"}`;
       return chip;
     });
     this.list.replaceChildren(...chips);
+    this.#race(room.race);
     this.#hint();
+  }
+
+  /** The race's state in a chip of its own: the countdown, running, or the winner. */
+  #race(race) {
+    this.raceChip.hidden = !race;
+    if (!race) return;
+    const winner = this.room.pilots.find((p) => p.race?.rank === 1);
+    const text = race.state === "countdown" ? `Race ${race.number} starts in ${Math.ceil(race.startsIn)} s` :
+      race.state === "running" ? `Race ${race.number}: ${race.gates} gates` :
+        `Race ${race.number} won by ${winner ? pilotLabel(winner) : "nobody"}`;
+    if (this.raceChip.textContent !== text) this.raceChip.textContent = text;
   }
 
   /** The placing hint: a joined session whose socket is open and that has had no pose in the
@@ -86,6 +103,7 @@ export class RoomHud {
       modes: this.room?.pilots.map((p) => p.mode) ?? [],
       listed: [...this.list.children].map((chip) => chip.textContent),
       joined: this.client.joined ?? null,
+      race: this.raceChip.hidden ? null : this.raceChip.textContent,
       placeHint: !this.hint.hidden,
       placeHintShown: this.hintShown,
     };

@@ -349,7 +349,7 @@ def test_serve_from_the_wheel_serves_the_page_its_modules_and_the_protocol(insta
     }
     licences = {n for n in vendored if n.endswith("/LICENSE")}
     assert vendored - licences == loaded
-    assert {p.split("/")[2].lstrip("@") for p in licences} == {"three", "msgpack"}
+    assert {p.split("/")[2].lstrip("@") for p in licences} == {"three", "msgpack", "uqr"}
     assert spec_in_wheel == spec
 
 

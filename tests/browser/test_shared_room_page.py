@@ -195,6 +195,21 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
     phone.wait(f"{ROOM}.others_drawn === 1 && {ROOM}.you === 1", 60, "the owner's drone")
     owner.wait(f"{ROOM}.others_drawn === 1 && {ROOM}.you === 0", 60, "the phone's drone")
 
+    # The owner starts a race from the page (a joined phone has no button): both pages' room
+    # rows show it. A course must fit where the drone is: a random seed may not, so a few tries.
+    assert not phone.page.is_visible("#btn-race")
+    owner.page.click("#btn-flights")
+    for _ in range(4):
+        owner.page.click("#btn-race")
+        owner.page.wait_for_timeout(1500)
+        if owner.snapshot()["room"]["started_race"] is not None:
+            break
+    owner.page.click("#flights button[value=close]")
+    started = owner.snapshot()["room"]["started_race"]
+    assert started is not None and started["race"] >= 1 and started["gates"] == 3, started
+    for page in (owner, phone):
+        page.wait(f"({ROOM}.race ?? '').startsWith('Race {started['race']}')", 10, "the race")
+
     # The owner's drone in the phone's AR view, at the pixel its world pose projects to
     # through the shown frame's pose (computed here).
     for page in (owner, phone):

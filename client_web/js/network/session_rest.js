@@ -52,6 +52,13 @@ export function joinLink(hash = window.location.hash) {
   return id && token ? { id, token } : null;
 }
 
+/** A race in a live session's shared room (its own token): {race, gates, difficulty, seed,
+ * starts_in_s}; every live phone of the room flies the course after the countdown. */
+export function startRace(baseUrl, { id, token }, { difficulty = "easy", countdownS = 3 } = {}) {
+  return request(baseUrl, "POST", `/api/sessions/${encodeURIComponent(id)}/race`, token,
+    { difficulty, countdown_s: countdownS });
+}
+
 /** A session's status ({closed, ...}); throws when the server does not know it. */
 export function sessionStatus(baseUrl, { id, token }) {
   return request(baseUrl, "GET", `/api/sessions/${id}`, token);

@@ -4,7 +4,7 @@
 // The token stays in the link's fragment, which a browser never sends to a server: the code is
 // made here (qr_code.js), not by the server as the phone-link card's is.
 
-import { inviteToRoom } from "../network/session_rest.js";
+import { inviteToRoom, startRace } from "../network/session_rest.js";
 import { qrSvg } from "./qr_code.js";
 
 const $ = (selector) => document.querySelector(selector);
@@ -32,10 +32,27 @@ export class Invite {
     this.link = null;
     this.button = $("#btn-invite");
     this.button.addEventListener("click", () => this.invite());
-    // Only a room's owner invites: a joined phone, or a viewer, has no button.
-    const update = () => (this.button.hidden = Boolean(client.viewer || client.joined));
+    this.raceButton = $("#btn-race");
+    this.raceButton.addEventListener("click", () => this.race());
+    this.race_ = null; // the latest race this page started ({race, gates, ...})
+    // Only a room's owner invites and starts races: a joined phone, or a viewer, has no button.
+    const update = () => {
+      this.button.hidden = this.raceButton.hidden = Boolean(client.viewer || client.joined);
+    };
     client.addEventListener("status", update);
     update();
+  }
+
+  /** Start a race in this session's room (an easy course, 3 s of countdown). */
+  async race() {
+    try {
+      const session = this.client.session;
+      if (!session?.id || !session.token) throw new Error("start a session first");
+      this.race_ = await startRace(this.client.baseUrl, session);
+      this.hud.toast(`race ${this.race_.race}: ${this.race_.gates} gates, go in ${this.race_.starts_in_s} s`, "info", 4000);
+    } catch (exc) {
+      this.hud.toast(`no race: ${exc.message}`, "error", 6000);
+    }
   }
 
   /** Ask for a join token and show the link and its QR code. */

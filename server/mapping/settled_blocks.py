@@ -29,7 +29,7 @@ class SettledBlocks:
         self.every = every
         self._keys = np.empty(0, np.int64)  # sorted
         self._touches = np.empty(0, np.int64)
-        self.skipped = 0  # block fusions left out, for the map's stats
+        self.skipped = 0  # block fusions left out so far (for tests and benchmarks)
 
     def to_fuse(self, keys: Int64Array) -> Int64Array:
         """Of ``keys`` (unique, sorted: the blocks one frame touches) those to fuse; counts the

@@ -214,7 +214,12 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
     # through the shown frame's pose (computed here).
     for page in (owner, phone):
         page.page.evaluate("window.dronesim.stopStreaming('test')")
-    phone.page.wait_for_timeout(1000)
+    # A loaded machine draws seldom (render_budget.js): wait for the draw of the last frame.
+    phone.wait(
+        "window.dronesim.snapshot().ar.othersSeq === window.dronesim.snapshot().lastPose?.seq",
+        20,
+        "the last frame drawn",
+    )
     s = phone.snapshot()
     drawn = s["room"]["ar_others"]
     assert len(drawn) == 1 and drawn[0]["index"] == 0, drawn

@@ -262,6 +262,7 @@ export class ARView {
     this.others.update(dt);
     this.lastDraw.others = frame && this.tracked ?
       this.others.drawn({ T_camera_world: frame.T_camera_world, intrinsics: this.intrinsics }) : [];
+    this.lastDraw.othersSeq = frame?.seq ?? null; // the frame those pixels are of
     if (this.dirty) {
       // Marker and route change only with the state, the frame, up or the ground: not at the
       // 30-60 Hz that rotor spin and XR frames render at (the route is a new GPU buffer).

@@ -36,6 +36,7 @@ POINTS_MISSED = -50
 POINTS_BUMP = -10
 POINTS_CRASH = -100
 TIME_BONUS_PER_GATE = 50
+RESTART_PAST_M = 0.3  # a restart puts the drone this far past the last gate passed
 
 
 class GateState(str, Enum):
@@ -82,8 +83,10 @@ class CourseRun:
         self.bumps = 0
         self.crashes = 0
         self.wrong_way = 0  # crossings of the next gate's ring from the front
+        self.restarts = 0  # times the drone was put back after a crash (``restarted``)
         self.finished_at_s: float | None = None
-        self._last = np.asarray(position, dtype=float).reshape(3).copy()
+        self.start_position = np.asarray(position, dtype=float).reshape(3).copy()
+        self._last = self.start_position.copy()
         self._last_time = self.start_time_s
         self._time = self.start_time_s
 
@@ -98,6 +101,26 @@ class CourseRun:
         self.course = self.course.moved(T)
         T = np.asarray(T, dtype=float)
         self._last = T[:3, :3] @ self._last + T[:3, 3]
+        self.start_position = T[:3, :3] @ self.start_position + T[:3, 3]
+
+    def restart_pose(self, past_m: float = RESTART_PAST_M) -> tuple[FloatArray, FloatArray]:
+        """Where a crashed drone restarts: (point, unit heading), ``past_m`` beyond the last gate
+        passed along its normal, or the start, heading for the first gate, before any."""
+        passed = [i for i, state in enumerate(self.states) if state == GateState.PASSED]
+        if passed:
+            gate = self.course.gates[passed[-1]]
+            return gate.centre + past_m * gate.normal, gate.normal.copy()
+        way = self.course.gates[0].centre - self.start_position
+        norm = float(np.linalg.norm(way))
+        heading = way / norm if norm > 1e-9 else self.course.gates[0].normal
+        return self.start_position.copy(), heading
+
+    def restarted(self, time_s: float, position: ArrayLike) -> None:
+        """The drone was put back at ``position`` (``restart_pose``): the jump there is not
+        judged as a flight through a ring; the clock runs on."""
+        self._last = np.asarray(position, dtype=float).reshape(3).copy()
+        self._last_time = self._time = float(time_s)
+        self.restarts += 1
 
     @property
     def passed(self) -> int:

@@ -79,7 +79,24 @@ class DroneSimulator:
         """Appear hovering in observed free space as close to ``near`` as possible (within
         spawn_search_m); returns the position. Time restarts at 0; a ``spawned`` event follows."""
         m = self._modes
-        point = checked_point(near, "spawn point")
+        free = self._hover_near(near, yaw_rad, "spawn point")
+        m.time_s = self._carry_s = 0.0
+        m.damage = 0.0
+        m.emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
+        return free
+
+    def put_back(self, near: ArrayLike, yaw_rad: float, why: str) -> FloatArray:
+        """Hover again in observed free space as close to ``near`` as possible, whatever the
+        drone was doing (a race's restart after a crash: server/sessions/runtime/
+        course_control.py). Unlike ``spawn`` the clock runs on and the damage stays; a
+        ``restarted`` event (saying ``why``) follows. Returns the position."""
+        free = self._hover_near(near, yaw_rad, "restart point")
+        self._modes.emit(DroneEventKind.RESTARTED, why)
+        return free
+
+    def _hover_near(self, near: ArrayLike, yaw_rad: float, what: str) -> FloatArray:
+        m = self._modes
+        point = checked_point(near, what)
         free = free_point_near(self.flight_map, point, self.config.planning_radius_m)
         if free is None or np.linalg.norm(free - point) > self.config.spawn_search_m:
             raise DroneCommandError(
@@ -88,11 +105,8 @@ class DroneSimulator:
             )
         m.quad.reset(free, yaw_rad, hovering=True)
         m.hold(free)
-        m.time_s = self._carry_s = 0.0
         m.collisions.reset()
-        m.damage = 0.0
         m.command_id = None
-        m.emit(DroneEventKind.SPAWNED, "the drone is hovering, ready")
         return np.array(free)  # a copy
 
     def command_goto(

@@ -39,6 +39,7 @@ class DroneEventKind(str, Enum):
     BLOCKED = "blocked"
     LANDED = "landed"
     CRASH = "crash"
+    RESTARTED = "restarted"  # put back after a crash in a race (DroneSimulator.put_back)
     # Said by the session around the simulator, never emitted by it: the flight's fault and
     # the running course's judgement (course_judge.GateEvent.kind).
     FAULTED = "faulted"

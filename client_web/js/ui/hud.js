@@ -15,7 +15,7 @@ const CLEARANCE_BAD_M = 0.15;
 // While tracking recovers (PROTOCOL.md, "Tracking recovery"): how, said beside the state.
 const RECOVERY = Object.freeze({ relocalised: "found again", segment: "placed roughly", merged: "back in the map" });
 const EVENT_KINDS = Object.freeze({ spawned: "ok", arrived: "ok", landed: "info", replanned: "info", blocked: "warn",
-  collision: "warn", crash: "error" });
+  collision: "warn", crash: "error", restarted: "ok" });
 const COURSE_EVENTS = new Set(["gate_passed", "gate_missed", "course_finished"]); // views/course_view.js shows them
 
 export class Hud {
@@ -71,6 +71,7 @@ export class Hud {
     if (event.event === "crash") this.showBanner(`Crash! ${event.message} (at ${where} m)`, "error", 6000);
     else if (event.event === "collision") this.showBanner(`Bump! ${event.message} (at ${where} m)`, "warn", 3000);
     else if (event.event === "blocked") this.showBanner(`Route blocked: ${event.message}`, "warn", 4000);
+    else if (event.event === "restarted") this.showBanner(`Back in the race: ${event.message}`, "ok", 3000);
     this.toast(`${event.event}: ${event.message}`, EVENT_KINDS[event.event] ?? "info");
   }
 

@@ -74,6 +74,7 @@ BEST_FILE = "course_best.json"  # in the session's folder (SessionStore.file)
 BEST_KEPT = 10  # finished runs kept in the best list
 STATE_PERIOD_S = 0.5  # a running course's message at least this often (simulation time)
 AUTOPILOT_RETRIES = 3  # an interrupted autopilot route is planned anew this often a course
+RESTART_AFTER_S = 1.0  # restart_after_crash: put back this long after a crash (simulation time)
 _FLYING = (DroneMode.HOVER, DroneMode.MANUAL, DroneMode.GOTO)
 
 
@@ -131,6 +132,8 @@ class CourseControl:
         self._sent_at = -np.inf  # simulation time of the last course message
         self._speed: float | None = None
         self._retries = 0  # autopilot routes resumed in this course
+        self.restart_after_crash = False  # put a crashed drone back at the last gate passed
+        self._crashed_at: float | None = None  # simulation time of a crash not restarted yet
 
     # ------------------------------------------------------------------ commands
     def plan(self, difficulty: str, seed: int | None) -> Course:
@@ -221,6 +224,8 @@ class CourseControl:
             status = sim.status()
             self.run = CourseRun(course, status.time_s, status.T_flight_drone[:3, 3])
             self.state, self.autopilot, self.rank = "running", autopilot, None
+            self.restart_after_crash = bool(options.get("restart_after_crash"))
+            self._crashed_at = None
             self._retries = 0
             self.course_id += 1
             self.command_id = command_id
@@ -257,9 +262,33 @@ class CourseControl:
             self.flight.log.warning("the course autopilot gives up: %s", exc)
             self.autopilot = False
 
+    def _restart(self) -> None:
+        """restart_after_crash: put the crashed drone back past the last gate it passed (or at
+        the start), hovering; the run's clock ran on. An autopilot flies on from there."""
+        run = self.run
+        assert run is not None
+        self._crashed_at = None
+        point, heading = run.restart_pose()
+        where = f"gate {run.passed} of {len(run.course.gates)}" if run.passed else "the start"
+        sim = self.flight.sim
+        try:
+            at = sim.put_back(
+                point,
+                float(np.arctan2(heading[1], heading[0])),
+                f"put back at {where} after the crash; the clock ran on",
+            )
+        except DroneCommandError as exc:  # no free space there any more: the pilot takes over
+            self.flight.log.warning("the course could not restart the drone: %s", exc)
+            self.autopilot = False
+            return
+        run.restarted(sim.time_s, at)
+        if self.autopilot:
+            self._resume_autopilot()
+
     def _stop(self, hold: bool) -> None:
         """End the running course (no result); the autopilot's drone stops where it is."""
         self.state = "stopped"
+        self._crashed_at = None
         if hold and self.autopilot and self.flight.sim.mode == DroneMode.GOTO:
             self.flight.sim.command_hold(command_id=self.command_id)
         self.autopilot = False
@@ -291,11 +320,18 @@ class CourseControl:
                 interrupted = True  # a bump stops a goto
             elif event.kind == DroneEventKind.CRASH:
                 run.collision(crash=True)
-                self.autopilot = False  # the crash ended its route: the pilot takes over
+                if self.restart_after_crash:
+                    self._crashed_at = event.time_s
+                else:
+                    self.autopilot = False  # the crash ended its route: the pilot takes over
             elif event.kind == DroneEventKind.BLOCKED:
                 interrupted = True
         if self.autopilot and interrupted and sim.mode == DroneMode.HOVER:
             self._resume_autopilot()
+        if self._crashed_at is not None and (
+            sim.mode == DroneMode.LANDED or sim.time_s - self._crashed_at >= RESTART_AFTER_S
+        ):
+            self._restart()
         status = sim.status()
         gate_events = run.update(status.time_s, status.T_flight_drone[:3, 3])
         for ge in gate_events:

@@ -195,6 +195,7 @@ class SessionHost:
             seed=seed,
             autopilot=autopilot,
             through=through,
+            restart_after_crash=True,  # a pilot who crashes restarts from the last gate
         )
 
     def _flight(self) -> Flight:

@@ -440,3 +440,48 @@ def test_course_commands_are_refused_clearly_when_they_cannot_be_carried_out(tmp
     flight.command("course_start", 6, difficulty="easy", seed=1)  # the pilot flies: fine
     flight.command("course_stop", 7)
     assert courses(published)[-1]["state"] == "stopped"
+
+
+def notices(published, event: str) -> list[DroneNotice]:
+    return [n for n in published if isinstance(n, DroneNotice) and n.event == event]
+
+
+def crash_now(flight: Flight) -> None:
+    """Throw the drone at the floor at 8 m/s: more than it can brake in its height, so the
+    physics ends it in a crash (the crash speed is about 2 m/s)."""
+    with flight.lock:
+        flight.sim._modes.quad.vz = -8.0
+
+
+def test_a_crash_in_a_race_course_puts_the_drone_back_past_the_last_gate_and_it_flies_on():
+    flight, published = flight_in_the_demo_room()
+    flight.command(
+        "course_start", 1, difficulty="easy", seed=5, autopilot=True, restart_after_crash=True
+    )
+    run_ticks(flight, published, lambda p: notices(p, "gate_passed"))
+    crash_now(flight)
+    run_ticks(flight, published, lambda p: notices(p, "restarted"), max_s=5.0)
+    (crash,) = notices(published, "crash")
+    (restarted,) = notices(published, "restarted")
+    assert 0.0 < restarted.timestamp - crash.timestamp <= 1.0 + 0.05
+    assert "gate 1 of 3" in restarted.message
+    # Hovering 0.3 m past the first gate along its normal (world frame), the clock ran on.
+    gates = np.array(courses(published)[0]["gates"]).reshape(-1, 7)
+    assert np.allclose(restarted.position, gates[0, :3] + 0.3 * gates[0, 3:6], atol=0.05)
+    times = [m["elapsed_s"] for m in courses(published)]
+    assert times == sorted(times) and courses(published)[-1]["state"] == "running"
+    # The autopilot flies on from there through the gates left, and finishes.
+    run_ticks(flight, published, lambda p: any(m["state"] == "finished" for m in courses(p)))
+    final = courses(published)[-1]
+    assert final["gate_states"] == ["passed"] * 3 and final["crashes"] == 1
+    assert flight.sim.status().time_s > restarted.timestamp  # one clock, never reset
+
+
+def test_without_restart_after_crash_a_crashed_drone_lands_where_it_falls():
+    flight, published = flight_in_the_demo_room()
+    flight.command("course_start", 1, difficulty="easy", seed=5, autopilot=True)
+    run_ticks(flight, published, lambda p: notices(p, "gate_passed"))
+    crash_now(flight)
+    run_ticks(flight, published, lambda p: notices(p, "landed"), max_s=5.0)
+    assert notices(published, "crash") and not notices(published, "restarted")
+    assert courses(published)[-1]["state"] == "running" and not flight.course.autopilot

@@ -21,7 +21,15 @@ from server.atomic import atomic_write_bytes
 from server.errors import DroneSimError
 
 SESSION_ID = re.compile(r"[0-9a-f]{16}")  # used with fullmatch: "$" would let a "\n" through
-FILES = ("trajectory.tum", "map.npz", "map.ply", "meta.json", "course_best.json")
+FILES = (
+    "trajectory.tum",
+    "map.npz",
+    "map.ply",
+    "meta.json",
+    "course_best.json",
+    "race_best.json",  # a shared room's races (server/sessions/race_results.py)
+    "races.json",
+)
 STAGING = ".snapshot"  # inside a session's folder: the snapshot being written
 # In the sessions folder: held shared by every process that writes sessions' files (the workers,
 # the mappers) for as long as it lives; a starting server takes it exclusively before it cleans.

@@ -32,6 +32,7 @@ from server.transport import (
     routes_client,
     routes_flights,
     routes_phone,
+    routes_races,
     routes_recordings,
     routes_sessions,
     routes_viewers,
@@ -159,6 +160,7 @@ def create_app(config: Config | None = None) -> FastAPI:
         )
     app.include_router(routes_sessions.router)
     app.include_router(routes_flights.router)
+    app.include_router(routes_races.router)
     app.include_router(routes_viewers.router)
     app.include_router(websocket.router)
     app.include_router(viewer_socket.router)

@@ -21,7 +21,9 @@ from server.evaluation.metrics import ate
 from server.evaluation.trajectory import Trajectory
 from server.geometry import invert
 from server.pipeline import ground_truth_pose_at
+from server.transport.schemas import RaceFlights, RaceList
 from tests.conftest import Stream, auth
+from tests.server.test_openapi_server import strictly
 from tests.support.rest import drone_spawned, map_caught_up, wait_for_status
 
 
@@ -302,6 +304,51 @@ def test_a_race_in_a_shared_room_has_every_drone_fly_the_same_gates_and_a_winner
     for sid, token in ((a, token_a), (b, token_b)):  # each judged by its own session
         events = _status(server, sid, token)["drone"]["events"]
         assert events.get("course_finished", 0) >= 1, events
+
+    # Kept in each pilot's session: the race's record and the room's best list.
+    for sid, token in ((a, token_a), (b, token_b)):
+        listing = strictly(RaceList, _get(f"{sessions}/{sid}/races", token))
+        (record,) = listing.races
+        assert record.number == started["race"] and record.seed == started["seed"]
+        assert [p.session for p in record.pilots] == [a, b] and record.owner == a
+        assert [p.rank for p in record.pilots] == last["race_rank"]
+        assert [p.time_s for p in record.pilots] == [round(t, 3) for t in last["race_time_s"]]
+        assert [e.session for e in listing.best] == [
+            record.pilots[winner].session,
+            [a, b][1 - winner],
+        ]
+        assert listing.best[0].time_s <= listing.best[1].time_s
+    # Replayed together: every pilot's flights of the race, each holding the race's course.
+    flown = strictly(RaceFlights, _get(f"{sessions}/{b}/races/{started['race']}/flights", token_b))
+    assert [p.session for p in flown.pilots] == [a, b]
+    for pilot in flown.pilots:
+        raced = [f for f in pilot.flights if (f.get("course") or {}).get("seed") == started["seed"]]
+        assert raced and raced[-1]["result"]["gates_passed"] == 3, pilot.session
+        flight = raced[-1]
+        ends = flight["started_at"] + flight["end_time_s"] - flight["start_time_s"]
+        assert flight["started_at"] <= record.ended_at and ends >= record.started_at
+    r = httpx.get(f"{sessions}/{a}/races/99/flights", headers=auth(token_a))
+    _error(r, 404, "not_found")
+
+    # Another day: the server stops (saving both sessions and the owner's room); a session
+    # continuing in that room starts with the room's best list to beat.
+    best = listing.best
+    server.stop()
+    again = live_server(tmp_path / "data")
+    assert strictly(RaceList, _get(f"{again.url}/api/sessions/{a}/races", token_a)).best == best
+    r = httpx.post(f"{again.url}/api/sessions", json={"room": a}, headers=auth(token_a))
+    assert r.status_code == 201, r.text
+    visit = r.json()
+    carried = strictly(
+        RaceList, _get(f"{again.url}/api/sessions/{visit['id']}/races", visit["token"])
+    )
+    assert carried.races == [] and carried.best == best
+
+
+def _get(url: str, token: str) -> dict:
+    r = httpx.get(url, headers=auth(token))
+    assert r.status_code == 200, r.text
+    return r.json()
 
 
 def _stream_frames(server, sid: str, token: str, ds, frames: list[int]) -> Stream:

@@ -14,6 +14,7 @@ from server.geometry import Intrinsics
 from server.sessions.config import SessionConfig
 from server.sessions.failures import SessionLog
 from server.sessions.flight_store import FlightLog
+from server.sessions.race_results import RACE_BEST_FILE
 from server.sessions.runtime.course_control import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.runtime.flight import Flight
 from server.sessions.store import SessionStore, StoreError
@@ -28,19 +29,29 @@ def course_best_path(store: SessionStore, session_id: str) -> Path | None:
         return None
 
 
-def inherit_course_best(room_dir: Path, target: Path | None, log: logging.LoggerAdapter) -> bool:
-    """The best course runs flown in the room so far become the session's best list to beat
-    (``target``: pilots compete per room, not per visit); a room without any starts empty.
-    False when the disk refused (logged)."""
-    source = room_dir / COURSE_BEST_FILE
-    if target is None or not source.is_file() or target.exists():
-        return True
+def best_list_paths(store: SessionStore, session_id: str) -> list[Path]:
+    """The session's best lists that its room carries to later sessions: the course's and the
+    room's races' (server/sessions/race_results.py); [] for an id the store cannot hold."""
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(target, source.read_bytes())
-    except OSError:
-        log.exception("the room's course best list could not be carried over")
-        return False
+        return [store.file(session_id, name) for name in (COURSE_BEST_FILE, RACE_BEST_FILE)]
+    except StoreError:
+        return []
+
+
+def inherit_best(room_dir: Path, targets: list[Path], log: logging.LoggerAdapter) -> bool:
+    """The best runs and races flown in the room so far become the session's best lists to
+    beat (``targets``, ``best_list_paths``: pilots compete per room, not per visit); a room
+    without any starts empty. False when the disk refused (logged)."""
+    for target in targets:
+        source = room_dir / target.name
+        if not source.is_file() or target.exists():
+            continue
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(target, source.read_bytes())
+        except OSError:
+            log.exception("the room's %s could not be carried over", target.name)
+            return False
     return True
 
 

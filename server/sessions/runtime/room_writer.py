@@ -28,7 +28,6 @@ from server.rooms.room import (
 from server.sessions.errors import SessionError
 from server.sessions.processes.mapper import Mapper, MapperClient
 from server.sessions.runtime.counts import SessionCounts
-from server.sessions.runtime.course_control import BEST_FILE as COURSE_BEST_FILE
 from server.sessions.runtime.loop_closing import Worlds
 
 ROOM_FOLDER = "room"  # in a session's folder: the room it leaves (server/rooms/room.py)
@@ -126,14 +125,15 @@ class RoomWriter:
         session_id: str,
         K: Intrinsics,
         worlds: Worlds | None,
-        course_best: Path | None,
+        carried: list[Path],
         into: Path | None = None,
     ) -> bool:
         """Make the session's folder a room (``room/``: the keyframes, each at its pose in the
         latest corrected world when ``worlds``, and the session's latest snapshot of its map);
-        False when there is no keyframe or no map. The course's best list (``course_best``)
-        goes with it. ``into``: another folder to write the room into (a live session's room,
-        shared with a phone joining it), the keyframe files linked from this one."""
+        False when there is no keyframe or no map. The best lists (``carried``: the course's
+        and the room's races', where the session has them) go with it. ``into``: another
+        folder to write the room into (a live session's room, shared with a phone joining
+        it), the keyframe files linked from this one."""
         with self._lock:
             keyframes = list(self._keyframes)
             kf_worlds = dict(self._worlds)
@@ -151,9 +151,10 @@ class RoomWriter:
             link_keyframes(self.folder, room, [i for i, _, _ in keyframes if i not in base])
         (room / MAP_FILE).unlink(missing_ok=True)
         os.link(session_map, room / MAP_FILE)
-        (room / COURSE_BEST_FILE).unlink(missing_ok=True)
-        if course_best is not None and course_best.is_file():
-            os.link(course_best, room / COURSE_BEST_FILE)
+        for best in carried:
+            (room / best.name).unlink(missing_ok=True)
+            if best.is_file():
+                os.link(best, room / best.name)
         sessions = [
             *self._base_sessions,
             {"session": session_id, "keyframes_after": len(keyframes)},

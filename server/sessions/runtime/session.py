@@ -32,7 +32,7 @@ from server.sessions.failures import SessionLog
 from server.sessions.flight_store import FlightLog
 from server.sessions.processes.mapper import Mapper, MapperClient
 from server.sessions.runtime.counts import SessionCounts
-from server.sessions.runtime.drone_setup import course_best_path, inherit_course_best, make_flight
+from server.sessions.runtime.drone_setup import best_list_paths, inherit_best, make_flight
 from server.sessions.runtime.flight import Flight
 from server.sessions.runtime.fusion import SessionFusion
 from server.sessions.runtime.loop_closing import Correction, LoopClosing
@@ -119,8 +119,8 @@ class Session:
         self.rebuilds: MapRebuilds | None = None
         self.fusion: SessionFusion | None = None
         self.tracking: SessionTracking | None = None
-        if room_dir is not None and not inherit_course_best(
-            room_dir, course_best_path(store, session_id), self.log
+        if room_dir is not None and not inherit_best(
+            room_dir, best_list_paths(store, session_id), self.log
         ):
             self.counts.failed("snapshots_failed")
 
@@ -319,7 +319,7 @@ class Session:
             return False
         worlds = None if self.loops is None else self.loops.worlds
         return self.room.save(
-            self.id, self.intrinsics, worlds, course_best_path(self.store, self.id)
+            self.id, self.intrinsics, worlds, best_list_paths(self.store, self.id)
         )
 
     def share_room(self, folder: Path) -> bool:
@@ -332,7 +332,7 @@ class Session:
         self.snapshot()
         worlds = None if self.loops is None else self.loops.worlds
         return self.room.save(
-            self.id, self.intrinsics, worlds, course_best_path(self.store, self.id), into=folder
+            self.id, self.intrinsics, worlds, best_list_paths(self.store, self.id), into=folder
         )
 
     def fail(self, reason: str) -> None:

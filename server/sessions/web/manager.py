@@ -109,7 +109,7 @@ class SessionManager:
         self._saved: dict[str, dict] = {}  # id -> meta of closed sessions
         self._closing: set[str] = set()  # live sessions being stopped and saved
         self._lock = threading.Lock()
-        self.rooms = SharedRooms(max_room_phones, self.live_session)
+        self.rooms = SharedRooms(max_room_phones, self.live_session, self.store.folder)
 
     # ------------------------------------------------------------------ lifecycle
     def load_saved(self, writers_timeout_s: float = 60.0) -> int:

@@ -29,8 +29,10 @@ class Race:
     autopilot: bool
     starts_at: float
     started_at: float | None = None
+    started_at_unix: float | None = None  # the same moment, Unix seconds (the server's clock)
     pilots: list[str] = field(default_factory=list)
     refused: dict[str, str] = field(default_factory=dict)
+    recorded: bool = False  # its record was written once it finished (race_results.py)
 
     def due(self, now: float) -> bool:
         """The countdown is over and the race not started yet."""
@@ -77,3 +79,38 @@ def ranks(finished: list[bool], time_s: list[float]) -> list[int]:
     for place, (_, i) in enumerate(order, start=1):
         rank[i] = place
     return rank
+
+
+def race_record(
+    race: Race, owner_id: str, members: list[LiveSession], standings: dict, ended_at: float
+) -> dict:
+    """The record of a finished race (server/sessions/race_results.py), from its standings
+    over ``members`` (in the standings' order); ``ended_at``: Unix seconds."""
+    pilots = []
+    for i, member in enumerate(members):
+        course = member.latest_course
+        crashes = 0
+        if race.started_at is not None and course is not None and course[0] >= race.started_at:
+            crashes = course[1]["crashes"]
+        pilots.append(
+            {
+                "session": member.id,
+                "name": member.client_name,
+                "passed": standings["passed"][i],
+                "missed": standings["missed"][i],
+                "time_s": round(standings["time_s"][i], 3),
+                "crashes": int(crashes),
+                "finished": standings["finished"][i],
+                "rank": standings["rank"][i],
+            }
+        )
+    return {
+        "number": race.number,
+        "difficulty": race.difficulty,
+        "seed": race.seed,
+        "gates": [round(float(v), 4) for v in race.gates.ravel()],
+        "started_at": race.started_at_unix,
+        "ended_at": ended_at,
+        "owner": owner_id,
+        "pilots": pilots,
+    }

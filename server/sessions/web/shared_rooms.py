@@ -12,6 +12,7 @@ owner's session has ended.
 from __future__ import annotations
 
 import hmac
+import json
 import logging
 import secrets
 import threading
@@ -23,13 +24,17 @@ from typing import Any
 
 import numpy as np
 
+from server.atomic import atomic_write_bytes
 from server.geometry import quaternion_from_pose
 from server.registration.results import TrackingState
+from server.rooms.room import META_FILE as ROOM_META_FILE
 from server.sessions.errors import SessionError
+from server.sessions.race_results import RACE_BEST_FILE, keep_race, room_best_with
+from server.sessions.runtime.room_writer import ROOM_FOLDER
 from server.sessions.store import hash_token
 from server.sessions.updates import RoomUpdate
 from server.sessions.web.live import LiveSession
-from server.sessions.web.room_race import Race
+from server.sessions.web.room_race import Race, race_record
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +58,17 @@ class SharedRooms:
     """The invitations and the joined phones of every live session's room (web process).
     max_phones: phones in one room, its owner's included."""
 
-    def __init__(self, max_phones: int, live_session: Callable[[str], LiveSession | None]) -> None:
-        """live_session: the live session with an id, or None."""
+    def __init__(
+        self,
+        max_phones: int,
+        live_session: Callable[[str], LiveSession | None],
+        folder: Callable[[str], Path] | None = None,
+    ) -> None:
+        """live_session: the live session with an id, or None; folder: a session's folder,
+        where finished races are kept (None: they are not)."""
         self.max_phones = max_phones
         self.live_session = live_session
+        self.folder = folder
         self._rooms: dict[str, _Room] = {}
         self._owner_of: dict[str, str] = {}  # joined session id -> the room owner's
         self._lock = threading.Lock()
@@ -225,7 +237,7 @@ class SharedRooms:
             race = None if room is None else room.race
             if race is None or not race.due(time.monotonic()):
                 return
-            race.started_at = time.monotonic()
+            race.started_at, race.started_at_unix = time.monotonic(), time.time()
             ids = [owner_id, *room.joined]  # type: ignore[union-attr]
         members = [s for sid in ids if (s := self.live_session(sid)) is not None and not s.closed]
         race.pilots = [m.id for m in members]
@@ -241,6 +253,33 @@ class SharedRooms:
 
         for member in members:
             threading.Thread(target=start, args=(member,), name="race-start", daemon=True).start()
+
+    def _keep_race(
+        self, owner_id: str, race: Race, members: list[LiveSession], standings: dict
+    ) -> None:
+        """A race just finished: its record and the room's best list go into every pilot's
+        session folder (server/sessions/race_results.py), and into the owner's saved room
+        when it has one already (its session ended before the race did)."""
+        if race.recorded or self.folder is None:
+            return
+        race.recorded = True
+        record = race_record(race, owner_id, members, standings, time.time())
+        best = room_best_with(self.folder(owner_id), record)
+        folders = [self.folder(m.id) for m in members]
+        if self.live_session(owner_id) is None and owner_id not in [m.id for m in members]:
+            folders.append(self.folder(owner_id))
+        for folder in folders:
+            try:
+                keep_race(folder, record, best)
+            except OSError:
+                log.exception("race %d: its record could not be kept in %s", race.number, folder)
+        room = self.folder(owner_id) / ROOM_FOLDER
+        if (room / ROOM_META_FILE).is_file():
+            try:
+                atomic_write_bytes(room / RACE_BEST_FILE, json.dumps({"results": best}).encode())
+            except OSError:
+                log.exception("race %d: the room's best list could not be saved", race.number)
+        log.info("race %d finished: %s", race.number, record["pilots"])
 
     def _reap(self, owner_id: str) -> None:
         """Once the owner's session has ended, its mapping process ends after the last
@@ -283,6 +322,8 @@ class SharedRooms:
                 velocities[i] = drone.velocity
         names = [m.client_name for m in members]
         standings = None if race is None else race.standings(members, time.monotonic())
+        if race is not None and standings is not None and standings["race"] == "finished":
+            self._keep_race(owner_id, race, members, standings)
         for i, member in enumerate(members):
             member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras, standings))
         flying = np.array([m != "none" for m in modes])

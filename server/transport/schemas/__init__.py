@@ -23,7 +23,18 @@ from server.transport.schemas.flights import (
 )
 from server.transport.schemas.phone import PhoneLinkBody
 from server.transport.schemas.recordings import RecordingCreated, RecordingFrame, RecordingIndex
-from server.transport.schemas.rooms import InviteCreated, RaceStart, RaceStarted, SharedRoom
+from server.transport.schemas.rooms import (
+    InviteCreated,
+    RaceBestEntry,
+    RaceFlights,
+    RaceList,
+    RacePilot,
+    RacePilotFlights,
+    RaceRecord,
+    RaceStart,
+    RaceStarted,
+    SharedRoom,
+)
 from server.transport.schemas.sessions import (
     CourseBest,
     CourseResult,
@@ -61,6 +72,12 @@ __all__ = [
     "LoopClosure",
     "MapStats",
     "PhoneLinkBody",
+    "RaceBestEntry",
+    "RaceFlights",
+    "RaceList",
+    "RacePilot",
+    "RacePilotFlights",
+    "RaceRecord",
     "RaceStart",
     "RaceStarted",
     "RecordingCreated",

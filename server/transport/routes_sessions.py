@@ -89,7 +89,7 @@ _NO_MAP: _Responses = {
         409: error_response(
             "`room_unavailable`: the session `room` saved no room, or the live room `join` has "
             "mapped nothing yet; `room_full`: the room `join` holds the server's "
-            "max_room_phones"
+            "max_room_phones, or (Ray) its node has no free CPU for another phone"
         ),
         422: error_response("`room` and `join` both given"),
     },

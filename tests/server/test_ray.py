@@ -2,10 +2,12 @@
 on the loopback only: sessions land on both nodes, poses flow, a second front-end takes a
 session's socket over, a restarted front-end finds the live sessions again, a delete ends the
 actor; each actor's map is fused in a mapper process of its own, whose death fails the session
-as under the process workers.
+as under the process workers; a shared room runs on its owner's node with one map, which serves
+a joined phone past its owner's end and ends after it.
 
-One module-scoped cluster (two nodes of one CPU each); the front-ends are real uvicorn servers in
-this process, sharing its Ray driver connection (as separate processes they would each have one).
+One module-scoped cluster (two nodes of two CPUs each: a room's owner and a phone fit on one);
+the front-ends are real uvicorn servers in this process, sharing its Ray driver connection (as
+separate processes they would each have one).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import pytest
 import websockets
 
 from tests.conftest import LiveServer, Stream, auth, missing, process_running, session_status
-from tests.support.rest import create_session
+from tests.support.rest import CREATE_TIMEOUT_S, create_session, map_caught_up, wait_for_status
 
 # Ray's processes then use 127.0.0.1 for their node address and sockets (see NOTES-ray.md);
 # read when Ray's constants are imported, so before the first ``import ray``.
@@ -57,13 +59,13 @@ def cluster(tmp_path_factory):
     cluster = Cluster(
         initialize_head=True,
         head_node_args={
-            "num_cpus": 1,
+            "num_cpus": 2,
             "temp_dir": os.path.join(temp, "ray"),
             "include_dashboard": False,
         },
     )
     try:
-        cluster.add_node(num_cpus=1)
+        cluster.add_node(num_cpus=2)
         cluster.wait_for_nodes()
         ray.init(
             address=cluster.address,
@@ -325,5 +327,131 @@ def test_a_sessions_map_is_fused_in_its_actors_mapper_process_whose_death_fails_
         assert status["closed"] is True and "mapping process died" in status["failure"], status
         meta = (data / "sessions" / sid / "meta.json").read_text()
         assert "mapping process died" in meta
+    finally:
+        front.stop()
+
+
+def _end_leftover_sessions() -> None:
+    """End the session actors the earlier tests left (a front-end that stops lets go of its
+    sessions), and wait until every CPU of the cluster is free again."""
+    for entry in ray.util.list_named_actors(all_namespaces=True):
+        if entry["namespace"] == NAMESPACE and entry["name"].startswith("session-"):
+            try:
+                ray.kill(ray.get_actor(entry["name"], namespace=NAMESPACE), no_restart=True)
+            except ValueError:
+                continue
+    deadline = time.monotonic() + 30
+    while ray.available_resources().get("CPU", 0) < ray.cluster_resources()["CPU"]:
+        assert time.monotonic() < deadline, ray.available_resources()
+        time.sleep(0.2)
+
+
+def _stream_range(front, sid: str, token: str, ds, first: int, n: int) -> Stream:
+    async def run() -> Stream:
+        s = await Stream(front.ws_url, sid, token, ds).open()
+        await s.send_range(range(n), first_index=first)
+        await s.close()
+        return s
+
+    return asyncio.run(run())
+
+
+def _open_room(front, ds, frames: int) -> tuple[str, str, str, str, str]:
+    """An owner session that streamed ``frames`` frames of ``ds`` and stays live, and a phone
+    joined into its room: (owner id, its token, the phone's id, its token, the join token)."""
+    sessions = f"{front.url}/api/sessions"
+    a, token_a = create_session(front.url)
+    _stream_range(front, a, token_a, ds, 0, frames)
+    wait_for_status(front.url, a, token_a, map_caught_up, "the owner's map")
+    join_token = httpx.post(f"{sessions}/{a}/invites", headers=auth(token_a)).json()["join_token"]
+    r = httpx.post(sessions, json={"join": a}, headers=auth(join_token), timeout=CREATE_TIMEOUT_S)
+    assert r.status_code == 201, r.text
+    return a, token_a, r.json()["id"], r.json()["token"], join_token
+
+
+def _gone(map_pid: int, actor_sid: str) -> bool:
+    """The room's map process is gone (reaped: not even a zombie) and so is the owner's actor,
+    within 30 s."""
+    deadline = time.monotonic() + 30
+    while Path(f"/proc/{map_pid}").exists() or _actor_alive(actor_sid):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.2)
+    return True
+
+
+def test_a_shared_room_runs_on_its_owners_node_with_one_map(
+    cluster, shared_data, tmp_path, monkeypatch
+):
+    """A phone joins a live room under Ray: its actor is placed on the owner's node (the room's
+    map listens there, on an abstract Unix socket), starts no mapper and fuses into the owner's
+    map (both sessions report that map, grown by the phone's frames). With the node's CPUs
+    taken, another phone is refused with room_full (the room's node, not the cluster). The
+    owner's end (closed and saved; in a second room, deleted) leaves the map serving the phone
+    on, the owner's actor lingering for it; after the phone's end the map's process is gone
+    (reaped by that actor: no orphan) and so is the actor."""
+    from server.sessions.processes import ray_workers
+
+    _end_leftover_sessions()
+    ds = open_dataset(shared_data / "7scenes_a")
+    front = LiveServer(tmp_path / "data", ray=cluster.address)
+    sessions = f"{front.url}/api/sessions"
+    try:
+        a, token_a, b, token_b, join_token = _open_room(front, ds, 40)
+        owner = session_status(front.url, a, token_a)["map"]
+        worker_a = session_status(front.url, a, token_a)["worker"]
+        worker_b = session_status(front.url, b, token_b)["worker"]
+        assert worker_a["node_id"] == worker_b["node_id"], (worker_a, worker_b)
+        map_pid = worker_a["mapper_pid"]
+        assert worker_b["mapper_pid"] is None and process_running(map_pid)
+
+        # Placed in the owner's room, and its frames fuse into the owner's map: one map.
+        s_b = _stream_range(front, b, token_b, ds, 60, 20)
+        states = [p["state"] for p in s_b.poses]
+        first_ok = next(k for k, st in enumerate(states) if st != "lost")
+        assert first_ok <= 5 and states.count("lost") == first_ok, states
+        joined = wait_for_status(front.url, b, token_b, map_caught_up, "the phone's fusion")
+        shared = session_status(front.url, a, token_a)["map"]
+        assert shared["frames_integrated"] == joined["map"]["frames_integrated"]
+        assert shared["frames_integrated"] > owner["frames_integrated"], (shared, owner)
+
+        # The owner's node (2 CPUs) is full: a third phone has nowhere to run.
+        monkeypatch.setattr(ray_workers, "START_TIMEOUT_S", 3.0)
+        r = httpx.post(sessions, json={"join": a}, headers=auth(join_token), timeout=60)
+        assert r.status_code == 409 and r.json()["error"]["code"] == "room_full", r.text
+        assert "node" in r.json()["error"]["message"], r.text
+        monkeypatch.undo()
+
+        # The owner's session closes (as the reaper closes it: saved): the room's map serves
+        # the phone on, its actor lingering for it.
+        assert front.app.state.manager.close(a)
+        assert session_status(front.url, a, token_a)["closed"] is True
+        before = session_status(front.url, b, token_b)["map"]["frames_integrated"]
+        s_later = _stream_range(front, b, token_b, ds, 80, 9)
+        assert all(p["state"] != "lost" for p in s_later.poses), s_later.poses
+        later = wait_for_status(front.url, b, token_b, map_caught_up, "the map, owner gone")
+        assert later["map"]["frames_integrated"] > before, later["map"]
+        assert process_running(map_pid) and _actor_alive(a)
+
+        # The phone leaves: the map's process ends, reaped by the owner's actor, which ends.
+        assert httpx.delete(f"{sessions}/{b}", headers=auth(token_b)).status_code == 204
+        assert _gone(map_pid, a), "the room's map or its owner's actor outlived its phones"
+        assert not _actor_alive(b)
+
+        # A deleted owner (ended at once, unsaved) leaves its room's map serving too.
+        a, token_a, b, token_b, _ = _open_room(front, ds, 12)
+        map_pid = session_status(front.url, a, token_a)["worker"]["mapper_pid"]
+        assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
+        s_b = _stream_range(front, b, token_b, ds, 4, 6)
+        assert any(p["state"] != "lost" for p in s_b.poses), s_b.poses
+        assert (
+            wait_for_status(front.url, b, token_b, map_caught_up, "the map")["map"][
+                "frames_integrated"
+            ]
+            > 0
+        )
+        assert process_running(map_pid) and _actor_alive(a)
+        assert httpx.delete(f"{sessions}/{b}", headers=auth(token_b)).status_code == 204
+        assert _gone(map_pid, a), "the room's map or its owner's actor outlived its phones"
     finally:
         front.stop()

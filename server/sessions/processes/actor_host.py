@@ -12,6 +12,15 @@ process dies any other way (its end of the pipe closes with it; the mapper ends 
 in hand). A mapper that dies fails the session as under the process workers (``MapperLost`` ->
 ``Session.fail`` -> ``SessionFailed``: the front-end then stops and saves it).
 
+A **shared room** has one map, as under the process workers (server/sessions/processes/
+room_map.py): the mapper also listens for the room's phones at ``room_map`` (a ``NodeRoom``: an
+abstract Unix socket, so on this node only, and the node's id, where the front-end places the
+phones that join); the actor of a phone that joined starts no mapper and fuses into the room's.
+Once a phone has joined (``room_shared``), the session's end leaves the mapper serving the
+phones on: ``release`` ends the session without touching the mapper, and the actor stays, its
+CPU reserved, until the mapper has ended after the last phone (``wait_for_map``, which reaps it:
+no orphan) and then ends itself (ray_workers.py ``SessionActor.linger``).
+
 How it starts: a fresh interpreter (a fork of the actor, whose threads, Ray's among them, may
 hold locks, is unsafe), by ``subprocess`` rather than multiprocessing's ``spawn``: ``spawn`` runs
 the parent's ``__main__`` again in the child, here Ray's worker script, which would import Ray
@@ -30,10 +39,12 @@ import sys
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from server.sessions.errors import SessionError
 from server.sessions.processes.ipc import attempt
+from server.sessions.processes.room_map import RoomAddress
 
 if TYPE_CHECKING:
     from server.sessions.processes.mapper import MapperClient
@@ -43,11 +54,25 @@ log = logging.getLogger(__name__)
 _UPDATES_KEPT = 256  # updates waiting for the owner's poll; beyond, the oldest are skipped
 
 
+@dataclass(frozen=True)
+class NodeRoom(RoomAddress):
+    """Where a room's map listens under Ray: its abstract Unix socket exists on one machine
+    only, the Ray node ``node_id``, where every phone that joins the room must run."""
+
+    node_id: str = ""
+
+    @classmethod
+    def on(cls, node_id: str, session_id: str) -> NodeRoom:
+        room = RoomAddress.new(session_id)
+        return cls(room.address, room.authkey, node_id)
+
+
 class ActorHost:
     """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
-    owner, until another front-end sends a hello)."""
+    owner, until another front-end sends a hello); ``node_id``: the Ray node it runs on (its
+    room's map is reached there only)."""
 
-    def __init__(self, args, owner: str) -> None:
+    def __init__(self, args, owner: str, node_id: str = "") -> None:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         self._cond = threading.Condition()
         self._turn = threading.Lock()  # one ordered call at a time
@@ -60,8 +85,21 @@ class ActorHost:
         self.foreign_frames = 0  # frames from a front-end that was no longer the owner
         self.skipped_updates = 0
         self.args = args
-        # First, so that its interpreter starts while this one imports the session's stack.
-        self.mapper_process, mapper = start_mapper(args)
+        # Its own map, which the phones joining its room reach at ``room_map`` too; or, for a
+        # phone that joined a room, none: it fuses into the room's (on this node).
+        self.room_map: NodeRoom | None = None
+        self.mapper_process: subprocess.Popen | None = None
+        # Phones joined the room: the session's end leaves the mapper serving them (``release``).
+        self.room_shared = False
+        if args.room_map is None:
+            self.room_map = NodeRoom.on(node_id, args.session_id)
+            # First, so that its interpreter starts while this one imports the session's stack.
+            self.mapper_process, mapper = start_mapper(args, self.room_map)
+        else:
+            from server.sessions.processes.mapper import MapperClient
+
+            why = ": the room's map, which ended with the session of the phone that invited"
+            mapper = MapperClient(args.room_map.connect(), why)
         try:
             from server.sessions.runtime.host import SessionHost
 
@@ -69,9 +107,11 @@ class ActorHost:
             mapper.stats()  # up and answering (raises MapperLost when it died starting)
         except BaseException:
             mapper.close()
-            end_mapper(self.mapper_process)
+            if self.mapper_process is not None:
+                end_mapper(self.mapper_process)
             raise
-        self.info: dict = self.host.describe() | {"mapper_pid": self.mapper_process.pid}
+        pid = None if self.mapper_process is None else self.mapper_process.pid
+        self.info: dict = self.host.describe() | {"mapper_pid": pid}
 
     def _publish(self, item) -> None:  # any of the session's threads
         with self._cond:
@@ -88,6 +128,8 @@ class ActorHost:
             "data_dir": self.args.data_dir,
             "info": self.info,
             "ended": self._ended,
+            "room_map": self.room_map,
+            "room_shared": self.room_shared,
         }
 
     def ordered(self, owner: str, number: int, method: str, args: tuple):
@@ -141,12 +183,17 @@ class ActorHost:
             with self._cond:
                 self._ended = "closed"
                 self._cond.notify_all()
-            end_mapper(self.mapper_process)
+            if self.mapper_process is not None and not self.room_shared:
+                end_mapper(self.mapper_process)
             return meta
         raise ValueError(f"not an ordered method: {method}")
 
     def query(self, method: str, args: tuple):
-        """Status, meta, downloads, drain, snapshots: beside the ordered calls."""
+        """Status, meta, downloads, drain, snapshots: beside the ordered calls. ``share_map``:
+        a phone joined the session's room (its map now serves past the session's end)."""
+        if method == "share_map":
+            self.room_shared = True
+            return True, None
         ok, value = attempt(self.host, method, args, log)
         if ok and method == "status":
             value = value | {
@@ -177,6 +224,28 @@ class ActorHost:
                 "ended": self._ended,
             }
 
+    # ---- a shared room's map, past the session's end
+
+    def release(self) -> bool:
+        """End the session if it is still live (a delete: no save), its mapper left serving the
+        room's phones; returns whether the mapper still runs (it ends after the last phone,
+        ``wait_for_map``)."""
+        with self._turn:
+            if self._ended is None:
+                try:
+                    self.host.stop(False)  # its pipe to the mapper closes: the mapper serves on
+                except Exception:
+                    log.exception("session %s: ending it failed", self.args.session_id)
+                with self._cond:
+                    self._ended = "closed"
+                    self._cond.notify_all()
+        return self.mapper_process is not None and self.mapper_process.poll() is None
+
+    def wait_for_map(self) -> None:
+        """Until the room's map has ended (after its last phone), and reap its process."""
+        if self.mapper_process is not None:
+            self.mapper_process.wait()
+
 
 # ---- the session's mapper process ----------------------------------------------------------------
 
@@ -187,10 +256,11 @@ _MAPPER_MAIN = (
 )
 
 
-def start_mapper(args) -> tuple[subprocess.Popen, MapperClient]:
+def start_mapper(args, room: RoomAddress | None = None) -> tuple[subprocess.Popen, MapperClient]:
     """Start the session's mapper process, a child of this one (the process workers' mapper:
-    ``mapper_main``, one Open3D thread, its priority lowered); returns (the process, a
-    ``MapperClient`` on it). It imports what this process can (its ``sys.path``)."""
+    ``mapper_main``, one Open3D thread, its priority lowered), listening for the room's phones
+    at ``room`` when given; returns (the process, a ``MapperClient`` on it). It imports what
+    this process can (its ``sys.path``)."""
     from server.sessions.processes.mapper import MapperClient
 
     here, there = multiprocessing.Pipe(duplex=True)
@@ -209,20 +279,21 @@ def start_mapper(args) -> tuple[subprocess.Popen, MapperClient]:
         )
     finally:
         there.close()  # the child's now: its end of the pipe closes with it
-    here.send((args.config.mapping, args.session_id))  # waits in the pipe for the child
+    here.send((args.config.mapping, args.session_id, room))  # waits in the pipe for the child
     return process, MapperClient(here)
 
 
 def mapper_child(fd: int) -> None:
-    """The mapper process's start: the session's mapping configuration from the pipe, then
-    ``mapper_main`` until the pipe closes."""
+    """The mapper process's start: the session's mapping configuration (and its room's
+    address) from the pipe, then ``mapper_main`` until the pipe closes and, for a shared room,
+    until its last phone has gone."""
     from multiprocessing.connection import Connection
 
     from server.sessions.processes.mapper import mapper_main
 
     conn = Connection(fd)
-    config, session_id = conn.recv()
-    mapper_main(conn, config, 1, session_id)
+    config, session_id, room = conn.recv()
+    mapper_main(conn, config, 1, session_id, room=room)
 
 
 def end_mapper(process: subprocess.Popen, timeout_s: float = 10.0) -> None:

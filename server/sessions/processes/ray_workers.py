@@ -14,6 +14,16 @@ Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
 - **The map** is fused in a mapper process the actor starts as its child (on its node, ending
   with it; actor_host.py), as the process workers fuse theirs beside the worker: never in a
   thread beside tracking, where Open3D's integrate would hold the GIL.
+- **A shared room runs on one node, with one map**, as under the process workers: the owner's
+  mapper listens for the room's phones on an abstract Unix socket, which exists on its machine
+  only (``RayWorker.room_map``, a ``NodeRoom`` naming the owner's node); a joining phone's actor
+  is placed on that node (``NodeAffinitySchedulingStrategy``, not soft), starts no mapper and
+  fuses into the room's. Rather than the placement group the issue asked for: affinity keeps a
+  room on one node without reserving CPUs for phones that may never join. No free CPU on the
+  owner's node within ``START_TIMEOUT_S``: ``room_full``. Once a phone has joined
+  (``room_shared``), the owner's end leaves its actor up, its CPU reserved, while its mapper
+  serves the phones on; it ends itself after the mapper, which ends after the last phone
+  (``release``, ``linger``).
 - **Order**: the hello, frames, commands and the stop go through one ``ordered`` entry point,
   submitted by one sender thread per session with a running number per front-end; the actor runs
   them strictly by that number (and counts any it had to run out of turn in ``out_of_order``),
@@ -50,10 +60,12 @@ from dataclasses import replace
 
 import ray
 from ray.exceptions import GetTimeoutError, RayActorError
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from server.sessions.errors import SessionError
 from server.sessions.processes.actor_client import MAX_FRAMES_IN_FLIGHT, ActorClient
 from server.sessions.processes.actor_host import ActorHost
+from server.sessions.processes.room_map import RoomAddress
 from server.sessions.processes.session_process import WorkerLost
 from server.sessions.web.live import SessionTakenOver
 
@@ -66,6 +78,7 @@ SESSION_CPUS = 1
 SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's actor
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0
+RELEASE_TIMEOUT_S = 60.0  # a shared room's owner ending its session, its map left serving
 _ORDERED = {"configure", "frame", "command", "stop"}
 _ID = re.compile(r"[0-9A-Za-z_-]{1,64}")
 
@@ -80,17 +93,17 @@ def actor_name(session_id: str) -> str:
 # Ray's typing of remote() with options lists the task options only, not the actor's
 # concurrency_groups.
 @ray.remote(  # type: ignore[call-overload]
-    concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8}
+    concurrency_groups={"ordered": MAX_FRAMES_IN_FLIGHT + 2, "query": 2, "poll": 8, "end": 2}
 )
 class SessionActor:
     """The Ray actor of one session: each entry point in its concurrency group, the work done
     by an ActorHost (server/sessions/processes/actor_host.py)."""
 
     def __init__(self, args, owner: str) -> None:
-        self.core = ActorHost(args, owner)
-        context = ray.get_runtime_context()
+        node_id = ray.get_runtime_context().get_node_id()
+        self.core = ActorHost(args, owner, node_id)
         self.core.info |= {
-            "node_id": context.get_node_id(),
+            "node_id": node_id,
             "node_ip": ray.util.get_node_ip_address(),
             "actor": actor_name(args.session_id),
             "cpus": SESSION_CPUS,
@@ -112,6 +125,22 @@ class SessionActor:
     def updates(self, owner: str, timeout_s: float) -> dict:
         return self.core.updates(owner, timeout_s)
 
+    @ray.method(concurrency_group="end")
+    def release(self) -> bool:
+        """A shared room's owner's end: the session ends (if still live, unsaved) and, while
+        its mapper still serves the room's phones, this actor lingers (True) and ends after it."""
+        serving = self.core.release()
+        if serving:
+            ray.get_runtime_context().current_actor.linger.remote()
+        return serving
+
+    @ray.method(concurrency_group="end")
+    def linger(self) -> None:
+        """Wait for the room's map to end after its last phone (its process reaped), then end
+        this actor, freeing its CPU."""
+        self.core.wait_for_map()
+        ray.actor.exit_actor()
+
 
 # ---- the front-end's side --------------------------------------------------------------------
 
@@ -125,6 +154,28 @@ class RayWorker(ActorClient):
 
     kind = "ray"
     backend: RayWorkers
+    # The room's map runs on the actor's node, a child of the actor, which reaps it itself:
+    # nothing for SharedRooms to reap here.
+    mapper_process = None
+
+    def __init__(self, backend, actor, session_id, identity, on_update, on_lost, owner) -> None:
+        super().__init__(backend, actor, session_id, identity, on_update, on_lost, owner)
+        # Where the phones that join its room reach its map (on its node); None for a phone
+        # that joined a room.
+        self.room_map: RoomAddress | None = identity.get("room_map")
+        self._room_shared = bool(identity.get("room_shared"))
+        self._sharing = None  # the call that told the actor so, awaited before a stop
+
+    @property
+    def room_shared(self) -> bool:
+        """Phones joined the session's room: its map serves them past the session's end."""
+        return self._room_shared
+
+    @room_shared.setter
+    def room_shared(self, shared: bool) -> None:  # SharedRooms.joined, under its lock: no wait
+        if shared and not self._room_shared:
+            self._room_shared = True
+            self._sharing = self.actor.query.remote("share_map", ())
 
     @property
     def alive(self) -> bool:
@@ -212,6 +263,8 @@ class RayWorker(ActorClient):
             self._let_go("the front-end let go of the session")
             return self._meta_on_disk()
         self._stopped = True
+        if self._sharing is not None:  # its stop then leaves the room's map serving
+            ray.wait([self._sharing], timeout=30)
         try:
             meta = self.call("stop", save, timeout_s=timeout_s)
         except WorkerLost:
@@ -223,14 +276,25 @@ class RayWorker(ActorClient):
         return meta
 
     def kill(self) -> None:
-        """End the actor at once (a session deleted, or one that stopped answering)."""
+        """End the actor at once (a session deleted, or one that stopped answering). A shared
+        room's owner whose map still serves joined phones ends its session and lingers instead
+        (``SessionActor.release``), unless it does not answer."""
         self._stopped = True
         self._closing = True
         self._let_go("the session's actor was ended")
+        if self._room_shared and self._release():
+            return
         try:
             ray.kill(self.actor, no_restart=True)
         except Exception as exc:  # already gone
             log.debug("session %s: kill: %s", self.session_id, exc)
+
+    def _release(self) -> bool:
+        try:
+            return bool(ray.get(self.actor.release.remote(), timeout=RELEASE_TIMEOUT_S))
+        except (GetTimeoutError, RayActorError) as exc:
+            log.warning("session %s: its room's map could not be kept: %s", self.session_id, exc)
+            return False
 
 
 def _killed(exc: RayActorError) -> bool:
@@ -298,19 +362,31 @@ class RayWorkers:
 
     def start(self, args, session) -> RayWorker:
         args = replace(args, threads=SESSION_THREADS)
+        # A phone joining a room runs on the node of the room's map (its socket is that
+        # machine's), or nowhere: not soft.
+        room_node = getattr(args.room_map, "node_id", "")
+        strategy = (
+            NodeAffinitySchedulingStrategy(node_id=room_node, soft=False) if room_node else "SPREAD"
+        )
         # mypy keeps the class a decorator returns as the plain class; it is Ray's ActorClass.
         actor = SessionActor.options(  # type: ignore[attr-defined]
             name=actor_name(args.session_id),
             namespace=NAMESPACE,
             lifetime="detached",
             num_cpus=SESSION_CPUS,
-            scheduling_strategy="SPREAD",
+            scheduling_strategy=strategy,
             max_restarts=0,
         ).remote(args, self.owner)
         try:
             identity = ray.get(actor.identity.remote(), timeout=START_TIMEOUT_S)
         except GetTimeoutError:
             ray.kill(actor, no_restart=True)
+            if room_node:
+                raise SessionError(
+                    "room_full",
+                    f"the room's node (its owner's, where the room's map runs) had no free CPU "
+                    f"for another phone within {START_TIMEOUT_S:.0f} s; try again later",
+                ) from None
             raise SessionError(
                 "server_full",
                 f"the Ray cluster did not start the session within "

@@ -306,15 +306,24 @@ def make_room(
     drones: ArrayLike,
     cameras: ArrayLike,
     race: Mapping | None = None,
+    routes: Sequence[ArrayLike | None] | None = None,
 ) -> dict:
     """drones, cameras: (N, 7) world frame, per pilot a centre (m) and a unit quaternion
     [qx, qy, qz, qw]; zeros where there is none. race: the room's race (RaceStandings'
     fields: race, number, starts_in_s, gates, and per pilot passed, missed, time_s,
-    finished, rank), or None."""
+    finished, rank), or None. routes: per pilot its route ahead, (K, 3) world frame metres
+    (at most ROOM_ROUTE_POINTS), or None; left out when none has one."""
     n = len(pilots)
     fields: dict = {}
+    arrays = [
+        np.zeros((0, 3)) if r is None else np.asarray(r, float).reshape(-1, 3) for r in routes or []
+    ]
+    if any(len(a) for a in arrays):
+        flat = np.concatenate(arrays)
+        fields["route_lengths"] = [len(a) for a in arrays]
+        fields["routes"] = _floats(flat, flat.size, "routes")
     if race is not None:
-        fields = {
+        fields |= {
             "race": str(race["race"]),
             "race_number": int(race["number"]),
             "race_starts_in_s": max(0.0, float(race["starts_in_s"])),

@@ -93,6 +93,7 @@ class RoomUpdate:
     drones: np.ndarray
     cameras: np.ndarray
     race: dict | None = None  # the room's race standings (server/sessions/web/room_race.py)
+    routes: list[np.ndarray | None] | None = None  # per pilot its route ahead, (K, 3) or None
 
 
 @dataclass

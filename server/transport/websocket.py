@@ -213,7 +213,14 @@ def update_messages(
         return [_drone_state(item)], chunk
     if isinstance(item, RoomUpdate):
         room = proto.make_room(
-            item.names, item.you, item.placed, item.modes, item.drones, item.cameras, item.race
+            item.names,
+            item.you,
+            item.placed,
+            item.modes,
+            item.drones,
+            item.cameras,
+            item.race,
+            item.routes,
         )
         return [room], chunk
     if isinstance(item, DroneNotice):

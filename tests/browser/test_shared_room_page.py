@@ -146,8 +146,15 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
     assert "(you)" in seen["listed"][0] and "placing…" in seen["listed"][1], seen["listed"]
     seen = room(["me", "b"], [True, True], ["hover", "hover"], pose + moved, pose + moved)
     assert [d["index"] for d in seen["map_others"]] == [1] and len(seen["listed"]) == 2, seen
+    assert seen["map_routes"] == [], seen
+    # The other pilot's route ahead, drawn on the map in its colour.
+    routed = dict(route_lengths=[0, 3], routes=[0.5, -0.2, 1.5, 1.0, 0.0, 1.4, 2.0, 0.5, 1.2])
+    seen = room(["me", "b"], [True, True], ["hover", "goto"], pose + moved, pose + moved, routed)
+    assert [r["index"] for r in seen["map_routes"]] == [1], seen
+    assert np.allclose(seen["map_routes"][0]["points"], np.reshape(routed["routes"], (3, 3)))
     seen = room(["me", "b"], [True, True], ["hover", "none"], pose + [0.0] * 7, pose + moved)
     assert seen["others_drawn"] == 0 and "no drone" in seen["listed"][1], seen
+    assert seen["map_routes"] == [], seen
     # A race: the countdown, then each pilot's gates, time and place, and the winner.
     race = dict(race="countdown", race_number=1, race_starts_in_s=2.4, race_gates=3)
     race.update(race_passed=[0, 0], race_missed=[0, 0], race_time_s=[0.0, 0.0])

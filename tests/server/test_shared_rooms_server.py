@@ -295,6 +295,14 @@ def test_a_race_in_a_shared_room_has_every_drone_fly_the_same_gates_and_a_winner
     rooms = _room_until(server, a, token_a, ds, lambda m: m.get("race") == "finished", 90)
     states = [m.get("race") for m in rooms]
     assert states[0] == "countdown" and "running" in states, states
+    # Each drone's route ahead travels with the room, starting where the drone is.
+    routed = [m for m in rooms if min(m.get("route_lengths", [0])) >= 2]
+    assert routed, "no room message carried both autopilots' routes"
+    m = routed[-1]
+    starts = np.cumsum([0, *m["route_lengths"][:-1]])
+    routes = np.reshape(m["routes"], (-1, 3))
+    drones = np.reshape(m["drones"], (-1, 7))[:, :3]
+    assert np.all(np.linalg.norm(routes[starts] - drones, axis=1) < 0.3), (routes[starts], drones)
     last = rooms[-1]
     assert last["race"] == "finished", last
     assert last["race_finished"] == [True, True] and last["race_missed"] == [0, 0], last

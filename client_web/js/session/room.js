@@ -20,20 +20,36 @@ function raceOf(message, index) {
     rank: message.race_rank[index] ?? 0 };
 }
 
+/** Each pilot's route ahead (the message's route_lengths and routes): a flat [x, y, z, ...]
+ * list per pilot, null where it flies none (two points at least make a route). */
+function routesOf(message) {
+  const lengths = message.route_lengths ?? [];
+  const routes = [];
+  let at = 0;
+  for (const n of lengths) {
+    routes.push(n >= 2 ? message.routes.slice(3 * at, 3 * (at + n)) : null);
+    at += n;
+  }
+  return routes;
+}
+
 /**
  * A `room` message as plain data: {you, pilots: [{index, name, you, placed, mode, drone,
- * camera, race}], race}; drone and camera are {position, quaternion} in the room's world frame,
- * or null (no drone: mode "none"; not placed: no camera). race: {state (countdown, running,
+ * camera, route, race}], race}; drone and camera are {position, quaternion} in the room's world
+ * frame, or null (no drone: mode "none"; not placed: no camera); route: the drone's route ahead,
+ * flat [x, y, z, ...] in the world frame, or null. race: {state (countdown, running,
  * finished), number, startsIn (s), gates} and each pilot's {passed, missed, time, finished,
  * rank}, or null without a race.
  */
 export function roomPilots(message) {
+  const routes = routesOf(message);
   const pilots = message.pilots.map((name, index) => {
     const mode = message.modes[index] ?? "none";
     const placed = message.placed[index] === true;
     return { index, name, you: index === message.you, placed, mode,
       drone: mode === "none" ? null : poseAt(message.drones, index),
-      camera: placed ? poseAt(message.cameras, index) : null, race: raceOf(message, index) };
+      camera: placed ? poseAt(message.cameras, index) : null,
+      route: mode === "none" ? null : routes[index] ?? null, race: raceOf(message, index) };
   });
   const race = message.race ? { state: message.race, number: message.race_number,
     startsIn: message.race_starts_in_s, gates: message.race_gates } : null;

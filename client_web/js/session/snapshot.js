@@ -38,7 +38,7 @@ export function pageSnapshot(app) {
     course: course.snapshot(),
     // A shared room: its pilots, and the other pilots' drones drawn (AR: with their pixels).
     room: { ...app.roomHud.snapshot(), others_drawn: map.others.drones.size, ar_others: ar.lastDraw.others ?? [],
-      map_others: map.others.drawn(), map_cameras: map.others.camerasDrawn(), invite: app.invite.link,
+      map_others: map.others.drawn(), map_cameras: map.others.camerasDrawn(), map_routes: map.others.routesDrawn(), invite: app.invite.link,
       started_race: app.invite.race_ },
   };
 }

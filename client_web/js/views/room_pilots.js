@@ -1,6 +1,6 @@
 // The other pilots of a shared room (session/room.js), drawn in a view: each one's drone, in a
-// colour of its own (this page's drone keeps the magenta paint), and, where asked (the map),
-// its phone's camera as a small frustum. One group in the world frame: the map view adds it to
+// colour of its own (this page's drone keeps the magenta paint), the route it flies (a line in
+// its colour), and, where asked (the map), its phone's camera as a small frustum. One group in the world frame: the map view adds it to
 // its scene, the AR view to its `world` group (moved with the shown frame). Objects follow the
 // pilot's index in the room; a pilot that leaves, or whose drone has no mode ("none"), loses
 // its drone at the next update.
@@ -31,6 +31,20 @@ function createFrustum(colour) {
   return frustum;
 }
 
+/** The line of a pilot's route, in its colour (the own route is yellow: map_view.js). */
+function createRouteLine(colour) {
+  const line = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: colour }));
+  line.frustumCulled = false;
+  line.matrixAutoUpdate = false; // its points are in the world frame
+  return line;
+}
+
+function pointsOf(flat) {
+  const points = [];
+  for (let i = 0; i + 2 < flat.length; i += 3) points.push(new THREE.Vector3(flat[i], flat[i + 1], flat[i + 2]));
+  return points;
+}
+
 function poseMatrix({ position, quaternion }) {
   return new THREE.Matrix4().compose(new THREE.Vector3(...position), new THREE.Quaternion(...quaternion),
     new THREE.Vector3(1, 1, 1));
@@ -46,6 +60,7 @@ export class RoomPilots {
     this.halo = halo;
     this.drones = new Map(); // pilot index -> drone Object3D
     this.frusta = new Map(); // pilot index -> camera frustum
+    this.routes = new Map(); // pilot index -> its route's line
     this.room = null;
   }
 
@@ -62,7 +77,12 @@ export class RoomPilots {
     });
     changed = this.#sync(this.frusta, withCamera, (p) => createFrustum(pilotColour(p.index)),
       (object, p) => object.matrix.copy(poseMatrix(p.camera))) || changed;
-    return changed || withDrone.size > 0 || withCamera.size > 0;
+    const withRoute = new Map(others.filter((p) => p.route).map((p) => [p.index, p]));
+    changed = this.#sync(this.routes, withRoute, (p) => createRouteLine(pilotColour(p.index)), (line, p) => {
+      line.geometry.dispose();
+      line.geometry = new THREE.BufferGeometry().setFromPoints(pointsOf(p.route));
+    }) || changed;
+    return changed || withDrone.size > 0 || withCamera.size > 0 || withRoute.size > 0;
   }
 
   /** Add, move and remove objects so that `objects` holds one per entry of `wanted`. */
@@ -131,6 +151,14 @@ export class RoomPilots {
       out.push(item);
     }
     return out;
+  }
+
+  /** The other pilots' routes drawn: [{index, points: [[x, y, z], ...]}] (world frame). */
+  routesDrawn() {
+    return [...this.routes].map(([index, line]) => {
+      const a = line.geometry.getAttribute("position");
+      return { index, points: Array.from({ length: a.count }, (_, i) => [a.getX(i), a.getY(i), a.getZ(i)]) };
+    });
   }
 
   /** The other phones' cameras drawn: [{index, position}]. */

@@ -4,9 +4,9 @@ phone that shows the token opens a session of its own, placed in the owner's roo
 The joined session has its own tracker and drone. It continues in the owner's room: its first
 frames are placed by place recognition in the room's keyframes as they stood when the phone
 joined (``Session.share_room``), then it tracks in the owner's world frame and fuses into the
-owner's map, the room's one map (server/sessions/processes/room_map.py; under Ray, a copy of
-it). Join tokens are kept as their SHA-256 only, like session tokens, and open nothing once the
-owner's session has ended.
+owner's map, the room's one map (server/sessions/processes/room_map.py; under Ray on the
+owner's node: ray_workers.py). Join tokens are kept as their SHA-256 only, like session tokens,
+and open nothing once the owner's session has ended.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from server.sessions.web.room_race import Race, race_record
 log = logging.getLogger(__name__)
 
 ROOM_HZ = 5.0  # room messages per second to each socket of a room with two or more phones
+ROOM_ROUTE_POINTS = 32  # of each drone's route in a room message (protocol.json's limit)
 
 
 @dataclass
@@ -311,6 +312,7 @@ class SharedRooms:
         placed, modes = [False] * n, ["none"] * n
         drones, cameras = np.zeros((n, 7)), np.zeros((n, 7))
         velocities = np.zeros((n, 3))
+        routes: list[np.ndarray | None] = [None] * n
         for i, member in enumerate(members):
             pose, drone = member.viewers.latest()
             if pose is not None and pose.state is not TrackingState.LOST:
@@ -320,12 +322,13 @@ class SharedRooms:
                 modes[i] = drone.mode
                 drones[i] = _centre_and_rotation(drone.T_world_drone)
                 velocities[i] = drone.velocity
+                routes[i] = _shortened(drone.route)
         names = [m.client_name for m in members]
         standings = None if race is None else race.standings(members, time.monotonic())
         if race is not None and standings is not None and standings["race"] == "finished":
             self._keep_race(owner_id, race, members, standings)
         for i, member in enumerate(members):
-            member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras, standings))
+            member.deliver(RoomUpdate(names, i, placed, modes, drones, cameras, standings, routes))
         flying = np.array([m != "none" for m in modes])
         # While a race runs the drones are ghosts to each other, as in a racing game's time
         # trial: all fly the same line through the same gates, and none may block another.
@@ -370,6 +373,16 @@ class SharedRooms:
         with self._lock:
             room = self._rooms.get(owner_id)
             return [] if room is None else list(room.joined)
+
+
+def _shortened(route: np.ndarray | None) -> np.ndarray | None:
+    """A route (K, 3) as the room message carries it: at most ROOM_ROUTE_POINTS, its first
+    ones and its goal (the room's view of a route, not one to fly)."""
+    if route is None or len(route) == 0:
+        return None
+    if len(route) <= ROOM_ROUTE_POINTS:
+        return route
+    return np.vstack([route[: ROOM_ROUTE_POINTS - 1], route[-1:]])
 
 
 def _centre_and_rotation(T: np.ndarray) -> np.ndarray:

@@ -123,6 +123,7 @@ def example_messages() -> dict[str, dict]:
                 "finished": [False, False],
                 "rank": [0, 0],
             },
+            [np.array([[0.5, -0.2, 1.5], [1.0, 0.0, 1.4], [2.0, 0.5, 1.2]]), None],
         ),
         "error": P.make_error("corrupt_image", "colour: not a complete JPEG", seq=3),
     }
@@ -568,3 +569,9 @@ def test_every_close_code_says_whether_a_client_reconnects():
     assert set(ways.values()) <= {"never", "when_active", "when_asked", "retry"}, ways
     assert ways["version_mismatch"] == ways["unauthorized"] == ways["session_failed"] == "never"
     assert ways["idle_timeout"] == "when_active" and ways["session_taken_over"] == "when_asked"
+
+
+def test_a_room_message_carries_a_race_and_routes_together():
+    room = P.decode(P.encode(example_messages()["room"]))
+    assert room["race"] == "running" and room["race_rank"] == [0, 0]
+    assert room["route_lengths"] == [3, 0] and len(room["routes"]) == 9

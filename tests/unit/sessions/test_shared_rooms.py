@@ -64,3 +64,43 @@ def test_a_room_whose_sessions_have_all_ended_is_forgotten(rooms):
     del live["p2"]
     shared._forget_if_over("owner")
     assert shared.owner_of("p2") is None and shared.phones("owner") == []
+
+
+def test_a_room_message_carries_each_route_cut_to_its_first_points_and_its_goal():
+    import numpy as np
+
+    from server import protocol as P
+    from server.sessions.web.shared_rooms import ROOM_ROUTE_POINTS, _shortened
+
+    long = np.arange(3 * 50, dtype=float).reshape(50, 3)
+    cut = _shortened(long)
+    assert len(cut) == ROOM_ROUTE_POINTS
+    assert np.array_equal(cut[:-1], long[: ROOM_ROUTE_POINTS - 1]) and np.array_equal(
+        cut[-1], long[-1]
+    )
+    assert _shortened(None) is None and _shortened(np.zeros((0, 3))) is None
+    short = long[:4]
+    pose = [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    message = P.make_room(
+        ["a", "b"],
+        0,
+        [True, True],
+        ["goto", "hover"],
+        [pose, pose],
+        [pose, pose],
+        routes=[cut, short],
+    )
+    decoded = P.decode(P.encode(message))
+    assert decoded["route_lengths"] == [ROOM_ROUTE_POINTS, 4]
+    assert np.allclose(np.reshape(decoded["routes"], (-1, 3)), np.vstack([cut, short]))
+    # Without a route the fields are left out (today's message, unchanged).
+    plain = P.make_room(
+        ["a", "b"],
+        0,
+        [True, True],
+        ["hover", "hover"],
+        [pose, pose],
+        [pose, pose],
+        routes=[None, None],
+    )
+    assert "routes" not in plain and "route_lengths" not in plain

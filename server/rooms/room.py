@@ -181,13 +181,20 @@ def room_keyframe(
     return RoomKeyframe(kf_id, frame_index, T_world_keyframe.copy(), colour, depth, place)
 
 
-def check_camera(room: Room, K: Intrinsics, tolerance: float = 0.02) -> None:
-    """Raise RoomError unless ``K`` is the room's camera (size equal, focal lengths and centre
-    within ``tolerance`` relative): place features and keyframes hold only for that camera."""
+def same_camera(room: Room, K: Intrinsics, tolerance: float = 0.02) -> bool:
+    """Whether ``K`` is the room's camera: size equal, focal lengths and centre within
+    ``tolerance`` relative."""
     R = room.intrinsics
-    if (R.width, R.height) != (K.width, K.height) or not np.allclose(
-        [K.fx, K.fy, K.cx, K.cy], [R.fx, R.fy, R.cx, R.cy], rtol=tolerance
-    ):
+    return (R.width, R.height) == (K.width, K.height) and bool(
+        np.allclose([K.fx, K.fy, K.cx, K.cy], [R.fx, R.fy, R.cx, R.cy], rtol=tolerance)
+    )
+
+
+def check_camera(room: Room, K: Intrinsics) -> None:
+    """Raise RoomError unless ``K`` is the room's camera (``same_camera``): a run that adds its
+    keyframes to the room (one camera per room file) needs it."""
+    if not same_camera(room, K):
+        R = room.intrinsics
         raise RoomError(f"the room was mapped with another camera ({R}), this one is {K}")
 
 

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from server.geometry import Intrinsics
+from server.registration import Tracker
 from server.registration.config import RegistrationConfig
+from server.rooms.continuation import RoomTracker
 from server.rooms.room import (
     MAP_FILE,
     Room,
@@ -49,6 +51,27 @@ def continued_room(
     mapper.load(str(room_dir / MAP_FILE))
     log.info("continues in the room %s (%d keyframes)", room_dir, len(room.keyframes))
     return room
+
+
+def track_and_keep(
+    room: Room | None,
+    room_dir: Path | None,
+    K: Intrinsics,
+    cfg: RegistrationConfig,
+    session_folder: Path,
+    counts: SessionCounts,
+    log: logging.LoggerAdapter,
+) -> tuple[Tracker | RoomTracker, RoomWriter]:
+    """A session's tracker and the room it leaves: a fresh world without ``room``, else
+    placed in it. Another phone than the room's may continue in it (a friend's, joining a
+    shared room): once placed it tracks from keyframes of its own, and the room it leaves
+    holds those only (one camera per room file), in the room's frame, beside the whole map."""
+    if room is None:
+        return Tracker(K, cfg), RoomWriter(session_folder, cfg, counts, log)
+    tracker = RoomTracker(room, K, cfg, other_camera=True)
+    if not tracker.same_camera:
+        return tracker, RoomWriter(session_folder, cfg, counts, log)
+    return tracker, RoomWriter(session_folder, cfg, counts, log, room, room_dir)
 
 
 class RoomWriter:

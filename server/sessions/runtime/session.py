@@ -38,7 +38,7 @@ from server.sessions.runtime.fusion import SessionFusion
 from server.sessions.runtime.loop_closing import Correction, LoopClosing
 from server.sessions.runtime.rebuilds import MapRebuilds, loop_figures
 from server.sessions.runtime.room_writer import ROOM_FOLDER as ROOM_FOLDER
-from server.sessions.runtime.room_writer import RoomWriter, continued_room
+from server.sessions.runtime.room_writer import RoomWriter, continued_room, track_and_keep
 from server.sessions.runtime.session_map import SessionMap
 from server.sessions.runtime.snapshots import Snapshots
 from server.sessions.runtime.tracking import SessionTracking, live_step
@@ -149,11 +149,14 @@ class Session:
             room = None  # a fresh session starts an empty world
             if self.room_dir is not None:
                 room = continued_room(self.room_dir, cfg, self.mapper, self.log)
-            self.tracker = (
-                Tracker(intrinsics, cfg) if room is None else RoomTracker(room, intrinsics, cfg)
-            )
-            self.room = RoomWriter(
-                self.store.folder(self.id), cfg, self.counts, self.log, room, self.room_dir
+            self.tracker, self.room = track_and_keep(
+                room,
+                self.room_dir,
+                intrinsics,
+                cfg,
+                self.store.folder(self.id),
+                self.counts,
+                self.log,
             )
             if self.loops_wanted:
                 self.loops = LoopClosing(

@@ -1,15 +1,35 @@
 // The "Flights" dialog: the session's recorded flights (replay one over the map, or fly against
-// its ghost), the ghost of the best flight during a new one, and the "share viewer link" button
-// (a read-only link another phone opens to watch this session live).
+// its ghost), the ghost of the best flight during a new one, its shared room's races (the room's
+// best list, and each race this session flew in, replayed with every pilot's drone at once:
+// views/race_replay.js), and the "share viewer link" button (a read-only link another phone
+// opens to watch this session live).
 
 import { bestFlight, FlightLibrary, FlightReplay, Ghost } from "../views/flight_replay.js";
+import { RaceReplay } from "../views/race_replay.js";
+import { pilotColour } from "../views/room_pilots.js";
 
 const $ = (selector) => document.querySelector(selector);
+const hex = (colour) => `#${colour.toString(16).padStart(6, "0")}`;
+const plural = (n, word) => `${n} ${word}${n === 1 ? "" : word.endsWith("sh") ? "es" : "s"}`;
 
 function describe(f) {
   const parts = [`#${f.id}`, `${f.duration_s.toFixed(1)} s`, f.end ?? "in progress"];
   if (typeof f.result?.score === "number") parts.push(`score ${f.result.score}`);
   return parts.join(" · ");
+}
+
+/** A best-list entry (RaceBestEntry): "alice · 4.2 s · 0 missed · 1 crash · easy · race 3". */
+function describeBest(e) {
+  return [e.pilot || "(no name)", `${e.time_s.toFixed(1)} s`, `${e.missed} missed`, plural(e.crashes, "crash"),
+    e.difficulty, `race ${e.race}`].join(" · ");
+}
+
+/** A race pilot (RacePilot): "#1 alice 4.2 s", or "bob 2/3 gates" when it did not finish. */
+function describePilot(p, gates) {
+  const name = p.name || "(no name)";
+  if (!p.finished) return `${name} ${p.passed}/${gates} gates, did not finish`;
+  const extra = [p.missed ? `${p.missed} missed` : "", p.crashes ? plural(p.crashes, "crash") : ""].filter(Boolean);
+  return `${p.rank ? `#${p.rank} ` : ""}${name} ${p.time_s.toFixed(1)} s${extra.length ? ` (${extra.join(", ")})` : ""}`;
 }
 
 export class FlightsPanel {
@@ -18,8 +38,11 @@ export class FlightsPanel {
     this.app = app;
     this.library = new FlightLibrary(app.client);
     this.replay = new FlightReplay(app.map);
+    this.raceReplay = new RaceReplay(app.map, { onStop: (ended) => ended && this.#raceReplayEnded() });
     this.ghost = new Ghost(app.map);
     this.flights = [];
+    this.races = []; // the races this session flew in (RaceRecord), oldest first
+    this.best = []; // its room's best list (RaceBestEntry)
     this.viewerLink = null;
     $("#btn-flights").addEventListener("click", () => this.open());
     $("#btn-share").addEventListener("click", () => this.share());
@@ -33,6 +56,7 @@ export class FlightsPanel {
 
   async refresh() {
     const status = $("#flights-status");
+    const races = this.library.races().catch(() => ({ races: [], best: [] })); // none: the part hides
     try {
       this.flights = await this.library.list();
       status.textContent = this.flights.length ? "" : "no flight recorded yet: every flight is, from take-off to landing";
@@ -41,6 +65,8 @@ export class FlightsPanel {
       status.textContent = exc.message;
     }
     this.#render();
+    ({ races: this.races, best: this.best } = await races);
+    this.#renderRaces();
   }
 
   #render() {
@@ -65,12 +91,70 @@ export class FlightsPanel {
     }
   }
 
+  /** The Races part, shown when the session has races or its room a best list: the best list,
+   * and each race (newest first) with its pilots, each in its drone's colour, and "Replay
+   * together". */
+  #renderRaces() {
+    $("#races").hidden = !this.races.length && !this.best.length;
+    $("#race-best-title").hidden = !this.best.length;
+    $("#race-best").replaceChildren(...this.best.map((e, i) => {
+      const item = document.createElement("li");
+      item.dataset.session = e.session;
+      item.textContent = `${i + 1}. ${describeBest(e)}`;
+      return item;
+    }));
+    $("#race-list").replaceChildren(...[...this.races].reverse().map((race) => {
+      const item = document.createElement("li");
+      item.dataset.race = String(race.number);
+      const gates = race.gates.length / 7;
+      const label = document.createElement("span");
+      label.append(`Race ${race.number} (${race.difficulty}, ${gates} gates): `);
+      const order = [...race.pilots.keys()].sort((a, b) =>
+        (race.pilots[a].rank || Infinity) - (race.pilots[b].rank || Infinity) || a - b);
+      order.forEach((index, k) => {
+        const pilot = document.createElement("b");
+        pilot.className = "race-pilot";
+        pilot.dataset.pilot = String(index);
+        pilot.style.color = hex(pilotColour(index)); // its drone's colour in the replay
+        pilot.textContent = describePilot(race.pilots[index], gates);
+        label.append(...(k ? [" · ", pilot] : [pilot]));
+      });
+      const replay = document.createElement("button");
+      replay.type = "button";
+      replay.textContent = "Replay together";
+      replay.addEventListener("click", () => this.playRace(race.number));
+      item.append(label, replay);
+      return item;
+    }));
+  }
+
+  /** Replay race `number` over the map: every pilot's drone at once (the map view is shown). */
+  async playRace(number, speed = 1) {
+    try {
+      const data = await this.library.raceFlights(number);
+      $("#flights").close();
+      const view = document.body.classList;
+      if (view.contains("layout-ar") || view.contains("layout-fpv")) this.app.setView("map");
+      this.replay.stop();
+      this.raceReplay.play(data, speed);
+      const length = data.race.ended_at - data.race.started_at;
+      this.app.hud.toast(`replaying race ${number} (${length.toFixed(1)} s, ${data.pilots.length} pilots)`, "info", 3000);
+    } catch (exc) {
+      this.app.hud.toast(exc.message, "error", 6000);
+    }
+  }
+
+  #raceReplayEnded() {
+    this.app.hud.toast(`race ${this.raceReplay.race.number} replayed`, "info", 2500);
+  }
+
   /** Replay a recorded flight over the map (the map view is shown). */
   async play(flightId, speed = 1) {
     try {
       const flight = await this.library.load(flightId);
       $("#flights").close();
       if (document.body.classList.contains("layout-ar")) this.app.setView("split");
+      this.raceReplay.stop();
       this.replay.play(flight, speed);
       this.app.hud.toast(`replaying flight #${flight.id} (${flight.duration_s.toFixed(1)} s)`, "info", 3000);
     } catch (exc) {
@@ -124,6 +208,7 @@ export class FlightsPanel {
 
   tick(now) {
     this.replay.tick(now);
+    this.raceReplay.tick(now);
   }
 
   snapshot() {
@@ -133,6 +218,10 @@ export class FlightsPanel {
       replay: { playing: this.replay.playing, elapsed: this.replay.elapsed, flight: this.replay.marker.flight?.id ?? null, pose: pose(this.replay.marker) },
       ghost: { flight: this.ghost.flight?.id ?? null, pose: pose(this.ghost.marker) },
       viewerLink: this.viewerLink?.url ?? null,
+      races: { shown: !$("#races").hidden, list: this.races, best: this.best,
+        listed: [...document.querySelectorAll("#race-list li > span")].map((el) => el.textContent),
+        bestListed: [...document.querySelectorAll("#race-best li")].map((el) => el.textContent) },
+      raceReplay: this.raceReplay.snapshot(),
     };
   }
 }

@@ -19,7 +19,7 @@ const EVENT_TEXT = { gate_passed: "ok", gate_missed: "warn", course_finished: "o
 
 /** One gate's look: a ring (torus) in the plane normal to the way through, a cone pointing that
  * way at its centre (shown for the next gate), in the gate's own frame (z = the normal). */
-function gateMesh(radius, tube) {
+export function gateMesh(radius, tube) {
   const group = new THREE.Group();
   group.matrixAutoUpdate = false;
   const material = new THREE.MeshBasicMaterial({ color: GATE_COLOURS.pending, transparent: true, opacity: 0.95 });

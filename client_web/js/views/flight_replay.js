@@ -1,8 +1,10 @@
-// Recorded flights on the map view: the session's flights over REST, a flight's pose at any
-// time (states interpolated), a replay of a flight, and a translucent "ghost" of a chosen (or
-// the best) flight flying beside the live drone during a new flight. A flight is the JSON of
-// GET /api/sessions/{id}/flights/{flight_id}.json (shared/PROTOCOL.md, "Flight recordings"):
-// rows of state_columns (t s, x y z m and vx vy vz m/s in the world frame, qx qy qz qw, mode).
+// Recorded flights on the map view: the session's flights (and its shared room's races) over
+// REST, a flight's pose at any time (states interpolated), a replay of one flight or of several
+// drones' flights at once on one wall clock (a race: views/race_replay.js), and a translucent
+// "ghost" of a chosen (or the best) flight flying beside the live drone during a new flight. A
+// flight is the JSON of GET /api/sessions/{id}/flights/{flight_id}.json (shared/PROTOCOL.md,
+// "Flight recordings"): rows of state_columns (t s, x y z m and vx vy vz m/s in the world frame,
+// qx qy qz qw, mode); its rows happened at wall clock started_at + t - start_time_s (Unix s).
 
 import * as THREE from "three";
 import { createDrone } from "./drone_model.js";
@@ -36,6 +38,16 @@ export class FlightLibrary {
     const flight = await this.#get(`flights/${encodeURIComponent(flightId)}.json`);
     if (flight.finished) this.cache.set(flightId, flight);
     return flight;
+  }
+
+  /** The shared-room races this session flew in and its room's best list: {races, best}. */
+  async races() {
+    return this.#get("races");
+  }
+
+  /** Every pilot's flights of race `number`: {race, pilots: [{session, name, flights}]}. */
+  async raceFlights(number) {
+    return this.#get(`races/${encodeURIComponent(number)}/flights`);
   }
 }
 
@@ -75,23 +87,40 @@ export function poseAt(flight, elapsed) {
   return { position, quaternion: [q.x, q.y, q.z, q.w], mode: (w < 0.5 ? a : b)[c.mode] };
 }
 
-/** A translucent drone and its recorded path, drawn in a MapView's scene. */
+/** Of a drone's flights (each with started_at, Unix seconds), the one to show at wall clock
+ * `wall` and the time into it: the latest one opened by then (clamped to its end once it
+ * closed: the drone stays where it landed), else the first (at its start); null for none. */
+export function flightAt(flights, wall) {
+  let chosen = null;
+  for (const f of flights) {
+    if ((f.started_at ?? 0) <= wall && (chosen === null || f.started_at >= chosen.started_at)) chosen = f;
+  }
+  chosen ??= flights.reduce((first, f) => (first === null || f.started_at < first.started_at ? f : first), null);
+  return chosen && { flight: chosen, elapsed: wall - (chosen.started_at ?? 0) };
+}
+
+/** A drone and its recorded path, drawn in a MapView's scene: translucent in one colour (a
+ * ghost, the replayed flight), or with `paint` ({colour, emissive}: drone_model.js) an opaque
+ * drone in that paint (a pilot of a replayed race). path: false draws no path. */
 export class FlightMarker {
-  constructor(mapView, { colour = 0x4dd0e1, opacity = 0.45, name = "ghost" } = {}) {
+  constructor(mapView, { colour = 0x4dd0e1, opacity = 0.45, name = "ghost", paint = null, path = true } = {}) {
     this.map = mapView;
-    this.drone = createDrone();
+    this.drone = createDrone(paint ?? undefined);
     this.drone.name = name;
-    this.drone.traverse((o) => {
-      if (!o.material) return;
-      o.material = o.material.clone();
-      o.material.color?.setHex(colour);
-      o.material.emissive?.setHex(0x000000);
-      o.material.transparent = true;
-      o.material.opacity = opacity;
-      o.material.depthWrite = false;
-    });
+    if (!paint) {
+      this.drone.traverse((o) => {
+        if (!o.material) return;
+        o.material = o.material.clone();
+        o.material.color?.setHex(colour);
+        o.material.emissive?.setHex(0x000000);
+        o.material.transparent = true;
+        o.material.opacity = opacity;
+        o.material.depthWrite = false;
+      });
+    }
     this.drone.visible = false;
-    this.path = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: colour, transparent: true, opacity: 0.6 }));
+    this.drawsPath = path;
+    this.path = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: paint?.colour ?? colour, transparent: true, opacity: 0.6 }));
     this.path.frustumCulled = false;
     this.path.visible = false;
     mapView.scene.add(this.drone, this.path);
@@ -101,11 +130,16 @@ export class FlightMarker {
 
   show(flight) {
     this.flight = flight;
-    const c = Object.fromEntries(flight.state_columns.map((name, i) => [name, i]));
-    const points = flight.states.map((r) => new THREE.Vector3(r[c.x], r[c.y], r[c.z]));
     this.path.geometry.dispose();
-    this.path.geometry = new THREE.BufferGeometry().setFromPoints(points);
-    this.path.visible = points.length > 1;
+    if (this.drawsPath) {
+      const c = Object.fromEntries(flight.state_columns.map((name, i) => [name, i]));
+      const points = flight.states.map((r) => new THREE.Vector3(r[c.x], r[c.y], r[c.z]));
+      this.path.geometry = new THREE.BufferGeometry().setFromPoints(points);
+      this.path.visible = points.length > 1;
+    } else {
+      this.path.geometry = new THREE.BufferGeometry();
+      this.path.visible = false;
+    }
     this.setTime(0);
   }
 
@@ -120,40 +154,121 @@ export class FlightMarker {
     this.map.dirty = true;
   }
 
+  /** Put the drone where its flights (flightAt) put it at wall clock `wall` (Unix seconds). */
+  setWall(flights, wall) {
+    const at = flightAt(flights, wall);
+    if (!at) return;
+    if (at.flight !== this.flight) this.show(at.flight);
+    this.setTime(at.elapsed);
+  }
+
   hide() {
     this.flight = null;
     this.pose = null;
     this.drone.visible = this.path.visible = false;
     this.map.dirty = true;
   }
+
+  /** Take the drone and its path out of the scene for good. */
+  dispose() {
+    this.hide();
+    this.map.scene.remove(this.drone, this.path);
+    this.path.geometry.dispose();
+    this.drone.traverse((o) => o.geometry?.dispose());
+  }
 }
 
-/** Plays a recorded flight over the map at `speed` x real time; call tick(now) every frame. */
+/** Plays recorded flights over the map at `speed` x real time, one drone or several at once on
+ * one wall clock (a race's pilots); call tick(now) every frame. The clock runs from `from` to
+ * `to` (Unix seconds, the flights' started_at clock) and the replay stops by itself at `to`. */
 export class FlightReplay {
   constructor(mapView) {
-    this.marker = new FlightMarker(mapView, { colour: 0xffb300, opacity: 0.8, name: "replay" });
+    this.map = mapView;
+    this.single = null; // play()'s drone, made on first use
+    this.tracks = []; // [{marker, flights}]: a drone and the flights it replays
     this.playing = false;
-    this.elapsed = 0;
+    this.paused = false;
+    this.elapsed = 0; // seconds of replay clock since `from`
+    this.pausedAt = null; // performance.now() when paused
+    this.from = 0;
+    this.to = 0;
+    this.speed = 1;
+    this.onStop = null; // called once when the replay ends or is stopped: (ended: boolean)
   }
 
+  /** The drone that play() flies: amber, translucent, along its path. */
+  get marker() {
+    this.single ??= new FlightMarker(this.map, { colour: 0xffb300, opacity: 0.8, name: "replay" });
+    return this.single;
+  }
+
+  /** Replay one recorded flight (the amber drone along its path), gone 2 s after its end. */
   play(flight, speed = 1) {
-    this.marker.show(flight);
-    this.speed = speed;
-    this.startedAt = performance.now();
-    this.elapsed = 0;
-    this.playing = true;
+    const from = flight.started_at ?? 0;
+    this.playTracks([{ marker: this.marker, flights: [flight] }], { from, to: from + flight.duration_s + 2, speed });
   }
 
-  stop() {
+  /** Replay several drones at once: tracks [{marker, flights}], each marker flying its flights
+   * (FlightMarker.setWall) on the one clock from `from` to `to` (Unix seconds). onStop(ended):
+   * called once, when the clock reaches `to` (true) or the replay is stopped (false). */
+  playTracks(tracks, { from, to, speed = 1, onStop = null }) {
+    this.stop();
+    this.tracks = tracks;
+    this.from = from;
+    this.to = Math.max(from, to);
+    this.speed = speed;
+    this.onStop = onStop;
+    this.elapsed = 0;
+    this.anchor = { now: performance.now(), elapsed: 0 };
+    this.playing = true;
+    this.paused = false;
+    this.pausedAt = null;
+    this.#place();
+  }
+
+  /** The replay's clock now, Unix seconds. */
+  get clock() {
+    return this.from + this.elapsed;
+  }
+
+  get duration() {
+    return this.to - this.from;
+  }
+
+  /** Hold the clock (on: true) or let it run on from where it stands. */
+  pause(on = true) {
+    if (!this.playing || on === this.paused) return;
+    this.paused = on;
+    this.anchor = { now: performance.now(), elapsed: this.elapsed };
+    this.pausedAt = on ? this.anchor.now : null; // a draw after it shows the held drones
+    this.map.dirty = true; // the held picture is drawn
+  }
+
+  stop(ended = false) {
+    const wasPlaying = this.playing;
     this.playing = false;
-    this.marker.hide();
+    this.paused = false;
+    this.pausedAt = null;
+    for (const { marker } of this.tracks) marker.hide();
+    const onStop = this.onStop;
+    this.onStop = null;
+    if (wasPlaying) onStop?.(ended);
   }
 
   tick(now) {
-    if (!this.playing) return;
-    this.elapsed = ((now - this.startedAt) / 1000) * this.speed;
-    this.marker.setTime(this.elapsed);
-    if (this.elapsed > this.marker.flight.duration_s + 2) this.stop(); // ended: gone after 2 s
+    if (!this.playing || this.paused) return;
+    // A frame's time may precede a start or resume made during that frame.
+    this.elapsed = this.anchor.elapsed + Math.max(0, ((now - this.anchor.now) / 1000) * this.speed);
+    if (this.elapsed > this.duration) {
+      this.elapsed = this.duration;
+      this.stop(true);
+      return;
+    }
+    this.#place();
+  }
+
+  #place() {
+    for (const { marker, flights } of this.tracks) marker.setWall(flights, this.clock);
   }
 }
 

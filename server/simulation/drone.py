@@ -48,7 +48,7 @@ from server.simulation.drone_types import (
 from server.simulation.flight_map import FlightMap
 from server.simulation.map_regions import Box, Region
 from server.simulation.modes import DroneModes
-from server.simulation.other_drones import WithDrones
+from server.simulation.other_drones import WithDrones, clear_of_drones
 from server.simulation.pilot_modes import FlightMode
 from server.simulation.route import PlanningError, Route
 from server.simulation.route_following import Replanner
@@ -77,7 +77,8 @@ class DroneSimulator:
 
     def spawn(self, near: ArrayLike, yaw_rad: float = 0.0) -> FloatArray:
         """Appear hovering in observed free space as close to ``near`` as possible (within
-        spawn_search_m); returns the position. Time restarts at 0; a ``spawned`` event follows."""
+        spawn_search_m), clear of the room's other drones (``set_others``); returns the
+        position. Time restarts at 0; a ``spawned`` event follows."""
         m = self._modes
         free = self._hover_near(near, yaw_rad, "spawn point")
         m.time_s = self._carry_s = 0.0
@@ -98,6 +99,10 @@ class DroneSimulator:
         m = self._modes
         point = checked_point(near, what)
         free = free_point_near(self.flight_map, point, self.config.planning_radius_m)
+        if free is not None and len(self.other_centres):  # not into a drone of the room
+            free = clear_of_drones(
+                self.flight_map, free, self.other_centres, self.config, self.config.spawn_search_m
+            )
         if free is None or np.linalg.norm(free - point) > self.config.spawn_search_m:
             raise DroneCommandError(
                 f"no observed free space for the drone within {self.config.spawn_search_m} m "

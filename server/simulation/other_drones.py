@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from server.geometry.arrays import BoolArray, FloatArray
+from server.simulation.config import SimulationConfig
 from server.simulation.flight_map import FlightMap
 
 # The others' positions are carried on at their velocity for at most this long after they
@@ -118,3 +119,34 @@ class WithDrones:
             gap = np.linalg.norm(closest - self.centres[None], axis=-1).min(axis=-1)
             free = free & (gap >= radius_m + self.radius_m)
         return np.asarray(free)
+
+
+def clear_of_drones(
+    flight_map: FlightMap,
+    point: FloatArray,
+    centres: FloatArray,
+    config: SimulationConfig,
+    reach_m: float,
+    step_m: float = 0.1,
+) -> FloatArray | None:
+    """``point`` (flight frame, metres; free in the map) when no other drone's sphere is within
+    a planning radius of this drone's there, else the nearest point that is, and has the
+    map's planning clearance, on a grid of ``step_m`` within ``reach_m`` of ``point``; None
+    when there is none (a room's drones fill the space). Where a drone appears (its spawn,
+    a race's restart), so that it does not appear inside another."""
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    apart = config.radius_m + config.planning_radius_m  # sphere to sphere, with the margin
+    n = int(reach_m / step_m)
+    axis = np.arange(-n, n + 1) * step_m
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    grid = grid[np.linalg.norm(grid, axis=1) <= reach_m]
+    grid = grid[np.argsort(np.linalg.norm(grid, axis=1), kind="stable")]
+    candidates = point + grid
+    far = np.linalg.norm(candidates[:, None, :] - centres[None], axis=2).min(axis=1) >= apart
+    candidates = candidates[far]
+    if len(candidates) == 0:
+        return None
+    if far[0]:  # the point itself (offset 0 comes first)
+        return np.array(point, dtype=float)
+    clear = flight_map.distance(candidates) >= config.planning_radius_m
+    return np.array(candidates[np.argmax(clear)]) if clear.any() else None

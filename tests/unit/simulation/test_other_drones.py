@@ -9,7 +9,7 @@ import pytest
 
 from server.simulation.config import SimulationConfig
 from server.simulation.drone import DroneSimulator
-from server.simulation.drone_types import DroneEventKind, DroneMode
+from server.simulation.drone_types import DroneCommandError, DroneEventKind, DroneMode
 from server.simulation.other_drones import CARRY_ON_S, OtherDrones, WithDrones
 from server.simulation.scenes import room_with_door
 
@@ -81,3 +81,26 @@ def test_other_drones_are_carried_on_at_their_velocity_for_a_while():
     np.testing.assert_allclose(others.at(10.1), [[1.1, 0.0, 1.0]])
     np.testing.assert_allclose(others.at(20.0), [[1.0 + CARRY_ON_S, 0.0, 1.0]])
     assert len(others) == 1
+
+
+def test_a_drone_appears_clear_of_the_rooms_other_drones():
+    """Two phones of a room often stand side by side: the second drone spawns (or a race
+    restarts it) where the first hovers. It appears at the nearest free point clear of it."""
+    flight_map = room_with_door().flight_map
+    alone = DroneSimulator(CONFIG, flight_map)
+    assert np.allclose(alone.spawn(START), START)  # free: where it was asked to
+    drone = DroneSimulator(CONFIG, flight_map)
+    drone.set_others(START[None])
+    at = drone.spawn(START)
+    gap = np.linalg.norm(at - START)
+    assert R + CONFIG.planning_radius_m <= gap <= R + CONFIG.planning_radius_m + 0.1, at
+    assert flight_map.distance(at[None])[0] >= CONFIG.planning_radius_m
+    back = drone.put_back(START, 0.0, "a restart")
+    assert np.linalg.norm(back - START) >= R + CONFIG.planning_radius_m, back
+    # Drones all around it: no point within reach is clear of them: refused, as a full map.
+    steps = np.arange(-4, 5) * 0.3  # 0.3 m apart: no point between them is 0.32 m clear
+    swarm = START + np.stack(np.meshgrid(steps, steps, steps), axis=-1).reshape(-1, 3)
+    crowded = DroneSimulator(CONFIG, flight_map)
+    crowded.set_others(swarm)
+    with pytest.raises(DroneCommandError, match="no observed free space"):
+        crowded.spawn(START)

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 
 from server.datasets import open_dataset
-from server.evaluation.metrics import ate
+from server.evaluation.metrics import aligned, ate
 from server.geometry import Intrinsics
 from tests.conftest import auth
 from tests.server.test_shared_rooms_server import (
@@ -156,8 +156,12 @@ def test_three_phones_share_one_room_one_frame_and_one_map(live_server, shared_d
     estimate_all = _joined(_joined(pairs[0][1], pairs[1][1]), pairs[2][1])
     together = ate(truth_all, estimate_all)["rmse"]
     counts = [f["map"]["frames_integrated"] for f in fused]
+    one = aligned(truth_all, estimate_all, "se3").poses[:, :3, 3] - truth_all.poses[:, :3, 3]
+    ends = np.cumsum([len(truth) for truth, _ in pairs])[:-1]
+    each = [np.sqrt(np.mean(np.sum(d**2, axis=1))) for d in np.split(one, ends)]
     print(
         f"ATE alone {np.round(100 * np.array(alone), 2)} cm, one alignment "
-        f"{100 * together:.2f} cm; the map's frames after each phone: {counts}"
+        f"{100 * together:.2f} cm (each phone under it {np.round(100 * np.array(each), 2)} cm); "
+        f"the map's frames after each phone: {counts}"
     )
     assert together <= 1.5 * max(alone), (together, alone)

@@ -25,7 +25,7 @@ export function pageSnapshot(app) {
     ...app.seen,
     ar: { ...ar.lastDraw, stage: { left: rect.left, top: rect.top, width: rect.width, height: rect.height },
       intrinsics: ar.intrinsics, colourSize: ar.colourSize, shownSeq: ar.frame?.seq ?? null },
-    occlusion: { enabled: ar.occlusion.enabled, source: ar.lastDraw.occlusion ?? "none",
+    occlusion: { enabled: ar.occlusion.enabled, source: ar.lastDraw.occlusion ?? "none", boxes: ar.lastDraw.occlusionBoxes ?? 0,
       depthSeq: ar.occlusion.depth?.seq ?? null, depthFailures: frameDepths.failures,
       depthReads: frameDepths.reads },
     fpv: { ...fpv.lastDraw }, mesh: mapMesh.summary(), budget: budget.summary(),
@@ -38,7 +38,7 @@ export function pageSnapshot(app) {
     course: course.snapshot(),
     // A shared room: its pilots, and the other pilots' drones drawn (AR: with their pixels).
     room: { ...app.roomHud.snapshot(), others_drawn: map.others.drones.size, ar_others: ar.lastDraw.others ?? [],
-      map_others: map.others.drawn(), map_cameras: map.others.camerasDrawn(), map_routes: map.others.routesDrawn(), invite: app.invite.link,
+      map_others: map.others.drawn(), fpv_others: fpv.lastDraw.others ?? [], map_cameras: map.others.camerasDrawn(), map_routes: map.others.routesDrawn(), invite: app.invite.link,
       started_race: app.invite.race_ },
   };
 }

@@ -73,8 +73,9 @@ export class ARView {
     this.world = new THREE.Group();
     this.world.matrixAutoUpdate = false;
     this.root.add(this.world);
-    // The other pilots' drones in a shared room: world objects too (not hidden by real
-    // surfaces: occlusion covers this page's own drone).
+    // The other pilots' drones in a shared room: world objects too, hidden by real surfaces as
+    // this page's drone is (opaque, drawn after the occluder: occlusion.js). Their routes, as
+    // this page's, are drawn on top (setRoom).
     this.others = new RoomPilots();
     this.world.add(this.others.group);
     for (const name of ["drone", "marker", "target"]) {
@@ -221,7 +222,14 @@ export class ARView {
 
   /** The shared room's pilots (session/room.js), or null: their drones are drawn, not ours. */
   setRoom(room) {
-    if (this.others.set(room)) this.dirty = true;
+    if (!this.others.set(room)) return;
+    // The routes on top, as this page's: the occluder's depth covers only the drones' part of
+    // the screen (occlusion.js), which would hide a route behind a surface only there.
+    for (const line of this.others.routes.values()) {
+      line.material.depthTest = false;
+      line.renderOrder = 2;
+    }
+    this.dirty = true;
   }
 
   /** T_camera_drone (OpenCV camera of the shown frame) as a Matrix4, or null. */
@@ -269,9 +277,22 @@ export class ARView {
       this.#placeGroundMarker(s, frame);
       this.#placeRoute(s, frame);
     }
-    this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null, this.drone.visible ? this.drone.matrix : null);
+    this.lastDraw.occlusion = this.occlusion.prepare(frame, this.xrAnchor !== null, this.#dronesDrawn(frame), camera);
+    this.lastDraw.occlusionBoxes = this.occlusion.boxes;
     this.renderer.render(this.scene, camera);
     this.dirty = false;
+  }
+
+  /** The centres of the drones drawn now, this page's and the other pilots', in the root
+   * frame: what the occluder must cover (occlusion.js). */
+  #dronesDrawn(frame) {
+    const centres = this.drone.visible ? [new THREE.Vector3().setFromMatrixPosition(this.drone.matrix)] : [];
+    if (frame && this.others.group.visible) {
+      for (const drone of this.others.drones.values()) {
+        centres.push(new THREE.Vector3().setFromMatrixPosition(drone.matrix).applyMatrix4(this.world.matrix));
+      }
+    }
+    return centres;
   }
 
   /** world point -> root frame (three camera of the shown frame). */

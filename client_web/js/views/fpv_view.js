@@ -8,6 +8,9 @@
 // The picture is 4:3 with a horizontal field of view of FPV_CAMERA.horizontalFovDeg (a wide
 // FPV lens; pinhole, no lens distortion), fitted into the view with black bars.
 //
+// In a shared room the other pilots' drones are in the picture too (room_pilots.js, as in the AR
+// and map views; lit, in their colours), hidden by the room's mesh where it stands in between.
+//
 // Until the mesh arrives (the server makes it on request: seconds for a big map) the view draws
 // the map's preview points (map_view.js's cloud, shared) from the same camera, and says that the
 // map is loading: never an empty picture.
@@ -15,6 +18,7 @@
 import * as THREE from "three";
 import { matrixFromRowMajor } from "./geometry.js";
 import { RENDER_BUDGET, fitRenderer } from "./render_budget.js";
+import { RoomPilots } from "./room_pilots.js";
 
 export const FPV_CAMERA = Object.freeze({
   horizontalFovDeg: 100,
@@ -69,6 +73,11 @@ export class FPVView {
     this.points.frustumCulled = false;
     this.points.visible = false;
     this.scene.add(this.points);
+    // The other pilots' drones (world frame, as the mesh), lit as on the map (the mesh's and the
+    // points' materials ignore the light: their colours are the camera's).
+    this.others = new RoomPilots();
+    this.others.group.visible = false;
+    this.scene.add(this.others.group, new THREE.HemisphereLight(0xffffff, 0x555555, 2.2));
     const vertical = 2 * Math.atan(Math.tan(THREE.MathUtils.degToRad(FPV_CAMERA.horizontalFovDeg / 2)) / FPV_CAMERA.aspect);
     this.camera = new THREE.PerspectiveCamera(THREE.MathUtils.radToDeg(vertical), FPV_CAMERA.aspect, FPV_CAMERA.nearM, FPV_CAMERA.farM);
     this.camera.matrixAutoUpdate = false;
@@ -76,11 +85,12 @@ export class FPVView {
     this.droneState = null;
     this.dirty = true;
     this.lastRender = 0;
+    this.lastOthers = null; // performance.now() of the last draw that turned the others' rotors
     this.budget = null; // the page's RenderBudget and PageLoad (as ARView's)
     this.meter = null;
     this.cssSize = null;
     this.buffer = {}; // fitRenderer's state
-    this.lastDraw = { drawn: false, triangles: 0, points: 0, hint: HINTS.none, cameraPosition: null };
+    this.lastDraw = { drawn: false, triangles: 0, points: 0, hint: HINTS.none, cameraPosition: null, others: [] };
     new ResizeObserver(() => this.layout()).observe(container);
   }
 
@@ -89,6 +99,7 @@ export class FPVView {
    * (map_mesh.js "mesh" events). */
   follow(state, { mesh }) {
     state.addEventListener("drone", ({ detail }) => this.setDroneState(detail));
+    state.addEventListener("room", ({ detail: room }) => this.setRoom(room));
     mesh.addEventListener("mesh", ({ detail: geometry }) => this.setMesh(geometry));
   }
 
@@ -101,6 +112,13 @@ export class FPVView {
   setDroneState(state) {
     this.droneState = state;
     this.dirty = true;
+  }
+
+  /** The shared room's pilots (session/room.js), or null: the others' drones are drawn. Their
+   * rotors turn at each draw, which the room's messages (5 a second) and the own drone's state
+   * bring: no draws for the spin alone. */
+  setRoom(room) {
+    if (this.others.set(room)) this.dirty = true;
   }
 
   /** A 4:3 picture, as large as the view holds, centred. */
@@ -125,12 +143,12 @@ export class FPVView {
       this.dirty = true; // the map grew while the mesh is on its way
     }
     if (now - this.lastRender < minMs || !this.dirty) return;
-    if (this.budget) this.budget.draw(() => this.render(), this.meter);
-    else this.render();
+    if (this.budget) this.budget.draw(() => this.render(now), this.meter);
+    else this.render(now);
     this.lastRender = now;
   }
 
-  render() {
+  render(now = performance.now()) {
     const s = this.droneState;
     const ready = s !== null && this.room.visible;
     // No mesh yet: the map's points from the drone's camera, and the word that the map loads.
@@ -146,11 +164,25 @@ export class FPVView {
       this.camera.matrixWorldNeedsUpdate = true;
       this.camera.updateMatrixWorld(true);
     }
+    this.others.group.visible = s !== null; // from the drone's camera: none without the drone
+    this.others.update(Math.min(0.1, Math.max(0, (now - (this.lastOthers ?? now)) / 1000)));
+    this.lastOthers = now;
     this.renderer.render(this.scene, this.camera);
     const forward = new THREE.Vector3(0, 0, -1).transformDirection(this.camera.matrixWorld);
     this.lastDraw = { drawn: ready, triangles: ready ? this.room.geometry.index.count / 3 : 0, points, hint,
       cameraPosition: ready ? new THREE.Vector3().setFromMatrixPosition(this.camera.matrixWorld).toArray() : null,
-      cameraForward: ready ? forward.toArray() : null };
+      cameraForward: ready ? forward.toArray() : null, others: s !== null ? this.#othersDrawn() : [] };
     this.dirty = false;
+  }
+
+  /** The other pilots' drones drawn (room_pilots.js drawn()), each with where its centre is in
+   * the picture: view [x, y] from 0 to 1 (x right, y down; null behind the camera or outside). */
+  #othersDrawn() {
+    const p = new THREE.Vector3();
+    return this.others.drawn().map((drone) => {
+      p.fromArray(drone.position).project(this.camera);
+      const inside = p.z > -1 && p.z < 1 && Math.abs(p.x) <= 1 && Math.abs(p.y) <= 1;
+      return { ...drone, view: inside ? [0.5 + 0.5 * p.x, 0.5 - 0.5 * p.y] : null };
+    });
   }
 }

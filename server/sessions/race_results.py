@@ -22,14 +22,11 @@ the fastest, then the earlier::
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 from typing import Any
 
 from server.atomic import atomic_write_bytes
-from server.sessions.runtime.course_control import read_best
-
-log = logging.getLogger(__name__)
+from server.sessions.runtime.course_control import read_best, read_records
 
 RACES_FILE = "races.json"  # in each pilot's session folder
 RACE_BEST_FILE = "race_best.json"  # in each pilot's session folder, and in a saved room
@@ -39,15 +36,7 @@ BEST_KEPT = 10
 
 def read_races(path: Path) -> list[dict[str, Any]]:
     """The race records in ``path``, oldest first; [] when there are none or it is unreadable."""
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        return []
-    except (OSError, ValueError) as exc:
-        log.warning("the race records %s are unreadable (%s); starting anew", path, exc)
-        return []
-    races = data.get("races") if isinstance(data, dict) else None
-    return [r for r in races if isinstance(r, dict)] if isinstance(races, list) else []
+    return read_records(path, "races", "the race records")
 
 
 def ranked(results: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -98,17 +98,22 @@ class CourseResult:
 
 def read_best(path: Path | None) -> list[dict[str, Any]]:
     """The best list in ``path``, best first; [] when there is none (or it is unreadable)."""
-    if path is None:
-        return []
+    return [] if path is None else read_records(path, "results", "the course best list")
+
+
+def read_records(path: Path, key: str, what: str) -> list[dict[str, Any]]:
+    """The JSON objects listed under ``key`` in the file ``path`` (a best list, a session's
+    races); [] when there is none, or it is unreadable (logged, naming ``what``: it starts
+    anew)."""
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         return []
     except (OSError, ValueError) as exc:
-        log.warning("the course best list %s is unreadable (%s); starting a new one", path, exc)
+        log.warning("%s %s is unreadable (%s); starting a new one", what, path, exc)
         return []
-    results = data.get("results") if isinstance(data, dict) else None
-    return [r for r in results if isinstance(r, dict)] if isinstance(results, list) else []
+    records = data.get(key) if isinstance(data, dict) else None
+    return [r for r in records if isinstance(r, dict)] if isinstance(records, list) else []
 
 
 def _ranked(results: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -115,7 +115,7 @@ def _joined(a: Trajectory, b: Trajectory) -> Trajectory:
 
 
 def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, shared_data, tmp_path):
-    server = live_server(tmp_path / "data", max_room_phones=2)
+    server = live_server(tmp_path / "data", max_room_phones=2, snapshot_interval_s=1.0)
     ds = open_dataset(shared_data / "7scenes_a")
     sessions = f"{server.url}/api/sessions"
 
@@ -180,6 +180,14 @@ def test_a_phone_joins_a_live_room_and_is_placed_in_its_frame(live_server, share
     assert shared["active_blocks"] >= owner_map["active_blocks"]
     wait_for_status(server.url, b, token_b, drone_spawned, "the joined phone's drone")
     wait_for_status(server.url, a, token_a, drone_spawned, "the owner's drone")
+    # One copy of the room's map in the periodic snapshots (1 s here): the owner's. The joined
+    # phone's hold its trajectory; its map comes with its last snapshot.
+    folders = tmp_path / "data" / "sessions"
+    deadline = time.monotonic() + 20
+    while not ((folders / b / "trajectory.tum").is_file() and (folders / a / "map.npz").is_file()):
+        assert time.monotonic() < deadline, "no periodic snapshot of both sessions"
+        time.sleep(0.2)
+    assert not (folders / b / "map.npz").exists()
 
     # 7. Everyone sees everyone: each phone's socket gets the room's state, itself named by
     # `you`, every drone where its own drone_state puts it.
@@ -342,6 +350,7 @@ def test_a_race_in_a_shared_room_has_every_drone_fly_the_same_gates_and_a_winner
     # continuing in that room starts with the room's best list to beat.
     best = listing.best
     server.stop()
+    assert (tmp_path / "data" / "sessions" / b / "map.npz").is_file()  # the joined phone's last
     again = live_server(tmp_path / "data")
     assert strictly(RaceList, _get(f"{again.url}/api/sessions/{a}/races", token_a)).best == best
     r = httpx.post(f"{again.url}/api/sessions", json={"room": a}, headers=auth(token_a))

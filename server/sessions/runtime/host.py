@@ -95,6 +95,7 @@ class SessionHost:
             mapper=mapper,
             room_dir=None if args.room_dir is None else Path(args.room_dir),
             loops_conn=loops_conn,
+            map_shared=args.room_map is not None,
         )
         self._hello: dict | None = None
 

@@ -73,9 +73,11 @@ class Session:
         mapper: Mapper | MapperClient | None = None,
         room_dir: Path | None = None,
         loops_conn=None,
+        map_shared: bool = False,
     ) -> None:
         """room_dir: a saved room (server/rooms/) to continue in: the tracker relocalises the
         first frames in it and the map starts as the room's; None starts an empty world.
+        map_shared: ``mapper`` is a live shared room's map, whose owner snapshots it.
         loops_conn: a pipe to a loop process (server/sessions/processes/loop_process.py) for the
         loop closer, when this session closes loops; None closes them in a thread of this
         process."""
@@ -92,6 +94,7 @@ class Session:
         # mesh's down (server/mapping/upright.py); None when the client measured none.
         self.gravity: list[float] | None = None
         self.room_dir = room_dir
+        self.map_shared = map_shared
         # The map, in a process of its own when given one (processes/mapper.py says why).
         self.mapper = mapper or Mapper(self.config.mapping)
         self.counts = SessionCounts()  # failures, counters, the snapshot's dirty flag
@@ -399,9 +402,11 @@ class Session:
         SnapshotError when the disk refuses."""
         self.snapshots.take()
 
-    def _write_snapshot(self, staging: Path) -> list[str]:
+    def _write_snapshot(self, staging: Path, periodic: bool) -> list[str]:
         write_tum(staging / "trajectory.tum", self.trajectory())
-        names = ["trajectory.tum", *self.map.save(str(staging))]
+        names = ["trajectory.tum"]
+        if not (periodic and self.map_shared):  # a room's map: its owner's snapshots hold it
+            names += self.map.save(str(staging))
         if self.flight_log is not None:  # the flight in progress, as far as it got
             self.flight_log.save_open()
         return names

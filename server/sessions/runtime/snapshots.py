@@ -16,7 +16,8 @@ from server.sessions.store import SessionStore
 
 
 class Snapshots:
-    """write: puts the session's files into a staging folder, returns their names; meta: the
+    """write(staging, periodic): puts the session's files into a staging folder, returns their
+    names (``periodic``: the mapping thread's, not one asked for or the last); meta: the
     session's meta, written with them. ``error`` says why the latest snapshot failed (None:
     it did not)."""
 
@@ -27,7 +28,7 @@ class Snapshots:
         counts: SessionCounts,
         interval_s: float,
         log: logging.LoggerAdapter,
-        write: Callable[[Path], list[str]],
+        write: Callable[[Path, bool], list[str]],
         meta: Callable[[], dict],
     ) -> None:
         self.store = store
@@ -43,7 +44,7 @@ class Snapshots:
         # joining phone) share one staging folder: one at a time.
         self._lock = threading.Lock()
 
-    def take(self) -> None:
+    def take(self, periodic: bool = False) -> None:
         """Write the files and the meta as one snapshot: staged beside the previous one, then
         renamed into place (``SessionStore.commit``), so a crash leaves a whole snapshot.
 
@@ -51,13 +52,13 @@ class Snapshots:
         whole, everything stays in memory, and ``error`` says why until a later snapshot
         succeeds."""
         with self._lock:
-            self._take()
+            self._take(periodic)
 
-    def _take(self) -> None:
+    def _take(self, periodic: bool) -> None:
         with self.counts.lock:
             self.counts.dirty = False
         try:
-            names = self.write(self.store.staging(self.session_id))
+            names = self.write(self.store.staging(self.session_id), periodic)
             self.error = None
             self.store.commit(self.session_id, names, self.meta())
         except (OSError, MapError) as exc:  # MapError: Open3D refused to write
@@ -77,6 +78,6 @@ class Snapshots:
         if not dirty or time.monotonic() - self._last < self.interval_s:
             return
         try:
-            self.take()
+            self.take(periodic=True)
         except SnapshotError as exc:
             self.log.error("%s; the previous one stays whole and the map stays in memory", exc)

@@ -113,13 +113,13 @@ class RoomTracker:
             return None
         T_guess = self.database.entry(match.keyframe_id).T_world_keyframe @ match.T_keyframe_query
         if self.same_camera:
+            # The tracker refines the guess against the keyframe's own corners: a second check.
             keyframe = next(k for k in self.map_keyframes if k.id == match.keyframe_id)
             self.tracker.resume_in_map(T_guess, keyframe, self.map_keyframes, self.database)
         else:  # its first keyframe where the room placed it, refined on the room's surface
             T_kq = self._refined(match.keyframe_id, match.T_keyframe_query, clean)
             T_guess = self.database.entry(match.keyframe_id).T_world_keyframe @ T_kq
             self.tracker = Tracker(self.K, self.cfg, T_world_first=T_guess)
-        # The tracker refines the guess against the keyframe's own corners: a second check too.
         result = self.tracker.track(colour, depth, T_device_camera, device_world)
         ms = (time.perf_counter() - t0) * 1e3
         self._spent_ms += ms
@@ -141,7 +141,9 @@ class RoomTracker:
         )
         return result
 
-    def _refined(self, keyframe_id: int, T_keyframe_query: FloatArray, depth: Float32Array):
+    def _refined(
+        self, keyframe_id: int, T_keyframe_query: FloatArray, depth: Float32Array
+    ) -> FloatArray:
         """The place's T_keyframe_query (ORB points alone: a few centimetres off) refined by
         projective point-to-plane ICP of this frame's depth (its camera) against the room
         keyframe's (the room's camera); the place's own pose when ICP finds too little to go

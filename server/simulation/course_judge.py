@@ -103,12 +103,17 @@ class CourseRun:
         self._last = T[:3, :3] @ self._last + T[:3, 3]
         self.start_position = T[:3, :3] @ self.start_position + T[:3, 3]
 
+    @property
+    def last_passed(self) -> int | None:
+        """The index of the last gate passed (gates are passed in order), or None."""
+        passed = [i for i, state in enumerate(self.states) if state == GateState.PASSED]
+        return passed[-1] if passed else None
+
     def restart_pose(self, past_m: float = RESTART_PAST_M) -> tuple[FloatArray, FloatArray]:
         """Where a crashed drone restarts: (point, unit heading), ``past_m`` beyond the last gate
         passed along its normal, or the start, heading for the first gate, before any."""
-        passed = [i for i, state in enumerate(self.states) if state == GateState.PASSED]
-        if passed:
-            gate = self.course.gates[passed[-1]]
+        if self.last_passed is not None:
+            gate = self.course.gates[self.last_passed]
             return gate.centre + past_m * gate.normal, gate.normal.copy()
         way = self.course.gates[0].centre - self.start_position
         norm = float(np.linalg.norm(way))

@@ -274,7 +274,8 @@ class CourseControl:
         assert run is not None
         self._crashed_at = None
         point, heading = run.restart_pose()
-        where = f"gate {run.passed} of {len(run.course.gates)}" if run.passed else "the start"
+        last = run.last_passed
+        where = "the start" if last is None else f"gate {last + 1} of {len(run.course.gates)}"
         sim = self.flight.sim
         try:
             at = sim.put_back(

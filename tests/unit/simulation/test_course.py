@@ -485,3 +485,20 @@ def test_without_restart_after_crash_a_crashed_drone_lands_where_it_falls():
     run_ticks(flight, published, lambda p: notices(p, "landed"), max_s=5.0)
     assert notices(published, "crash") and not notices(published, "restarted")
     assert courses(published)[-1]["state"] == "running" and not flight.course.autopilot
+
+
+def test_a_restart_goes_past_the_last_gate_passed_even_after_a_missed_one():
+    gates = [Gate(np.array([x, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.3) for x in (1, 2, 3)]
+    run = CourseRun(one_gate_course(*gates), 0.0, [0.0, 0.0, 1.0])
+    point, heading = run.restart_pose()  # nothing passed: the start, heading for gate 1
+    assert np.allclose(point, [0.0, 0.0, 1.0]) and np.allclose(heading, [1.0, 0.0, 0.0])
+    run.update(0.5, [1.5, 0.0, 3.0])  # over gate 1
+    run.update(1.0, [1.5, 0.0, 1.0])
+    run.update(2.0, [2.5, 0.0, 1.0])  # through gate 2: gate 1 missed
+    assert run.states == ["missed", "passed", "pending"] and run.last_passed == 1
+    point, heading = run.restart_pose()
+    assert np.allclose(point, [2.3, 0.0, 1.0]) and np.allclose(heading, [1.0, 0.0, 0.0])
+    run.restarted(3.0, point)  # the jump back is not judged; the clock runs on
+    assert run.states == ["missed", "passed", "pending"] and run.restarts == 1
+    run.update(4.0, [3.5, 0.0, 1.0])
+    assert run.finished and run.elapsed_s() == pytest.approx(3.0 + 0.7 / 1.2)  # from 2.3 m

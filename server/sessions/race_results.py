@@ -21,12 +21,10 @@ the fastest, then the earlier::
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
-from server.atomic import atomic_write_bytes
-from server.sessions.runtime.course_control import read_best, read_records
+from server.sessions.runtime.course_control import read_best, read_records, write_records
 
 RACES_FILE = "races.json"  # in each pilot's session folder
 RACE_BEST_FILE = "race_best.json"  # in each pilot's session folder, and in a saved room
@@ -68,10 +66,13 @@ def keep_race(folder: Path, record: dict[str, Any], room_best: list[dict[str, An
     """Add ``record`` to the session folder's race records, and write ``room_best`` (the
     room's best list, this race's entries in it) as its best list. Raises OSError."""
     races = [*read_races(folder / RACES_FILE), record][-RACES_KEPT:]
-    atomic_write_bytes(folder / RACES_FILE, json.dumps({"races": races}).encode())
-    atomic_write_bytes(
-        folder / RACE_BEST_FILE, json.dumps({"results": room_best}, indent=1).encode()
-    )
+    write_records(folder / RACES_FILE, "races", races)
+    write_best(folder / RACE_BEST_FILE, room_best)
+
+
+def write_best(path: Path, room_best: list[dict[str, Any]]) -> None:
+    """The room's best list into ``path`` (a session's, or a saved room's). Raises OSError."""
+    write_records(path, "results", room_best)
 
 
 def room_best_with(folder: Path, record: dict[str, Any]) -> list[dict[str, Any]]:

@@ -42,6 +42,7 @@ except ImportError:
 
 from server import protocol as P  # noqa: E402
 from server.datasets import open_dataset  # noqa: E402
+from tests.server.test_shared_rooms_server import _stream  # noqa: E402
 
 NAMESPACE = "dronesim"
 
@@ -346,22 +347,12 @@ def _end_leftover_sessions() -> None:
         time.sleep(0.2)
 
 
-def _stream_range(front, sid: str, token: str, ds, first: int, n: int) -> Stream:
-    async def run() -> Stream:
-        s = await Stream(front.ws_url, sid, token, ds).open()
-        await s.send_range(range(n), first_index=first)
-        await s.close()
-        return s
-
-    return asyncio.run(run())
-
-
 def _open_room(front, ds, frames: int) -> tuple[str, str, str, str, str]:
     """An owner session that streamed ``frames`` frames of ``ds`` and stays live, and a phone
     joined into its room: (owner id, its token, the phone's id, its token, the join token)."""
     sessions = f"{front.url}/api/sessions"
     a, token_a = create_session(front.url)
-    _stream_range(front, a, token_a, ds, 0, frames)
+    _stream(front, a, token_a, ds, 0, frames)
     wait_for_status(front.url, a, token_a, map_caught_up, "the owner's map")
     join_token = httpx.post(f"{sessions}/{a}/invites", headers=auth(token_a)).json()["join_token"]
     r = httpx.post(sessions, json={"join": a}, headers=auth(join_token), timeout=CREATE_TIMEOUT_S)
@@ -406,7 +397,7 @@ def test_a_shared_room_runs_on_its_owners_node_with_one_map(
         assert worker_b["mapper_pid"] is None and process_running(map_pid)
 
         # Placed in the owner's room, and its frames fuse into the owner's map: one map.
-        s_b = _stream_range(front, b, token_b, ds, 60, 20)
+        s_b = _stream(front, b, token_b, ds, 60, 20)
         states = [p["state"] for p in s_b.poses]
         first_ok = next(k for k, st in enumerate(states) if st != "lost")
         assert first_ok <= 5 and states.count("lost") == first_ok, states
@@ -427,7 +418,7 @@ def test_a_shared_room_runs_on_its_owners_node_with_one_map(
         assert front.app.state.manager.close(a)
         assert session_status(front.url, a, token_a)["closed"] is True
         before = session_status(front.url, b, token_b)["map"]["frames_integrated"]
-        s_later = _stream_range(front, b, token_b, ds, 80, 9)
+        s_later = _stream(front, b, token_b, ds, 80, 9)
         assert all(p["state"] != "lost" for p in s_later.poses), s_later.poses
         later = wait_for_status(front.url, b, token_b, map_caught_up, "the map, owner gone")
         assert later["map"]["frames_integrated"] > before, later["map"]
@@ -442,7 +433,7 @@ def test_a_shared_room_runs_on_its_owners_node_with_one_map(
         a, token_a, b, token_b, _ = _open_room(front, ds, 12)
         map_pid = session_status(front.url, a, token_a)["worker"]["mapper_pid"]
         assert httpx.delete(f"{sessions}/{a}", headers=auth(token_a)).status_code == 204
-        s_b = _stream_range(front, b, token_b, ds, 4, 6)
+        s_b = _stream(front, b, token_b, ds, 4, 6)
         assert any(p["state"] != "lost" for p in s_b.poses), s_b.poses
         assert (
             wait_for_status(front.url, b, token_b, map_caught_up, "the map")["map"][

@@ -116,6 +116,12 @@ def read_records(path: Path, key: str, what: str) -> list[dict[str, Any]]:
     return [r for r in records if isinstance(r, dict)] if isinstance(records, list) else []
 
 
+def write_records(path: Path, key: str, records: list[dict[str, Any]]) -> None:
+    """``records`` listed under ``key`` in the file ``path``, written atomically (what
+    ``read_records`` reads). Raises OSError."""
+    atomic_write_bytes(path, json.dumps({key: records}, indent=1).encode())
+
+
 def _ranked(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Highest score first; equal scores: the faster, then the earlier."""
     return sorted(results, key=lambda r: (-r["score"], r["time_s"], r["finished_at"]))
@@ -435,9 +441,7 @@ class CourseControl:
         self._best = ranked[:BEST_KEPT]
         if self.best_path is not None:
             try:
-                atomic_write_bytes(
-                    self.best_path, json.dumps({"results": self._best}, indent=1).encode()
-                )
+                write_records(self.best_path, "results", self._best)
             except OSError as exc:  # the run still counts here; the disk is the store's worry
                 self.flight.log.error("the course best list could not be saved: %s", exc)
         return ranked.index(result) + 1 if result in self._best else None

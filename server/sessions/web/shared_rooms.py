@@ -12,7 +12,6 @@ and open nothing once the owner's session has ended.
 from __future__ import annotations
 
 import hmac
-import json
 import logging
 import secrets
 import threading
@@ -24,12 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from server.atomic import atomic_write_bytes
 from server.geometry import quaternion_from_pose
 from server.registration.results import TrackingState
 from server.rooms.room import META_FILE as ROOM_META_FILE
 from server.sessions.errors import SessionError
-from server.sessions.race_results import RACE_BEST_FILE, keep_race, room_best_with
+from server.sessions.race_results import RACE_BEST_FILE, keep_race, room_best_with, write_best
 from server.sessions.runtime.room_writer import ROOM_FOLDER
 from server.sessions.store import hash_token
 from server.sessions.updates import RoomUpdate
@@ -277,7 +275,7 @@ class SharedRooms:
         room = self.folder(owner_id) / ROOM_FOLDER
         if (room / ROOM_META_FILE).is_file():
             try:
-                atomic_write_bytes(room / RACE_BEST_FILE, json.dumps({"results": best}).encode())
+                write_best(room / RACE_BEST_FILE, best)
             except OSError:
                 log.exception("race %d: the room's best list could not be saved", race.number)
         log.info("race %d finished: %s", race.number, record["pilots"])

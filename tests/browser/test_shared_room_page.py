@@ -12,11 +12,22 @@ import numpy as np
 
 from server.datasets import open_dataset
 from tests.conftest import LoopThread, Stream, auth
-from tests.support.browser import DESKTOP, PHONE, count_near
+from tests.support.browser import DESKTOP, PHONE, canvas_rgb, count_near
 from tests.support.rest import drone_spawned, wait_for_status
 
 PLACE_HINT = "Move the phone over a part of the room that is already mapped"
 ROOM = "window.dronesim.snapshot().room"
+# The AR view drawn now and its canvas read back at once, with the other drones' pixels.
+DRAW_AR_JS = """() => {
+  const ar = window.dronesim.ar;
+  ar.render(0);
+  const src = ar.renderer.domElement;
+  const canvas = document.createElement('canvas');
+  canvas.width = src.width; canvas.height = src.height;
+  canvas.getContext('2d').drawImage(src, 0, 0);
+  const png = canvas.toDataURL('image/png');
+  return { png, others: ar.lastDraw.others, colourSize: ar.colourSize };
+}"""
 
 
 def _stream(server, sid: str, token: str, ds, first: int, n: int) -> None:
@@ -251,17 +262,19 @@ def test_a_page_invites_a_phone_that_joins_by_the_link_and_each_draws_the_others
         "(ar => { ar.occlusion.enabled = false; ar.dirty = true })(window.dronesim.ar)"
     )
     owner.wait("window.dronesim.snapshot().occlusion.source === 'none'", 10, "a draw without it")
-    s = owner.snapshot()
-    (drawn,) = s["room"]["ar_others"]
-    rgb = owner.screenshot("room-owner.png")
-    W, H = s["ar"]["colourSize"]
+    # Drawn and read back in one call: the pixels the page projects are of the picture read
+    # (a screenshot comes a frame or more later, with the replay's camera moved on).
+    shown = owner.page.evaluate(DRAW_AR_JS)
+    rgb = canvas_rgb(shown["png"], "room-owner.png")
+    (drawn,) = shown["others"]
+    W, H = shown["colourSize"]
+    h, w = rgb.shape[:2]
     if (
         drawn["pixel"] is not None
         and 10 <= drawn["pixel"][0] <= W - 10
         and 10 <= drawn["pixel"][1] <= H - 10
     ):
-        st = s["ar"]["stage"]
         u, v = drawn["pixel"]
-        xy = (st["left"] + (u + 0.5) / W * st["width"], st["top"] + (v + 0.5) / H * st["height"])
-        assert count_near(_paint(rgb, 0xFF9A00), xy, 30) > 15, (drawn, xy)
+        xy = ((u + 0.5) / W * w, (v + 0.5) / H * h)
+        assert count_near(_paint(rgb, 0xFF9A00), xy, 30 * w / W) > 15, (drawn, xy)
     assert not owner.errors and not phone.errors, owner.errors + phone.errors

@@ -15,13 +15,12 @@
 
 from __future__ import annotations
 
-import base64
 import math
 
 import cv2
 import numpy as np
 
-from tests.support.browser import ARTIFACTS, count_near, drone_mask
+from tests.support.browser import canvas_rgb, count_near, drone_mask
 
 F, CX, CY, W, H = 200.0, 159.5, 119.5, 320, 240  # the AR view's camera in these tests
 # Paints of the other pilots (room_pilots.js COLOURS by index in the room): 1 orange, 2 lime.
@@ -39,16 +38,6 @@ def _paint(rgb: np.ndarray, colour: int) -> np.ndarray:
     hue = int(cv2.cvtColor(want[None, None], cv2.COLOR_RGB2HSV)[0, 0, 0])
     dh = np.minimum(abs(hsv[..., 0] - hue), 180 - abs(hsv[..., 0] - hue))
     return (dh <= 6) & (hsv[..., 1] > 150) & (hsv[..., 2] > 90)
-
-
-def _png(data_url: str, name: str) -> np.ndarray:
-    """A canvas's PNG (a data URL), saved under test-artifacts/web as ``name``; -> RGB."""
-    data = base64.b64decode(data_url.split(",", 1)[1])
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    (ARTIFACTS / name).write_bytes(data)
-    return cv2.cvtColor(
-        cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB
-    )
 
 
 def _room(others: dict, modes: dict | None = None) -> dict:
@@ -121,7 +110,7 @@ def _ar(page, own: bool, source: str, enabled: bool) -> dict:
         AR_JS,
         [message, OWN if own else None, source, enabled, list(SURFACES_M), [F, F, CX, CY], [W, H]],
     )
-    rgb = _png(
+    rgb = canvas_rgb(
         out["png"], f"room-ar-{source}{'-own' if own else ''}{'' if enabled else '-off'}.png"
     )
     counts = {}
@@ -243,7 +232,7 @@ def test_the_fpv_view_draws_the_other_pilots_drones(live_server, open_page):
     for mode in ("hover", "none"):
         message = _room({1: (ahead, facing)}, {1: mode})
         out = page.page.evaluate(FPV_JS, [message, T_world_drone.flatten().tolist(), [W, H]])
-        rgb = _png(out["png"], f"room-fpv-{mode}.png")
+        rgb = canvas_rgb(out["png"], f"room-fpv-{mode}.png")
         counts[mode] = count_near(_paint(rgb, PAINT[1]), expected, 30)
         if mode == "hover":
             (drawn,) = out["others"]

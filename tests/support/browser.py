@@ -7,6 +7,7 @@ The fixtures that open them (chromium, open_page) are tests/browser/conftest.py'
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import os
@@ -122,6 +123,16 @@ def start_replay(page: Page, min_poses: int, tap: bool = False) -> dict:
 
 
 # ---- the drone in pictures and in the page's state ------------------------------------------
+
+
+def canvas_rgb(data_url: str, name: str) -> np.ndarray:
+    """A canvas's PNG (a data URL), saved under test-artifacts/web as ``name``; -> RGB."""
+    data = base64.b64decode(data_url.split(",", 1)[1])
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTIFACTS / name).write_bytes(data)
+    return cv2.cvtColor(
+        cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB
+    )
 
 
 def drone_mask(rgb: np.ndarray) -> np.ndarray:

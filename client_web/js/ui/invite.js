@@ -64,10 +64,14 @@ export class Invite {
       if (this.client.joined) throw new Error("this phone joined another's room: only the room's owner invites");
       const { join, join_token: token } = await inviteToRoom(this.client.baseUrl, session);
       const link = `${await linkOrigin()}/#join=${encodeURIComponent(join)}&token=${encodeURIComponent(token)}`;
-      $("#invite-qr").src = `data:image/svg+xml;charset=utf-8,${encodeURIComponent(qrSvg(link))}`;
-      $("#invite-qr").alt = `QR code of ${link}`;
+      const qr = $("#invite-qr");
+      qr.src = `data:image/svg+xml;charset=utf-8,${encodeURIComponent(qrSvg(link))}`;
+      qr.alt = `QR code of ${link}`;
       $("#invite-link").value = link;
       card.hidden = false;
+      // The SVG decodes after src is set: the link counts as shown once its code is drawn,
+      // so nobody (a test's screenshot included) reads a blank square.
+      await qr.decode().catch(() => {});
       this.link = link;
       navigator.clipboard?.writeText(link).catch(() => {});
     } catch (exc) {

@@ -76,17 +76,34 @@ def rotate(points: ArrayLike, R: RealArray | None) -> FloatArray:
     with it (a BLAS product may round differently by batch): occupancy_update then finds the
     very cells a full occupancy does."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return np.stack(_rotated(p[:, 0], p[:, 1], p[:, 2], R), axis=1)
+
+
+def _rotated(
+    x: FloatArray, y: FloatArray, z: FloatArray, R: RealArray | None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Points given per axis (float64, N each) rotated by R (None: as they are), per element."""
     if R is None:
-        return p
+        return x, y, z
     R = np.asarray(R, dtype=np.float64)
-    return np.stack(
-        [p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2] for i in range(3)], axis=1
-    )
+    rx, ry, rz = (x * R[i, 0] + y * R[i, 1] + z * R[i, 2] for i in range(3))
+    return rx, ry, rz
 
 
-def camera_cells(cameras: FloatArray, voxel_m: float, R_grid_world: RealArray | None) -> Int64Array:
-    """Grid cells (C, 3) of camera positions (world (C, 3), metres)."""
-    return np.floor(rotate(cameras, R_grid_world) / voxel_m).astype(np.int64)
+# Grid cells as one integer array per axis (N each): the columns of an (N, 3) array, which
+# numpy reduces and compares several times faster than the array's strided columns.
+Cells = tuple[Int64Array, Int64Array, Int64Array]
+
+
+def _floor_cells(x: FloatArray, y: FloatArray, z: FloatArray, voxel_m: float) -> Cells:
+    cx, cy, cz = (np.floor(a / voxel_m).astype(np.int64) for a in (x, y, z))
+    return cx, cy, cz
+
+
+def camera_cells(cameras: FloatArray, voxel_m: float, R_grid_world: RealArray | None) -> Cells:
+    """Grid cells of camera positions (world (C, 3), metres)."""
+    p = np.asarray(cameras, dtype=np.float64).reshape(-1, 3)
+    return _floor_cells(*_rotated(p[:, 0], p[:, 1], p[:, 2], R_grid_world), voxel_m)
 
 
 def block_cells(
@@ -109,13 +126,17 @@ def _cells(
     voxel_m: float,
     R_grid_world: RealArray | None,
     cfg: TSDFConfig,
-) -> Int64Array:
+) -> Cells:
     """Cells of the voxels at ``voxels`` = (block, z, y, x) indices, into blocks sampled at
     every step-th voxel."""
     b, zl, yl, xl = voxels
-    local = np.stack([xl, yl, zl], axis=1) * step
-    world = (keys[b] * cfg.block_resolution + local).astype(np.float32) * cfg.voxel_m
-    return np.floor(rotate(world, R_grid_world) / voxel_m).astype(np.int64)
+    res = cfg.block_resolution
+    # A voxel's position in float32, as the TSDF's own, then rotated in float64.
+    x, y, z = (
+        ((keys[b, axis] * res + local * step).astype(np.float32) * cfg.voxel_m).astype(np.float64)
+        for axis, local in enumerate((xl, yl, zl))
+    )
+    return _floor_cells(*_rotated(x, y, z, R_grid_world), voxel_m)
 
 
 def seen_cells(
@@ -124,10 +145,10 @@ def seen_cells(
     voxel_m: float,
     R_grid_world: RealArray | None,
     cfg: TSDFConfig,
-) -> Int64Array:
-    """Grid cells (integer (N, 3), not unique) of the given blocks' seen voxels (weight > 0),
-    blocks of ``cfg``'s voxels: every s-th voxel each way is enough to say what was seen, as
-    long as samples stay closer than a cell."""
+) -> Cells:
+    """Grid cells (not unique) of the given blocks' seen voxels (weight > 0), blocks of
+    ``cfg``'s voxels: every s-th voxel each way is enough to say what was seen, as long as
+    samples stay closer than a cell."""
     s = 1
     while s < cfg.block_resolution and 2 * s * cfg.voxel_m * 1.25 <= voxel_m:
         s *= 2
@@ -141,9 +162,8 @@ def voxel_cells(
     voxel_m: float,
     R_grid_world: RealArray | None,
     cfg: TSDFConfig,
-) -> tuple[Int64Array, Int64Array]:
-    """Grid cells (integer (N, 3) each, not unique) of the given blocks' seen voxels and of
-    their surface voxels."""
+) -> tuple[Cells, Cells]:
+    """Grid cells (not unique) of the given blocks' seen voxels and of their surface voxels."""
     # Half the cell's diagonal: the projective TSDF overstates distances seen obliquely
     # (distance / cos of the view angle), and half the cell's edge left ~20% of surfaces out.
     band = min(max(0.87 * voxel_m, cfg.voxel_m), 0.99 * cfg.trunc_m)
@@ -165,24 +185,65 @@ def _stored_safe(limit: float) -> np.float32:
     return mid
 
 
-def grid_of(
-    observed_cells: Int64Array, surface_cells: Int64Array, voxel_m: float
+class CellBox:
+    """A box of grid cells [lo, hi) (integer, per axis) in which cells are marked observed, and
+    occupied; ``grid`` crops it to the observed ones. Cells outside the box are left out."""
+
+    def __init__(self, lo: ArrayLike, hi: ArrayLike) -> None:
+        self.lo = np.asarray(lo, dtype=np.int64).reshape(3)
+        shape = np.maximum(np.asarray(hi, dtype=np.int64).reshape(3) - self.lo, 0)
+        self.observed: BoolArray = np.zeros(tuple(int(n) for n in shape), dtype=bool)
+        self.occupied: BoolArray = np.zeros_like(self.observed)
+
+    @classmethod
+    def around(cls, cell_sets: list[Cells]) -> CellBox:
+        """The smallest box holding every cell of ``cell_sets``."""
+        lo, hi = np.zeros(3, np.int64), np.zeros(3, np.int64)
+        filled = [cells for cells in cell_sets if len(cells[0])]
+        for axis in range(3) if filled else ():
+            lo[axis] = min(int(cells[axis].min()) for cells in filled)
+            hi[axis] = max(int(cells[axis].max()) for cells in filled) + 1
+        return cls(lo, hi)
+
+    def mark(self, cells: Cells, occupied: bool = False) -> None:
+        """Mark ``cells`` observed (and ``occupied``), those inside the box."""
+        n = self.observed.shape
+        offset = [c - lo for c, lo in zip(cells, self.lo, strict=True)]
+        # One unsigned comparison per axis: below the box wraps to above any size.
+        inside = offset[0].astype(np.uint64) < n[0]
+        inside &= offset[1].astype(np.uint64) < n[1]
+        inside &= offset[2].astype(np.uint64) < n[2]
+        flat = (offset[0][inside] * n[1] + offset[1][inside]) * n[2] + offset[2][inside]
+        self.observed.reshape(-1)[flat] = True
+        if occupied:
+            self.occupied.reshape(-1)[flat] = True
+
+    def grid(self, voxel_m: float) -> tuple[FloatArray, BoolArray, BoolArray] | None:
+        """(origin, occupied, observed) of the part of the box its observed cells span, or None
+        when none is."""
+        spans = []
+        for axis in range(3):
+            others = tuple(a for a in range(3) if a != axis)
+            hit = np.flatnonzero(self.observed.any(axis=others))
+            if len(hit) == 0:
+                return None
+            spans.append(slice(int(hit[0]), int(hit[-1]) + 1))
+        lo = self.lo + [s.start for s in spans]
+        crop = tuple(spans)
+        # np.float64: numpy's stubs type an int64 array times a float as of any float precision.
+        return (
+            lo * np.float64(voxel_m),
+            np.ascontiguousarray(self.occupied[crop]),
+            np.ascontiguousarray(self.observed[crop]),
+        )
+
+
+def grid_in(
+    box: CellBox, voxel_m: float, observed: list[Cells], surface: Cells
 ) -> tuple[FloatArray, BoolArray, BoolArray] | None:
-    """(origin, occupied, observed) of the box the observed cells span (surface cells within
-    it), or None when there are none."""
-    if observed_cells.size == 0:
-        return None
-    lo, hi = observed_cells.min(axis=0), observed_cells.max(axis=0) + 1
-    observed: BoolArray = np.zeros(tuple(hi - lo), dtype=bool)
-    occupied = np.zeros_like(observed)
-    observed[tuple((observed_cells - lo).T)] = True
-    occupied[tuple((surface_cells - lo).T)] = True
-    # np.float64: numpy's stubs type an int64 array times a float as of any float precision.
-    return lo * np.float64(voxel_m), occupied, observed
-
-
-def in_box(cells: Int64Array, box_lo: Int64Array, box_hi: Int64Array) -> Int64Array:
-    """The cells (N, 3) inside [box_lo, box_hi)."""
-    # One unsigned comparison per axis: below box_lo wraps to above any size.
-    inside = (cells - box_lo).astype(np.uint64) < (box_hi - box_lo).astype(np.uint64)
-    return cells[inside[:, 0] & inside[:, 1] & inside[:, 2]]
+    """(origin, occupied, observed) within ``box`` (``CellBox.grid``): the cells of every set
+    of ``observed`` and of ``surface`` observed, those of ``surface`` occupied."""
+    for cells in observed:
+        box.mark(cells)
+    box.mark(surface, occupied=True)
+    return box.grid(voxel_m)

@@ -33,11 +33,12 @@ from server.mapping.config import TSDFConfig
 from server.mapping.frame_input import fusion_frame
 from server.mapping.free_space import FreeSpace
 from server.mapping.occupancy import (
+    CellBox,
+    Cells,
     block_cells,
     camera_cells,
     check_cell,
-    grid_of,
-    in_box,
+    grid_in,
     pack_keys,
     seen_cells,
     unpack_keys,
@@ -262,7 +263,8 @@ class TSDFMap:
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, self.config)
         free_seen = self._free_cells(free, voxel_m, R_grid_world)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
-        grid = grid_of(np.concatenate([seen, free_seen, surface, at_camera]), surface, voxel_m)
+        box = CellBox.around([seen, free_seen, surface, at_camera])
+        grid = grid_in(box, voxel_m, [seen, free_seen, at_camera], surface)
         if grid is None:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
         return grid
@@ -311,7 +313,7 @@ class TSDFMap:
             if free is not None:
                 reach.append(block_cells(free_dirty, voxel_m, R_grid_world, free.config))
             if len(new_cameras):
-                at = camera_cells(new_cameras, voxel_m, R_grid_world)
+                at = np.stack(camera_cells(new_cameras, voxel_m, R_grid_world), axis=1)
                 reach.append((at, at))
             box_lo = np.min([lo.min(axis=0) for lo, _ in reach if len(lo)], axis=0)
             box_hi = np.max([hi.max(axis=0) for _, hi in reach if len(hi)], axis=0) + 1
@@ -327,22 +329,21 @@ class TSDFMap:
             keys, tsdf, weight = read_blocks(self._grid, overlapping(cfg))
             free_blocks = None if free is None else free.read(overlapping(free.config))
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, cfg)
-        seen = np.concatenate([seen, self._free_cells(free_blocks, voxel_m, R_grid_world)])
+        free_seen = self._free_cells(free_blocks, voxel_m, R_grid_world)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
-        seen, surface = in_box(seen, box_lo, box_hi), in_box(surface, box_lo, box_hi)
-        at_camera = in_box(at_camera, box_lo, box_hi)
         # Cropped to what is observed: the rest of the box was unobserved before too.
-        return grid_of(np.concatenate([seen, surface, at_camera]), surface, voxel_m)
+        return grid_in(CellBox(box_lo, box_hi), voxel_m, [seen, free_seen, at_camera], surface)
 
     def _free_cells(
         self,
         free: tuple[Int64Array, np.ndarray] | None,
         voxel_m: float,
         R_grid_world: RealArray | None,
-    ) -> Int64Array:
+    ) -> Cells:
         """Cells of the free-space grid's seen voxels among ``free`` = (keys, weights)."""
         if free is None or self._free is None:
-            return np.empty((0, 3), np.int64)
+            none = np.empty(0, np.int64)
+            return none, none, none
         return seen_cells(*free, voxel_m, R_grid_world, self._free.config)
 
     # --- files -------------------------------------------------------------------------------

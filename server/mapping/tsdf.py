@@ -363,10 +363,10 @@ class TSDFMap:
             raise MapError(f"the map has no surface to write to {path} yet")
         _open3d_write(path, o3d.io.write_triangle_mesh, mesh)
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, compress: bool = True) -> None:
         """Persist the whole grid and the camera positions, written atomically (the format:
-        server/mapping/tsdf_files.py). Gathered with numpy rather than Open3D's own save, which
-        is ~20x slower at it, under the lock that fusion waits for."""
+        server/mapping/tsdf_files.py; ``compress``: deflated). Gathered with numpy rather than
+        Open3D's own save, which is ~20x slower at it, under the lock that fusion waits for."""
         with self._lock:
             keys, values = read_all(self._grid)
             free = None if self._free is None else self._free.blocks()
@@ -376,7 +376,7 @@ class TSDFMap:
         if free is not None and self._free is not None:
             stored.free_voxel_m = self._free.config.voxel_m
             stored.free_keys, stored.free_values = free
-        write_tsdf(path, stored)
+        write_tsdf(path, stored, compress)
         log.info("saved TSDF map (%d blocks) to %s", len(keys), path)
 
     @classmethod

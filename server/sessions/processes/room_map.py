@@ -65,8 +65,8 @@ class JoinedMapper:
     def stats(self, wait: bool = True) -> dict | None:
         return self.mapper.stats(wait)
 
-    def save(self, folder: str) -> list[str]:
-        return self.mapper.save(folder)
+    def save(self, folder: str, periodic: bool = False) -> list[str]:
+        return self.mapper.save(folder, periodic)
 
     def download(self, name: str) -> bytes:
         return self.mapper.download(name)

@@ -406,7 +406,7 @@ class Session:
         write_tum(staging / "trajectory.tum", self.trajectory())
         names = ["trajectory.tum"]
         if not (periodic and self.map_shared):  # a room's map: its owner's snapshots hold it
-            names += self.map.save(str(staging))
+            names += self.map.save(str(staging), periodic)
         if self.flight_log is not None:  # the flight in progress, as far as it got
             self.flight_log.save_open()
         return names

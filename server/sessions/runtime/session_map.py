@@ -34,13 +34,13 @@ class SessionMap:
                     self.counts.map_stats = fresh
         return self.counts.map_stats
 
-    def save(self, staging: str) -> list[str]:
-        """The map's snapshot files written into ``staging``; their names (none once the
-        mapper has ended: its files stay as the previous snapshot left them)."""
+    def save(self, staging: str, periodic: bool = False) -> list[str]:
+        """The map's snapshot files written into ``staging`` (``Mapper.save``); their names
+        (none once the mapper has ended: its files stay as the previous snapshot left them)."""
         if self.closed:
             return []
         try:
-            return self.mapper.save(staging)
+            return self.mapper.save(staging, periodic)
         except MapperLost:
             self.closed = True
             return []

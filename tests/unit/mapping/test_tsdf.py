@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import zipfile
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -103,6 +105,25 @@ def test_save_and_load_restore_the_same_surface(fused, tmp_path):
     # float32 grid's 20 bytes per voxel.
     grid_bytes = stats["active_blocks"] * small_config().block_resolution ** 3 * 20
     assert (tmp_path / "map.npz").stat().st_size < grid_bytes / 3
+
+
+def test_an_uncompressed_save_loads_back_the_same_map(fused, tmp_path):
+    """A periodic snapshot stores its arrays as they are (no deflate, less CPU): the map read
+    back is the compressed file's, array for array."""
+    fused.save(tmp_path / "deflated.npz")
+    fused.save(tmp_path / "stored.npz", compress=False)
+    with zipfile.ZipFile(tmp_path / "stored.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    with zipfile.ZipFile(tmp_path / "deflated.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_DEFLATED}
+    assert (tmp_path / "stored.npz").stat().st_size > 2 * (tmp_path / "deflated.npz").stat().st_size
+    with np.load(tmp_path / "stored.npz") as a, np.load(tmp_path / "deflated.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for name in a.files:
+            np.testing.assert_array_equal(a[name], b[name])
+    restored = TSDFMap.load(tmp_path / "stored.npz", small_config())
+    for x, y in zip(fused.occupancy(0.05), restored.occupancy(0.05), strict=True):
+        np.testing.assert_array_equal(x, y)
 
 
 def test_a_map_saved_in_open3ds_own_layout_still_loads(fused, tmp_path):

@@ -83,6 +83,10 @@ class FrameStep:
             colour = self.colour_to_depth(colour, depth)
         return colour, depth
 
+    def pace(self, behind: bool) -> None:
+        """The caller is behind (``TrackerMemory.pace``), or no longer."""
+        self.tracker.pace(behind)
+
     def track(
         self,
         colour: np.ndarray,

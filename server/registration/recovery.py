@@ -47,6 +47,8 @@ class Recovery:
         self.segment = 0
         self.segments_started = 0
         self.segment_start = 0
+        # The server is behind (``Tracker.behind``): the segment looks for the map less often.
+        self.behind = False
         # Frames lost in a row, and the motion before the loss (T_previous_last, 4x4), which
         # carries the last good pose over to a new segment.
         self.lost_run = 0
@@ -87,8 +89,10 @@ class Recovery:
         return self._described[1]
 
     def merge_due(self, index: int) -> bool:
-        """In a segment, frame ``index`` looks for the map (every ``relocalise.merge_every``)."""
-        every = self.cfg.relocalise.merge_every
+        """In a segment, frame ``index`` looks for the map (every ``relocalise.merge_every``,
+        or ``merge_every_behind`` while the server is behind)."""
+        r = self.cfg.relocalise
+        every = r.merge_every_behind if self.behind else r.merge_every
         return self.segment != 0 and (index - self.segment_start) % every == 0
 
     def correct(self, keyframe_poses: dict[int, FloatArray], T_correction: FloatArray) -> None:

@@ -60,6 +60,11 @@ class TrackerMemory:
         self.repeats = Repeats()  # repeated frames held, and the last result not held
         self.recovery = Recovery(intrinsics, self.cfg, self.keyframes)
 
+    def pace(self, behind: bool) -> None:
+        """Whether the caller is behind (dropping frames): a map segment then looks for the map
+        less often (``relocalise.merge_every_behind``)."""
+        self.recovery.behind = behind
+
     @property
     def keyframe(self) -> Keyframe | None:
         """The keyframe the next frame is tracked against (None before the first)."""

@@ -82,6 +82,9 @@ class RoomTracker:
     def relocalised(self) -> bool:
         return self.relocalisation is not None
 
+    def pace(self, behind: bool) -> None:
+        self.tracker.pace(behind)
+
     @property
     def lost(self) -> bool:
         """No pose for the latest frame: not found in the room yet, or tracking lost since."""

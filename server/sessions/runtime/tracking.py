@@ -32,6 +32,9 @@ from server.sessions.runtime.fusion import FuseJob, SessionFusion
 from server.sessions.runtime.loop_closing import Correction
 from server.sessions.updates import FrameData, MapCorrected, PoseUpdate, Update
 
+# After a frame dropped for a newer one, this many frames count as behind (about 1 s at 15 fps).
+BEHIND_FRAMES = 15
+
 
 def live_step(tracker: Tracker | RoomTracker, K: Intrinsics, config: SessionConfig) -> FrameStep:
     """The frame step of a live session's tracking thread (``SessionTracking``)."""
@@ -84,6 +87,10 @@ class SessionTracking:
         self._corrections: list[Correction] = []
         self._world = 0  # the corrected world the tracker is in (tracking thread)
         self._device_world = 0  # the last frame's device_world (tracking thread)
+        # Tracking thread: the frames dropped when it last looked, and how many frames more count
+        # as behind (``FrameStep.pace``).
+        self._dropped_seen = 0
+        self._behind_left = 0
 
     # ------------------------------------------------------------------ other threads'
     def start(self) -> None:
@@ -205,11 +212,24 @@ class SessionTracking:
             keyframes = [(i, c.seqs[i], T) for i, T in sorted(c.keyframes.items())]
             self.publish(MapCorrected(c.loops, from_seq, c.T_correction, keyframes, c.refused))
 
+    def _pace(self) -> None:
+        """A frame dropped for a newer one makes the next BEHIND_FRAMES frames count as behind:
+        the tracker then spends less on look-ups that may wait (``FrameStep.pace``)."""
+        with self.counts.lock:
+            dropped = self.counts.dropped
+        if dropped > self._dropped_seen:
+            self._behind_left = BEHIND_FRAMES
+        elif self._behind_left > 0:
+            self._behind_left -= 1
+        self._dropped_seen = dropped
+        self.step.pace(self._behind_left > 0)
+
     def _process(self, frame: FrameData) -> None:
         """Track the frame and publish its pose at once; then the keyframe work the tracker
         deferred (a new keyframe, or a switch to an earlier one), and the frame's fusion job:
         the client never waits for either."""
         t0, cpu0 = time.perf_counter(), time.thread_time()
+        self._pace()
         colour, depth = self.step.prepare(frame.colour, frame.depth)
         result = self.step.track(
             colour, depth, T_device_camera=frame.T_device_camera, device_world=frame.device_world

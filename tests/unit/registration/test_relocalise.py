@@ -185,3 +185,29 @@ def test_track_fuses_a_merged_segments_keyframes_where_they_belong(shared_data):
         # ... and not where the segment first put them (the motion model was far off).
         T_guess = r.T_world_camera
         assert np.linalg.norm(T_guess[:3, 3] - T_true[:3, 3]) > 0.3
+
+
+def test_a_tracker_behind_looks_for_the_map_less_often_in_a_segment(shared_data):
+    """A map segment looks itself up in the map every merge_every-th frame, and every
+    merge_every_behind-th while the caller is behind (dropping frames): each look-up that fails
+    costs several frames' tracking."""
+    ds = open_dataset(shared_data / "synthetic_room0")
+    walk = Reordered(ds, list(range(0, 40, 2)) + list(range(74, 150, 2)))  # a jump: a segment
+    cfg = RegistrationConfig().with_overrides(loops={"enabled": False})
+    r = cfg.relocalise
+    assert r.merge_every_behind > r.merge_every
+    gaps = {}
+    for behind in (False, True):
+        tracker = Tracker(ds.intrinsics, cfg)
+        tracker.pace(behind)
+        looked, segments = [], set()
+        for k in range(len(walk)):
+            frame = walk[k]
+            result = tracker.track(frame.colour, frame.depth)
+            tracker.update_keyframe()
+            segments.add(result.segment)
+            if "merge" in result.timings_ms:
+                looked.append(k)
+        assert len(segments - {0}) == 1 and len(looked) >= 3, (segments, looked)
+        gaps[behind] = set(np.diff(looked).tolist())
+    assert gaps == {False: {r.merge_every}, True: {r.merge_every_behind}}, gaps

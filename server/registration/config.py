@@ -368,7 +368,8 @@ class RegistrationConfig:
         ):
             raise ConfigError(
                 "registration.relocalise: need orb_features >= 10, vote_features, "
-                "vote_keyframes, candidates, ransac_iterations, reinit_after and merge_every >= 1"
+                "vote_keyframes, candidates, ransac_iterations, reinit_after, merge_every and "
+                "merge_every_behind >= 1"
             )
 
     def to_dict(self) -> dict[str, Any]:

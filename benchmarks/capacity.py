@@ -55,7 +55,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -273,6 +273,21 @@ def server_cpu_figures(
         "cpu_ms_per_frame": per_frame,
         "cpu_ms_per_frame_above_idle": above,
     }
+
+
+def _summed(counts) -> dict[str, int]:
+    """Counts by name ({name: n} each) added up."""
+    total: Counter = Counter()
+    for c in counts:
+        total.update(c)
+    return dict(total)
+
+
+def _share(row: dict, key: str, name: str) -> float | None:
+    """Percentage of the row's poses whose ``key`` (states, recoveries) count ``name``."""
+    if key not in row or not row["processed"]:
+        return None
+    return 100 * row[key].get(name, 0) / row["processed"]
 
 
 def meets(row: dict, target: dict = TARGET) -> bool:
@@ -565,6 +580,10 @@ def run_row(
         "client_cpu_percent": report["client_cpu_percent"],
         "stages_ms": report["stages_ms"],
         "drone_states": sum(s["commands"]["drone_states"] for s in report["sessions"]),
+        # Poses by tracking state and by recovery (a loss found again, a new segment, a merge):
+        # a server behind drops frames, and wider gaps between frames lose track more often.
+        "states": _summed(s["states"] for s in report["sessions"]),
+        "recoveries": _summed(s.get("recoveries", {}) for s in report["sessions"]),
         "failure_messages": [f for s in report["sessions"] for f in s["failures"]][:10],
     }
     row["meets"] = meets(row)
@@ -650,16 +669,18 @@ def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
     stages = sorted({k for r in rows for k in shown_stages(r["stages_ms"])})
     lines += [
         "",
-        "Server stage timings, median ms per row (from the poses' `timings_ms`):",
+        "Server stage timings, median ms per row (from the poses' `timings_ms`), and the share "
+        "of poses lost and of poses in a new map segment (tracking recovery, PROTOCOL.md):",
         "",
-        "| sessions | fps | " + " | ".join(stages) + " |",
-        "|--:|--:|" + "--:|" * len(stages),
+        "| sessions | fps | " + " | ".join(stages) + " | lost | in a segment |",
+        "|--:|--:|" + "--:|" * len(stages) + "--:|--:|",
     ]
     for r in rows:
         lines.append(
             f"| {r['sessions']} | {r['fps']:g} | "
             + " | ".join(_fmt(_stage(r, k), "{:.1f}") for k in stages)
-            + " |"
+            + f" | {_fmt(_share(r, 'states', 'lost'), '{:.1f} %')}"
+            + f" | {_fmt(_share(r, 'recoveries', 'segment'), '{:.1f} %')} |"
         )
     lines += [
         "",

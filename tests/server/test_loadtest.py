@@ -58,6 +58,9 @@ def test_every_session_gets_poses_and_the_report_adds_up(live_server, shared_dat
         assert s["sent"] + s["client_dropped"] == s["captured"] >= 35  # 4 s at 10 fps
         assert s["processed"] + s["server_dropped"] <= s["sent"]
         assert sum(s["states"].values()) == s["processed"]
+        # Poses by recovery, as the server counted the frames in a segment.
+        in_segment = s["server_status"]["recovery"]["in_segment"]
+        assert s["recoveries"].get("segment", 0) == in_segment
         # The server counted the same frames as the client.
         assert s["server_status"]["frames_received"] == s["sent"]
         assert s["server_status"]["frames_processed"] == s["processed"]

@@ -114,6 +114,7 @@ class _Client:
                     "fusion_skipped",
                     "device_pose",
                     "loops",  # what the session's loop closure did (null: not running)
+                    "recovery",  # tracking recovery: relocalised, segments, merged, ...
                 )
             }
             r.server_dropped = max(r.server_dropped, status.get("frames_dropped") or 0)
@@ -179,6 +180,8 @@ class _Client:
                 r.latency.append((time.monotonic() - self.t0, latency_ms))
             r.processed += 1
             r.states[msg["state"]] += 1
+            if msg.get("recovery"):
+                r.recoveries[msg["recovery"]] += 1
             r.server_dropped = max(r.server_dropped, msg["dropped"])
             for stage, ms in msg["timings_ms"].items():
                 r.stages_ms.setdefault(stage, []).append(ms)

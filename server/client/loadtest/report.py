@@ -55,6 +55,7 @@ def _session_report(r: SessionResult, duration_s: float) -> dict:
         "latency": _percentiles([ms for _, ms in r.latency]),
         "send_lag_p95_ms": float(np.percentile(r.send_lag_ms, 95)) if r.send_lag_ms else None,
         "states": dict(r.states),
+        "recoveries": dict(r.recoveries),
         "errors": dict(r.errors),
         "failures": r.failures,
         "commands": {

@@ -35,6 +35,7 @@ class SessionResult:
     latency: list[tuple[float, float]] = field(default_factory=list)  # (t, send-to-pose ms)
     send_lag_ms: list[float] = field(default_factory=list)  # send time after the capture time
     states: Counter = field(default_factory=Counter)
+    recoveries: Counter = field(default_factory=Counter)  # poses by their `recovery`
     stages_ms: dict[str, list[float]] = field(default_factory=dict)
     errors: Counter = field(default_factory=Counter)  # error messages by name
     failures: list[str] = field(default_factory=list)

@@ -131,6 +131,11 @@ class KeyframeConfig:
     # 2026-12-04): tum_fr1_xyz 1.61 -> 1.53 cm tracker-only (1.56 -> 1.44 / 2.10 -> 1.97 at
     # every 3rd / 4th frame), synthetic_room0 0.20 -> 0.19 cm; 7scenes_a 2.74 -> 2.80 (track).
     window: int = 2
+    # ... and at most this many while the caller is behind (``Tracker.pace``): each costs a
+    # registration (~7 ms at 640x288, on every keyframe) that a server dropping frames lacks.
+    # benchmarks/registration.py --drop every2 every3 (tum_fr1_xyz, ATE cm, window 2 / 1 / 0):
+    # 1.55 / 1.51 / 1.72 and 1.44 / 1.57 / 1.50; p90 ms per frame 37-39 / 28-30 / 23.
+    window_when_behind: int = 1
     window_reach: float = 3.0
     # Switching back needs this many of the old keyframe's corners tracked, as a multiple of
     # min_tracked_ratio (and at least min_tracked), and the pose within this share of

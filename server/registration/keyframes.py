@@ -184,10 +184,11 @@ def refine_in_window(
     reg: Registration,
     K: Intrinsics,
     cfg: RegistrationConfig,
+    window: int | None = None,
 ) -> FloatArray:
     """The pose of a frame about to become a keyframe, solved jointly against the current
-    keyframe and up to ``keyframes.window`` other ``recent`` ones (newest last, as the tracker
-    holds them).
+    keyframe and up to ``window`` (None: ``keyframes.window``) other ``recent`` ones (newest
+    last, as the tracker holds them).
 
     The current keyframe's estimate (``reg``) enters as a quadratic prior (its sparse information
     about ``T_world_cur``, which may carry the dense refinement); each other keyframe that
@@ -195,9 +196,10 @@ def refine_in_window(
     instead of one, so one poor registration no longer passes all its error down the chain.
     """
     c = cfg.keyframes
+    window = c.window if window is None else window
     others: list[Registration] = []
     for kf in reversed(list(recent)):
-        if len(others) >= c.window:
+        if len(others) >= window:
             break
         if kf is reg.kf or kf.segment != reg.kf.segment:
             continue

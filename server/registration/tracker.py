@@ -237,9 +237,18 @@ class Tracker(TrackerMemory):
             kf, self.tracks = switched
         else:
             T_world_kf = p.T_world_camera
-            if self.cfg.keyframes.window > 0 and p.registration is not None:
+            c = self.cfg.keyframes
+            window = min(c.window, c.window_when_behind) if self.behind else c.window
+            if window > 0 and p.registration is not None:
                 T_world_kf = refine_in_window(
-                    self.recent, p.grey, p.depth, T_world_kf, p.registration, self.K, self.cfg
+                    self.recent,
+                    p.grey,
+                    p.depth,
+                    T_world_kf,
+                    p.registration,
+                    self.K,
+                    self.cfg,
+                    window,
                 )
                 self.T_world_last = T_world_kf
             kf = self._new_keyframe(p.index, p.grey, p.depth, T_world_kf)

@@ -201,6 +201,35 @@ def test_windowed_keyframe_refinement_pulls_a_new_keyframe_towards_older_ones(de
     np.testing.assert_array_equal(T_alone, T_via_b)
 
 
+def test_a_tracker_behind_refines_new_keyframes_against_fewer_recent_ones(shared_data, monkeypatch):
+    """keyframes.window_when_behind: while its caller is behind (``pace``), a new keyframe is
+    refined against at most that many recent keyframes (each costs a registration), and
+    against ``window`` again once it keeps up."""
+    import server.registration.tracker as tracker_module
+
+    windows: list[int | None] = []
+
+    def refine(*args, **kwargs):
+        windows.append(args[7] if len(args) > 7 else kwargs.get("window"))
+        return refine_in_window(*args, **kwargs)
+
+    monkeypatch.setattr(tracker_module, "refine_in_window", refine)
+    ds = open_dataset(shared_data / "synthetic_room0")
+    config = RegistrationConfig()
+    assert config.keyframes.window > config.keyframes.window_when_behind >= 1
+    tracker = Tracker(ds.intrinsics, config)
+    seen = {}
+    for behind, frames in ((False, range(0, 40)), (True, range(40, 80)), (False, range(80, 120))):
+        tracker.pace(behind)
+        windows.clear()
+        for i in frames:
+            tracker.track(ds[i].colour, ds[i].depth)
+            tracker.update_keyframe()
+        seen[behind] = seen.get(behind, set()) | set(windows)
+        assert windows, f"no keyframe made in frames {frames}"
+    assert seen == {False: {config.keyframes.window}, True: {config.keyframes.window_when_behind}}
+
+
 def test_keyframe_realignment_pulls_wandered_tracks_back_onto_the_keyframe_corner(demo_clean):
     """flow.keyframe_refine_levels: a chained track that wandered 1.4 px off is re-aligned
     straight against the keyframe image; one moved beyond keyframe_refine_max_px is dropped."""

@@ -16,9 +16,9 @@ import math
 from dataclasses import dataclass
 from typing import TypeAlias
 
+import edt
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from server.geometry.arrays import BoolArray, Float32Array, Int64Array
 
@@ -92,8 +92,9 @@ def signed_distance(blocked: BoolArray, voxel_m: float, max_distance_m: float) -
     v, d = voxel_m, max_distance_m
     field = np.full(blocked.shape, d, dtype=np.float32)
     if blocked.any() and not blocked.all():  # edt has no answer without a zero
-        outside = ndimage.distance_transform_edt(~blocked)  # free -> nearest blocked, cells
-        inside = ndimage.distance_transform_edt(blocked)  # blocked -> nearest free
+        # The edt package's exact transform: scipy.ndimage's, float32, in half the time.
+        outside = edt.edt(~blocked, black_border=False, parallel=1)  # free -> nearest blocked
+        inside = edt.edt(blocked, black_border=False, parallel=1)  # blocked -> nearest free
         field = np.where(blocked, -(inside - 0.5) * v, (outside - 0.5) * v)
     elif blocked.all():
         field[...] = -d

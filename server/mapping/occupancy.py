@@ -185,7 +185,7 @@ def _stored_safe(limit: float) -> np.float32:
     return mid
 
 
-class CellBox:
+class OccupancyBox:
     """A box of grid cells [lo, hi) (integer, per axis) in which cells are marked observed, and
     occupied; ``grid`` crops it to the observed ones. Cells outside the box are left out."""
 
@@ -196,7 +196,7 @@ class CellBox:
         self.occupied: BoolArray = np.zeros_like(self.observed)
 
     @classmethod
-    def around(cls, cell_sets: list[Cells]) -> CellBox:
+    def around(cls, cell_sets: list[Cells]) -> OccupancyBox:
         """The smallest box holding every cell of ``cell_sets``."""
         lo, hi = np.zeros(3, np.int64), np.zeros(3, np.int64)
         filled = [cells for cells in cell_sets if len(cells[0])]
@@ -239,9 +239,9 @@ class CellBox:
 
 
 def grid_in(
-    box: CellBox, voxel_m: float, observed: list[Cells], surface: Cells
+    box: OccupancyBox, voxel_m: float, observed: list[Cells], surface: Cells
 ) -> tuple[FloatArray, BoolArray, BoolArray] | None:
-    """(origin, occupied, observed) within ``box`` (``CellBox.grid``): the cells of every set
+    """(origin, occupied, observed) within ``box`` (``OccupancyBox.grid``): the cells of every set
     of ``observed`` and of ``surface`` observed, those of ``surface`` occupied."""
     for cells in observed:
         box.mark(cells)

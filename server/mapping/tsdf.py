@@ -33,8 +33,8 @@ from server.mapping.config import TSDFConfig
 from server.mapping.frame_input import fusion_frame
 from server.mapping.free_space import FreeSpace
 from server.mapping.occupancy import (
-    CellBox,
     Cells,
+    OccupancyBox,
     block_cells,
     camera_cells,
     check_cell,
@@ -263,7 +263,7 @@ class TSDFMap:
         seen, surface = voxel_cells(keys, tsdf, weight, voxel_m, R_grid_world, self.config)
         free_seen = self._free_cells(free, voxel_m, R_grid_world)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
-        box = CellBox.around([seen, free_seen, surface, at_camera])
+        box = OccupancyBox.around([seen, free_seen, surface, at_camera])
         grid = grid_in(box, voxel_m, [seen, free_seen, at_camera], surface)
         if grid is None:
             return np.zeros(3), np.zeros((0, 0, 0), bool), np.zeros((0, 0, 0), bool)
@@ -332,7 +332,7 @@ class TSDFMap:
         free_seen = self._free_cells(free_blocks, voxel_m, R_grid_world)
         at_camera = camera_cells(cameras, voxel_m, R_grid_world)
         # Cropped to what is observed: the rest of the box was unobserved before too.
-        return grid_in(CellBox(box_lo, box_hi), voxel_m, [seen, free_seen, at_camera], surface)
+        return grid_in(OccupancyBox(box_lo, box_hi), voxel_m, [seen, free_seen, at_camera], surface)
 
     def _free_cells(
         self,

@@ -47,7 +47,8 @@ class Recovery:
         self.segment = 0
         self.segments_started = 0
         self.segment_start = 0
-        # The server is behind (``Tracker.behind``): the segment looks for the map less often.
+        # The caller is behind (``Tracker.pace``): the segment looks for the map less often, and
+        # a new keyframe is refined against fewer recent ones.
         self.behind = False
         # Frames lost in a row, and the motion before the loss (T_previous_last, 4x4), which
         # carries the last good pose over to a new segment.

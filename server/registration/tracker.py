@@ -238,7 +238,7 @@ class Tracker(TrackerMemory):
         else:
             T_world_kf = p.T_world_camera
             c = self.cfg.keyframes
-            window = min(c.window, c.window_when_behind) if self.behind else c.window
+            window = min(c.window, c.window_when_behind) if self.recovery.behind else c.window
             if window > 0 and p.registration is not None:
                 T_world_kf = refine_in_window(
                     self.recent,

@@ -59,13 +59,12 @@ class TrackerMemory:
         self.device = DevicePrior(self.cfg.prior)
         self.repeats = Repeats()  # repeated frames held, and the last result not held
         self.recovery = Recovery(intrinsics, self.cfg, self.keyframes)
-        self.behind = False  # ``pace``
 
     def pace(self, behind: bool) -> None:
         """Whether the caller is behind (dropping frames): a new keyframe is then not refined
         against the window of recent ones (``keyframes.window_when_behind``), and a map segment
         looks for the map less often (``relocalise.merge_every_behind``)."""
-        self.behind = self.recovery.behind = behind
+        self.recovery.behind = behind
 
     @property
     def keyframe(self) -> Keyframe | None:

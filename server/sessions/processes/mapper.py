@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 MAP_FILES = ("map.npz", "map.ply")  # what a snapshot of the map writes
 # A periodic snapshot (crash insurance) writes map.npz uncompressed (~100 ms less CPU, ~3x the
 # size until the session's last snapshot compresses it) and map.ply, the surface points
-# extracted from the whole map (~80 ms), at most this often: the npz holds every observation.
+# extracted from the whole map (~90 ms), at most this often: the npz holds every observation.
 PERIODIC_PLY_EVERY_S = 30.0
 
 

@@ -20,11 +20,9 @@ from server.registration.sparse import (
     NormalEquations,
     SparseSolution,
     information,
-    mahalanobis,
     point_information,
-    robust_weights,
+    robust_equations,
     solve_sparse,
-    sparse_equations,
 )
 
 
@@ -152,8 +150,7 @@ def refine_on_surface(
     W = information(kf.covariances[d_ids], cov_Q, solution.T[:3, :3])
 
     def sparse_terms(T: FloatArray) -> NormalEquations:
-        weights = robust_weights(mahalanobis(P_in, Q_in, W, T), cfg.solver, True)
-        return sparse_equations(P_in, Q_in, W, T, weights)[0]
+        return robust_equations(P_in, Q_in, W, T, cfg.solver, reject=True)[0]
 
     photometric = cfg.solver.photometric_weight > 0
     points, intensity = sample_dense_points(

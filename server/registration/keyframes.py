@@ -26,11 +26,10 @@ from server.registration.frame_to_keyframe import Registration, Tracks, judge, t
 from server.registration.keyframe import Keyframe, make_keyframe
 from server.registration.results import TrackingState, TrackResult
 from server.registration.sparse import (
+    gauss_newton_step,
     information,
-    mahalanobis,
     point_information,
-    robust_weights,
-    sparse_equations,
+    robust_equations,
 )
 
 log = logging.getLogger(__name__)
@@ -220,23 +219,33 @@ def refine_in_window(
     # The current keyframe's information about the pose, moved to world-frame twists.
     A0 = adjoint(invert(reg.kf.T_world_keyframe))
     H0 = A0.T @ reg.solution.equations.H @ A0
+    # Each other keyframe's inlier points and covariances, fixed over the iterations.
+    terms = []
+    for o in others:
+        with_depth = o.ids[o.with_depth][o.solution.inliers]
+        Q = o.points[o.solution.inliers]
+        T_keyframe_world = invert(o.kf.T_world_keyframe)
+        terms.append(
+            (
+                o.kf.points[with_depth],
+                o.kf.covariances[with_depth],
+                Q,
+                point_information(Q, K, cfg.depth),
+                T_keyframe_world,
+                adjoint(T_keyframe_world),
+            )
+        )
     T: FloatArray = T_world_cur.copy()
     xi_total = np.zeros(6)
     for _ in range(cfg.solver.max_iterations):
         H, g = H0.copy(), H0 @ xi_total
-        for o in others:
-            inl = o.solution.inliers
-            P = o.kf.points[o.ids[o.with_depth][inl]]
-            cov_P = o.kf.covariances[o.ids[o.with_depth][inl]]
-            Q = o.points[inl]
-            T_kf_cur = invert(o.kf.T_world_keyframe) @ T
-            W = information(cov_P, point_information(Q, K, cfg.depth), T_kf_cur[:3, :3])
-            weights = robust_weights(mahalanobis(P, Q, W, T_kf_cur), cfg.solver, True)
-            eq = sparse_equations(P, Q, W, T_kf_cur, weights)[0]
-            A = adjoint(invert(o.kf.T_world_keyframe))
+        for P, cov_P, Q, cov_Q, T_keyframe_world, A in terms:
+            T_kf_cur = T_keyframe_world @ T
+            W = information(cov_P, cov_Q, T_kf_cur[:3, :3])
+            eq = robust_equations(P, Q, W, T_kf_cur, cfg.solver, reject=True)[0]
             H += A.T @ eq.H @ A
             g += A.T @ eq.g
-        xi = np.linalg.lstsq(H, -g, rcond=None)[0]
+        xi = gauss_newton_step(H, g)
         T = orthonormalize(exp_se3(xi) @ T)
         xi_total += xi
         if np.linalg.norm(xi) < cfg.solver.convergence_step:

@@ -14,6 +14,10 @@ what limits it, stated from those measured figures only (no model is fitted).
     python benchmarks/capacity.py [SEQUENCE] [--duration 30] [--sessions 1 2 4 8] [--fps 15 30]
     python benchmarks/capacity.py --quick     # smoke run: 5 s per row on 30 frames
 
+Each session starts elsewhere in the sequence (the load tester's default: phones in a room are
+each at another point of their walk); ``--lockstep`` plays the same frame on every session at
+once, the worst case, where each hard stretch of the sequence reaches every session together.
+
 **Server CPU is the whole process tree's.** Sessions may run in worker processes (children of
 the server, or grandchildren through a multiprocessing forkserver), so the server's CPU is summed
 over every process descending from the ``python -m server serve`` pid (``ppid`` links in
@@ -534,9 +538,15 @@ def run_row(
     duration_s: float,
     idle: dict,
     commit: str,
+    lockstep: bool = False,
 ) -> dict:
     cfg = LoadTestConfig(
-        url=url, sessions=sessions, fps=fps, duration_s=duration_s, client_name="capacity"
+        url=url,
+        sessions=sessions,
+        fps=fps,
+        duration_s=duration_s,
+        client_name="capacity",
+        lockstep=lockstep,
     )
     with console.status(f"{sessions} x {fps:g} fps ...") as status:
 
@@ -616,6 +626,13 @@ def _size(meta: dict) -> str:
     return f"{w}x{h}"
 
 
+def _starts(meta: dict) -> str:
+    """Where the sessions start in the sequence (reports before ``--lockstep``: together)."""
+    if meta.get("lockstep", True):
+        return "every session at the same frame at once (lockstep)"
+    return "each session starting elsewhere in it"
+
+
 def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
     quick = meta["quick"]
     lines = [f"# Server capacity{' — SMOKE RUN, not a measurement' if quick else ''}", ""]
@@ -638,7 +655,8 @@ def markdown(rows: list[dict], meta: dict, idle: dict, analysis: str) -> str:
         f"cores, load average {meta['load_before']:.2f} before / {meta['load_after']:.2f} after; "
         f"sequence {meta['dataset']} as {meta.get('profile', 'kinect')} sends it: colour "
         f"{meta['size'][0]}x{meta['size'][1]}, depth {_size(meta)} ({meta['frames']} "
-        f"frames, played back and forth, {meta['mean_frame_kb']:.0f} kB per frame); map fusion "
+        f"frames, played back and forth, {_starts(meta)}, {meta['mean_frame_kb']:.0f} kB per "
+        f"frame); map fusion "
         f"on (one frame in {meta['fuse_every']} + keyframes); drone simulation: {meta['drone']}; "
         f"idle server (no session, {idle['wall_s']:.0f} s): {100 * idle['cores']:.1f} % of one "
         f"core.",
@@ -809,6 +827,12 @@ def main() -> None:
         help="the frames the phones send: kinect (as recorded, 640x480), arcore (live AR on a "
         "20:9 phone: colour 640x288, depth 160x72), iphone (a recording: 640x480, depth 256x192)",
     )
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="every session plays the same frame at once (the worst case), not each elsewhere "
+        "in the sequence",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     args = parser.parse_args()
     if args.quick:
@@ -839,7 +863,15 @@ def main() -> None:
                         )
                     rows.append(
                         run_row(
-                            server.url, seq, server.pid, sessions, fps, args.duration, idle, commit
+                            server.url,
+                            seq,
+                            server.pid,
+                            sessions,
+                            fps,
+                            args.duration,
+                            idle,
+                            commit,
+                            args.lockstep,
                         )
                     )
                     rows[-1]["server"]["settle_s"] = settle_s
@@ -863,6 +895,7 @@ def main() -> None:
         "size": list(seq.size),
         "depth_size": list(seq.depth_size or seq.size),
         "profile": seq.profile,
+        "lockstep": args.lockstep,
         "frames": len(seq.frames),
         "mean_frame_kb": seq.mean_bytes / 1e3,
         "fuse_every": Config().mapping.fuse_every,

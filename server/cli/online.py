@@ -127,6 +127,13 @@ def loadtest(
     max_in_flight: Annotated[int, typer.Option(min=1, help="unanswered frames at most")] = 2,
     depth_format: Annotated[str, typer.Option(help="zlib (as browsers send) or png")] = "zlib",
     command_every: Annotated[float, typer.Option(min=0, help="drone command period, s")] = 2.0,
+    lockstep: Annotated[
+        bool,
+        typer.Option(
+            help="every client plays the same frame at once (else each starts elsewhere in the "
+            "sequence, as phones in a room are each at another point of their walk)"
+        ),
+    ] = False,
     json_path: Annotated[Path | None, typer.Option("--json", help="report (JSON)")] = None,
     plot: Annotated[Path | None, typer.Option(help="latency over time (PNG)")] = None,
     keep_sessions: Annotated[bool, typer.Option(help="do not delete the sessions")] = False,
@@ -153,6 +160,7 @@ def loadtest(
         duration_s=duration,
         max_in_flight=max_in_flight,
         command_every_s=command_every,
+        lockstep=lockstep,
         keep_sessions=keep_sessions,
         insecure=insecure,
     )

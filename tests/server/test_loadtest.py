@@ -104,6 +104,18 @@ def test_the_sequence_plays_back_and_forth_so_the_motion_stays_continuous():
     assert {single.index(k) for k in range(5)} == {0}
 
 
+def test_sessions_start_spread_over_the_sequence_unless_in_lockstep():
+    """Phones replaying one sequence are each elsewhere in it: every hard stretch would
+    otherwise reach all of them at once."""
+    seq = EncodedSequence("ten", (500.0, 500.0, 320.0, 240.0), (640, 480), [{}] * 10)
+    starts = [seq.start(i, 4) for i in range(4)]  # one cycle is 18 captures: 0 1 .. 9 8 .. 1
+    assert starts == [0, 4, 9, 13]
+    assert [seq.index(k) for k in starts] == [0, 4, 9, 5]  # the last two play backward
+    assert seq.start(0, 1) == 0
+    single = EncodedSequence("one", (500.0, 500.0, 320.0, 240.0), (640, 480), [{}])
+    assert {single.index(single.start(i, 3)) for i in range(3)} == {0}
+
+
 def test_a_loop_correction_moves_the_drone_target_with_the_world():
     """After map_corrected the load tester's goto target (the drone's spawn point, kept in the
     old world) is moved by T_correction, as the server reads targets in the corrected world:

@@ -5,7 +5,9 @@ Each client creates a session (``POST /api/sessions``), opens its WebSocket, say
 captures a frame every 1/fps seconds (the sessions' capture phases are spread over one frame
 period, as real phones are not in step). A frame captured while ``max_in_flight`` frames await
 an answer is dropped on the client, as a phone would. The sequence plays forward, then backward,
-and so on, so that the camera motion stays continuous however long the run. Frames are encoded
+and so on, so that the camera motion stays continuous however long the run; each session starts
+elsewhere in it, spread over one forward-and-back cycle (phones in a room are each at another
+point of their walk), or all at its first frame with ``lockstep``. Frames are encoded
 once before the run (JPEG colour, zlib or PNG depth), so the client's encoding stays out of the
 measurement. Now and then a client sends a drone command (``hold``, or ``goto`` the drone's
 spawn point once it has one). At the end each client waits for its last answers, says bye,

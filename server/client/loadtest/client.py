@@ -139,6 +139,7 @@ class _Client:
         start = self.t0 + phase_s
         stop = start + cfg.duration_s
         next_command = start + cfg.command_every_s / 2
+        first = 0 if cfg.lockstep else seq.start(r.index, cfg.sessions)
         k = 0
         while (due := start + k / cfg.fps) < stop and conn.receiving:
             await asyncio.sleep(max(0.0, due - time.monotonic()))
@@ -146,7 +147,7 @@ class _Client:
             if len(conn.in_flight) >= max_in_flight:
                 r.client_dropped += 1
             else:
-                frame = {"type": "frame", **seq.frames[seq.index(k)], "seq": k}
+                frame = {"type": "frame", **seq.frames[seq.index(first + k)], "seq": k}
                 sent_at = await conn.send_frame({**frame, "timestamp": due - self.t0})
                 r.send_lag_ms.append((sent_at - due) * 1e3)
                 r.sent += 1

@@ -14,6 +14,9 @@ class LoadTestConfig:
     duration_s: float = 30.0  # capture time per session
     max_in_flight: int = 2  # the welcome's value when smaller
     command_every_s: float = 2.0  # drone command period per session; 0: none
+    # Every session plays the same frame at once (a worst case: the sequence's hard stretches
+    # reach every session together); else each starts elsewhere (EncodedSequence.start).
+    lockstep: bool = False
     grace_s: float = 10.0  # wait this long for the last answers, then for the close
     keep_sessions: bool = False  # leave the sessions on the server (else DELETE them)
     insecure: bool = False  # accept any TLS certificate (the server's self-signed one)

@@ -143,6 +143,14 @@ class EncodedSequence:
         """Frame of capture k when playing forward, backward, forward, ... (ping-pong)."""
         return ping_pong_index(k, len(self.frames))
 
+    def start(self, session: int, sessions: int) -> int:
+        """The capture (``index``'s k) that session ``session`` of ``sessions`` starts at: the
+        sessions spread evenly over one forward-and-back cycle, so that phones replaying one
+        sequence are each somewhere else in it, as phones in a room would be. Played in step,
+        each hard stretch (a fast turn, a run of keyframes) reaches every session at once."""
+        cycle = max(1, 2 * len(self.frames) - 2)
+        return session * cycle // max(1, sessions)
+
     @property
     def mean_bytes(self) -> float:
         return float(np.mean([len(f["colour"]) + len(f["depth"]) for f in self.frames]))

@@ -315,3 +315,7 @@ def test_the_markdown_shows_figures_beside_the_target_and_the_stage_medians():
     assert "p95 400 <= 100, no pose 40.0 % < 5 %: **FAIL**" in md
     assert "| 1 | 15 | 4.0 | 25.0 | 20.0 |" in md  # decode, track, track_cpu medians
     assert "## What limits it" in md and "| 0.30 | 30 (29) |" in md
+    # Where the sessions start: a report from before the option played them in lockstep.
+    assert "every session at the same frame at once (lockstep)" in md
+    md = capacity.markdown(rows, {**meta, "lockstep": False}, IDLE, "")
+    assert "each session starting elsewhere in it" in md and "lockstep" not in md

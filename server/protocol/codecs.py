@@ -94,10 +94,11 @@ def _decode_colour(data: bytes, size: tuple[int, int], seq: int | None) -> np.nd
         raise ProtocolError("corrupt_image", f"colour: {exc}", seq=seq) from exc
     if found != size:
         raise ProtocolError("size_mismatch", f"colour is {found}, hello said {size}", seq=seq)
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None or bgr.shape[1::-1] != size:
+    # Decoded straight to RGB: the same pixels as BGR then a swap, without the swap's pass.
+    rgb = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR_RGB)
+    if rgb is None or rgb.shape[1::-1] != size:
         raise ProtocolError("corrupt_image", "colour JPEG does not decode", seq=seq)
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return rgb
 
 
 def _decode_depth_units(
@@ -147,17 +148,23 @@ def decode_frame_images(message: Mapping, hello: Mapping) -> tuple[np.ndarray, n
         message["depth"], message["depth_format"], tuple(hello["depth_size"]), seq
     )
     scale = message.get("depth_scale", hello["depth_scale"])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = units.astype(np.float32) / np.float32(scale)
-    if not np.isfinite(depth).all():
-        raise ProtocolError("bad_depth", f"depth not finite (depth_scale {scale})", seq=seq)
-    if depth.min() < 0:
-        raise ProtocolError("bad_depth", f"negative depth (depth_scale {scale})", seq=seq)
-    if depth.max() > LIMITS["max_depth_m"]:
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        scale32 = np.float32(scale)
+        depth = units.astype(np.float32) / scale32
+    # Units are uint16 (>= 0): over a finite positive scale the depth is finite and not
+    # negative, and its largest value is the largest unit's, so only other scales need the
+    # passes over every pixel.
+    if not (np.isfinite(scale32) and scale32 > 0):
+        if not np.isfinite(depth).all():
+            raise ProtocolError("bad_depth", f"depth not finite (depth_scale {scale})", seq=seq)
+        if depth.min() < 0:
+            raise ProtocolError("bad_depth", f"negative depth (depth_scale {scale})", seq=seq)
+    largest = np.float32(units.max()) / scale32 if scale32 > 0 else depth.max()
+    if largest > LIMITS["max_depth_m"]:
         raise ProtocolError(
-            "bad_depth", f"depth up to {depth.max():.0f} m: is depth_scale {scale} right?", seq=seq
+            "bad_depth", f"depth up to {largest:.0f} m: is depth_scale {scale} right?", seq=seq
         )
-    valid = float((depth > 0).mean())
+    valid = np.count_nonzero(depth) / depth.size
     if valid < LIMITS["min_valid_depth_fraction"]:
         raise ProtocolError(
             "bad_depth",

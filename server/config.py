@@ -97,7 +97,7 @@ class ServerConfig(BaseModel):
     # Phones in one shared room (the owner's session and those that joined it with an invite).
     max_room_phones: int = Field(default=3, ge=1, le=16)
     # Native threads (OpenCV, Open3D, BLAS) per session's worker process; 0 shares the machine's
-    # cores among the live sessions, rebalanced as they come and go.
+    # cores less one among the live sessions, rebalanced as they come and go.
     worker_threads: int = Field(default=0, ge=0, le=256)
     demo: bool = False  # start a session that replays the bundled demo sequence
     demo_fps: float = Field(default=15.0, gt=0, le=60)

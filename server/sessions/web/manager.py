@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from server.sessions.config import SessionConfig
+from server.sessions.config import SessionConfig, threads_per_session
 from server.sessions.errors import SessionError, SnapshotError
 from server.sessions.processes.session_process import ProcessWorker
 from server.sessions.runtime.host import HostArgs
@@ -148,7 +148,7 @@ class SessionManager:
         return len(self._saved)
 
     def _threads_each(self, sessions: int) -> int:
-        return self.threads or max(1, (os.cpu_count() or 1) // max(1, sessions))
+        return self.threads or threads_per_session(os.cpu_count() or 1, sessions)
 
     def room_of(self, room_id: str, token: str | None) -> Path:
         """The room folder a closed session ``room_id`` left, if ``token`` is that session's.

@@ -463,7 +463,7 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
 
     ds = open_dataset(shared_data / "synthetic_room0")
     K = ds.intrinsics
-    # The correction below moves nothing: only with rebuild_min_move_m 0 is it re-fused.
+    # The correction below moves the keyframes by 1 mm: re-fused with rebuild_min_move_m 0.
     config = SessionConfig.from_config(Config(registration=LOOPS, mapping=REFUSE_ALL))
     session = Session("1" * 16, "hash", SessionStore(tmp_path / "data"), config)
     session.configure(Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height))
@@ -486,8 +486,9 @@ def test_a_failing_loop_keyframe_and_rebuild_are_counted_and_the_session_goes_on
     assert status["failures"]["loops_failed"] == 1 and status["loops"]["keyframes"] >= 2
     assert 1 not in session.loops.closer._index  # left out of the graph (its id is 1)
 
-    # A correction (the world as it is) whose rebuild fails: counted; the old map stays.
-    poses = session.loops.poses()
+    # A correction moving every keyframe by 1 mm, whose rebuild fails: counted; the old map
+    # stays. (A correction that moves nothing is no rebuild: the map is right as it is.)
+    poses = {i: T @ _turn(0.0, (0.001, 0, 0)) for i, T in session.loops.poses().items()}
     correction = Correction(1, poses, {i: 0 for i in poses}, np.eye(4), 1, 0, 1.0)
     session.loops.worlds.add(correction)
     frames_before = session.status()["map"]["frames_integrated"]

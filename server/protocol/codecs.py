@@ -154,12 +154,14 @@ def decode_frame_images(message: Mapping, hello: Mapping) -> tuple[np.ndarray, n
     # Units are uint16 (>= 0): over a finite positive scale the depth is finite and not
     # negative, and its largest value is the largest unit's, so only other scales need the
     # passes over every pixel.
-    if not (np.isfinite(scale32) and scale32 > 0):
+    if np.isfinite(scale32) and scale32 > 0:
+        largest = np.float32(units.max()) / scale32
+    else:
         if not np.isfinite(depth).all():
             raise ProtocolError("bad_depth", f"depth not finite (depth_scale {scale})", seq=seq)
         if depth.min() < 0:
             raise ProtocolError("bad_depth", f"negative depth (depth_scale {scale})", seq=seq)
-    largest = np.float32(units.max()) / scale32 if scale32 > 0 else depth.max()
+        largest = depth.max()
     if largest > LIMITS["max_depth_m"]:
         raise ProtocolError(
             "bad_depth", f"depth up to {largest:.0f} m: is depth_scale {scale} right?", seq=seq

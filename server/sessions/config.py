@@ -14,7 +14,7 @@ def threads_per_session(cores: int, sessions: int) -> int:
     """Native threads (OpenCV, BLAS) for each of ``sessions`` live sessions' tracking on a
     machine of ``cores``: the cores less one, shared. The one left is the sessions' other
     work's (mapping processes, drone, the web process): on 2 cores one session with a pool of
-    two spent 1.5-2 ms more CPU per 640x480 frame (7 %) on the pool's threads, for a median
+    two cost 1.5-2 ms more server CPU per 640x480 frame (7 %) than with one, for a median
     latency no lower."""
     return max(1, (cores - 1) // max(1, sessions))
 

@@ -117,10 +117,12 @@ def test_a_corrupt_frame_is_refused_with_its_seq_by_the_worker(manager, room):
     assert updates.wait_for(PoseUpdate)[0].seq == 1
 
 
-def test_the_cores_are_shared_among_live_sessions(tmp_path):
+def test_the_cores_are_shared_among_live_sessions(tmp_path, monkeypatch):
     """Automatic sizing: every session's native pools together use the machine's cores less
     one (the mappers' and the web process's), at least one thread each, rebalanced when a
-    session comes or goes."""
+    session comes or goes. Five cores, as the manager sees them: on a 2-core machine every
+    share would be one thread, and a rebalance that never came would pass unseen."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 5)
     manager = SessionManager(SessionStore(tmp_path / "data"))
     cores = os.cpu_count() or 1
     try:

@@ -62,8 +62,8 @@ SETTLE_CORES = {"process": 0.1, "ray": 0.35, "ray-base": 0.35}  # Ray's processe
 
 
 class MapperCount:
-    """The most Ray mapper processes (``actor_host.mapper_child``) seen at once in the server's
-    process tree, sampled every second over a ``with`` block."""
+    """The most Ray mapper processes (an actor's children) seen at once in the server's process
+    tree, sampled every second over a ``with`` block."""
 
     def __init__(self, root: int) -> None:
         self.root, self.most = root, 0
@@ -73,9 +73,11 @@ class MapperCount:
         count = 0
         for pid in scan_tree(self.root):
             try:
-                count += b"mapper_child" in Path(f"/proc/{pid}/cmdline").read_bytes()
+                line = Path(f"/proc/{pid}/cmdline").read_bytes()
             except OSError:
                 continue
+            # fresh.fresh_main running mapper_main (before 2026-12-06: actor_host.mapper_child)
+            count += b"mapper_child" in line or (b"fresh_main" in line and b"mapper_main" in line)
         return count
 
     def _run(self) -> None:

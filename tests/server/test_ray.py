@@ -1,9 +1,9 @@
 """Sessions as Ray actors (``serve --ray ADDRESS``) on a local two-node Ray cluster, its traffic
 on the loopback only: sessions land on both nodes, poses flow, a second front-end takes a
 session's socket over, a restarted front-end finds the live sessions again, a delete ends the
-actor; each actor's map is fused in a mapper process of its own, whose death fails the session
-as under the process workers; a shared room runs on its owner's node with one map, which serves
-a joined phone past its owner's end and ends after it.
+actor; each actor runs its session in a worker and a mapper process of its own, whose death
+fails the session as under the process workers; a shared room runs on its owner's node with one
+map, which serves a joined phone past its owner's end and ends after it.
 
 One module-scoped cluster (two nodes of two CPUs each: a room's owner and a phone fit on one);
 the front-ends are real uvicorn servers in this process, sharing its Ray driver connection (as
@@ -284,25 +284,30 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
     print(f"ray test body: {time.monotonic() - t0:.1f} s")
 
 
-def test_a_sessions_map_is_fused_in_its_actors_mapper_process_whose_death_fails_it(
-    cluster, room, tmp_path
+@pytest.mark.parametrize("killed", ["mapper", "worker"])
+def test_a_session_runs_in_its_actors_processes_whose_death_fails_it(
+    cluster, room, tmp_path, killed
 ):
-    """The actor fuses the map in a mapper process, its child (so on its node), at a lower
-    priority; that process does the fusing (its CPU time grows with the frames, the map with
-    it). SIGKILL it: as under the process workers, the next fusion fails the session, whose
-    client hears session_failed and the close 4010; the session is closed and saved with the
-    failure, and its actor ends."""
+    """The actor runs the session in processes of its own, its children (so on its node): a
+    worker that tracks (its CPU time grows with the frames) and a mapper at a lower priority
+    that fuses (its CPU time and the map grow). SIGKILL either: as under the process workers,
+    the session fails (the mapper's death at the next fusion, the worker's at once), its client
+    hears session_failed and the close 4010; the session is closed and saved with the failure,
+    and its actor and processes end."""
     data = tmp_path / "data"
     front = LiveServer(data, ray=cluster.address)
     try:
         sid, token = create_session(front.url)
         worker = session_status(front.url, sid, token)["worker"]
-        actor, mapper = worker["pid"], worker["mapper_pid"]
-        assert worker["kind"] == "ray" and mapper not in (None, actor), worker
-        assert int(_stat(mapper)[1]) == actor  # the actor's child: on its node, ends with it
-        assert os.getpriority(os.PRIO_PROCESS, mapper) > os.getpriority(os.PRIO_PROCESS, actor)
+        actor, tracker, mapper = worker["actor_pid"], worker["pid"], worker["mapper_pid"]
+        assert worker["kind"] == "ray" and len({actor, tracker, mapper} - {None}) == 3, worker
+        # The actor's children: on its node, ending with it.
+        assert int(_stat(mapper)[1]) == actor and int(_stat(tracker)[1]) == actor
+        assert os.getpriority(os.PRIO_PROCESS, mapper) > os.getpriority(os.PRIO_PROCESS, tracker)
+        victim = {"mapper": mapper, "worker": tracker}[killed]
+        why = {"mapper": "mapping process died", "worker": "worker process died"}[killed]
         stream = Stream(front.ws_url, sid, token, room)
-        cpu0 = _cpu_ticks(mapper)
+        cpu0, tracker_cpu0 = _cpu_ticks(mapper), _cpu_ticks(tracker)
 
         async def stream_then_kill():
             await stream.open()
@@ -314,7 +319,8 @@ def test_a_sessions_map_is_fused_in_its_actors_mapper_process_whose_death_fails_
                     break
                 await asyncio.sleep(0.2)
             fused_cpu = _cpu_ticks(mapper) - cpu0
-            os.kill(mapper, signal.SIGKILL)
+            tracked_cpu = _cpu_ticks(tracker) - tracker_cpu0
+            os.kill(victim, signal.SIGKILL)
             answers = []
             for seq in range(12, 72):  # until a fusion finds the mapper gone
                 f = room[seq % len(room)]
@@ -325,22 +331,26 @@ def test_a_sessions_map_is_fused_in_its_actors_mapper_process_whose_death_fails_
             with pytest.raises(websockets.ConnectionClosed) as closed:
                 while True:
                     await stream.answer()
-            return status, fused_cpu, answers[-1], closed.value.rcvd.code
+            return status, (fused_cpu, tracked_cpu), answers[-1], closed.value.rcvd.code
 
-        status, fused_cpu, error, close_code = asyncio.run(stream_then_kill())
+        status, (fused_cpu, tracked_cpu), error, close_code = asyncio.run(stream_then_kill())
         assert status["map"]["frames_integrated"] > 0, status["map"]
-        assert fused_cpu > 0  # the fusing took the mapper's CPU, not the actor's
+        # The fusing took the mapper's CPU, the tracking the worker's, not the actor's.
+        assert fused_cpu > 0 and tracked_cpu > 0
         assert error["type"] == "error" and error["name"] == "session_failed", error
-        assert "mapping process died" in error["message"], error
+        assert why in error["message"], error
         assert close_code == P.CLOSE_CODES["session_failed"]
         deadline = time.monotonic() + 30
-        while (_actor_alive(sid) or process_running(mapper)) and time.monotonic() < deadline:
+        while time.monotonic() < deadline and (
+            _actor_alive(sid) or process_running(mapper) or process_running(tracker)
+        ):
             time.sleep(0.2)
-        assert not _actor_alive(sid) and not process_running(mapper)
+        assert not _actor_alive(sid)
+        assert not process_running(mapper) and not process_running(tracker)
         status = session_status(front.url, sid, token)
-        assert status["closed"] is True and "mapping process died" in status["failure"], status
+        assert status["closed"] is True and why in status["failure"], status
         meta = (data / "sessions" / sid / "meta.json").read_text()
-        assert "mapping process died" in meta
+        assert why in meta
     finally:
         front.stop()
 

@@ -1,53 +1,49 @@
 """What a session's Ray actor does (server/sessions/processes/ray_workers.py ``SessionActor`` is its
-Ray shell): hosts one SessionHost, runs the ordered calls strictly by each front-end's numbering,
-and keeps the updates for the owner's long-poll. No Ray here: Ray stays in ray_workers.py.
+Ray shell): runs the session exactly as the web process runs a local one, in a ``ProcessWorker``
+(server/sessions/processes/session_process.py: a worker process tracking and flying, a mapper
+process fusing, a loop process when it closes loops), relays the ordered calls to it strictly by
+each front-end's numbering, and keeps its updates for the owner's long-poll. No Ray here: Ray
+stays in ray_workers.py.
 
-The session's map is fused in a **mapper process** of the actor's own (``mapper_main``, the
-process workers' mapper, at the same lower priority), not in a thread of the actor: Open3D's
-integrate holds the GIL for its whole call, which beside tracking would stall it
-(server/sessions/processes/mapper.py). The actor starts it as its child, so it runs on the
-actor's node, and it ends with the actor: when the actor stops the session (its pipe closes),
-when Ray ends the actor (Ray kills a worker's children as the worker exits) and when the actor's
-process dies any other way (its end of the pipe closes with it; the mapper ends after the call
-in hand). A mapper that dies fails the session as under the process workers (``MapperLost`` ->
-``Session.fail`` -> ``SessionFailed``: the front-end then stops and saves it).
+Why the session is not in the actor's own process: tracking there shared the GIL with Ray's
+task loop and threads (which, among others, take it every 10 ms to check for signals), and
+Open3D's integrate holds the GIL for its whole call. Measured on one node, 2 sessions x 15 fps:
+tracking's p95 1.34-1.74x the process workers' with tracking in the actor (docs/SCALING.md).
+The actor now only moves bytes, as the web process does for its local workers.
+
+Its processes are the actor's children, started in a fresh interpreter (``fresh.FreshContext``:
+a fork of the actor is unsafe, and multiprocessing's ``spawn`` and forkserver would run Ray's
+worker script again in each), so they run on the actor's node; they end with it: when the actor
+stops the session, when Ray ends the actor (Ray kills a worker's children as it exits) and when
+the actor's process dies any other way (their pipes close with it). A worker or mapper that dies
+fails the session as under the process workers: a dead mapper through the worker
+(``MapperLost`` -> ``Session.fail`` -> ``SessionFailed``), a dead worker through the poll
+(``lost``), the front-end then saving what is on disk and ending the actor.
 
 A **shared room** has one map, as under the process workers (server/sessions/processes/
 room_map.py): the mapper also listens for the room's phones at ``room_map`` (a ``NodeRoom``: an
 abstract Unix socket, so on this node only, and the node's id, where the front-end places the
-phones that join); the actor of a phone that joined starts no mapper and fuses into the room's.
+phones that join); the worker of a phone that joined starts no mapper and fuses into the room's.
 Once a phone has joined (``room_shared``), the session's end leaves the mapper serving the
 phones on: ``release`` ends the session without touching the mapper, and the actor stays, its
 CPU reserved, until the mapper has ended after the last phone (``wait_for_map``, which reaps it:
-no orphan) and then ends itself (ray_workers.py ``SessionActor.linger``).
-
-How it starts: a fresh interpreter (a fork of the actor, whose threads, Ray's among them, may
-hold locks, is unsafe), by ``subprocess`` rather than multiprocessing's ``spawn``: ``spawn`` runs
-the parent's ``__main__`` again in the child, here Ray's worker script, which would import Ray
-into every mapper (measured: 224 against 194 MB resident, about a second more of CPU to start,
-and a resource-tracker process beside it); and multiprocessing's exit handler joins its
-children, which a mapper ignoring SIGTERM would hang. The pipe is the same
-(``multiprocessing.Pipe``), its child's end passed down by descriptor."""
+no orphan) and then ends itself (ray_workers.py ``SessionActor.linger``)."""
 
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.fresh import FreshContext
 from server.sessions.processes.ipc import attempt
 from server.sessions.processes.room_map import RoomAddress
-
-if TYPE_CHECKING:
-    from server.sessions.processes.mapper import MapperClient
+from server.sessions.processes.session_process import ProcessWorker, WorkerLost
+from server.sessions.updates import PoseUpdate
 
 log = logging.getLogger(__name__)
 
@@ -68,9 +64,9 @@ class NodeRoom(RoomAddress):
 
 
 class ActorHost:
-    """Hosts one SessionHost. ``owner``: the id of the front-end that created it (the first
-    owner, until another front-end sends a hello); ``node_id``: the Ray node it runs on (its
-    room's map is reached there only)."""
+    """Hosts one session in a ``ProcessWorker`` of its own. ``owner``: the id of the front-end
+    that created it (the first owner, until another front-end sends a hello); ``node_id``: the
+    Ray node it runs on (its room's map is reached there only)."""
 
     def __init__(self, args, owner: str, node_id: str = "") -> None:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -80,6 +76,7 @@ class ActorHost:
         self._owner = owner
         self._next: dict[str, int] = {}  # front-end -> the number of its next ordered call
         self._ended: str | None = None
+        self._lost: str | None = None  # why the session's worker died on its own
         self._last_active = time.monotonic()
         self.out_of_order = 0
         self.foreign_frames = 0  # frames from a front-end that was no longer the owner
@@ -87,33 +84,36 @@ class ActorHost:
         self.args = args
         # Its own map, which the phones joining its room reach at ``room_map`` too; or, for a
         # phone that joined a room, none: it fuses into the room's (on this node).
-        self.room_map: NodeRoom | None = None
-        self.mapper_process: subprocess.Popen | None = None
-        # Phones joined the room: the session's end leaves the mapper serving them (``release``).
-        self.room_shared = False
-        if args.room_map is None:
-            self.room_map = NodeRoom.on(node_id, args.session_id)
-            # First, so that its interpreter starts while this one imports the session's stack.
-            self.mapper_process, mapper = start_mapper(args, self.room_map)
-        else:
-            from server.sessions.processes.mapper import MapperClient
+        room = NodeRoom.on(node_id, args.session_id) if args.room_map is None else None
+        # Not holding the writers lock: a session outlives its front-end, and a restarted
+        # front-end must not wait for it.
+        self.worker = ProcessWorker(
+            args,
+            self._publish,
+            self._worker_lost,
+            context=FreshContext(),
+            room_map=room,
+            writers_lock=False,
+        )
+        self.room_map: NodeRoom | None = room
+        self.info: dict = self.worker.describe() | {"actor_pid": os.getpid()}
+        del self.info["kind"]  # the front-end's: ray
 
-            why = ": the room's map, which ended with the session of the phone that invited"
-            mapper = MapperClient(args.room_map.connect(), why)
-        try:
-            from server.sessions.runtime.host import SessionHost
+    @property
+    def room_shared(self) -> bool:
+        """Phones joined the room: the session's end leaves the mapper serving them."""
+        return self.worker.room_shared
 
-            self.host = SessionHost(args, self._publish, mapper)
-            mapper.stats()  # up and answering (raises MapperLost when it died starting)
-        except BaseException:
-            mapper.close()
-            if self.mapper_process is not None:
-                end_mapper(self.mapper_process)
-            raise
-        pid = None if self.mapper_process is None else self.mapper_process.pid
-        self.info: dict = self.host.describe() | {"mapper_pid": pid}
+    def _worker_lost(self, reason: str) -> None:  # the worker's reader thread
+        with self._cond:
+            self._lost = reason
+            self._ended = "failed"
+            self._cond.notify_all()
 
-    def _publish(self, item) -> None:  # any of the session's threads
+    def _publish(self, item) -> None:  # the worker's reader thread
+        worker = getattr(self, "worker", None)
+        if isinstance(item, PoseUpdate) and worker is not None:
+            item.dropped += worker.dropped  # frames dropped here, before the worker saw them
         with self._cond:
             self._items.append(item)
             if len(self._items) > _UPDATES_KEPT:
@@ -150,10 +150,12 @@ class ActorHost:
                 self._cond.notify_all()
 
     def _run(self, owner: str, method: str, args: tuple):
+        if self._lost is not None:
+            raise WorkerLost(self._lost)
         if self._ended is not None:
             raise SessionError("session_closed", "this session is closed; create a new one")
         if method == "configure":
-            self.host.configure(*args)
+            self.worker.call("configure", *args)
             with self._cond:
                 if owner != self._owner:  # taken over: the old owner's updates are not ours
                     self._owner = owner
@@ -171,20 +173,19 @@ class ActorHost:
             # arrival at the actor, so the pose's server_total leaves out the front-end's queue,
             # the hop to the actor and the updates' poll back.
             data, _front_end_arrival = args
-            return self.host.frame(data, self._last_active)
+            return self.worker.post("frame", data, self._last_active)
         if method == "command":
             if owner != self._owner:
                 raise SessionError(
                     "session_taken_over", "another connection took this session over"
                 )
-            return self.host.command(*args)
+            return self.worker.call("command", *args)
         if method == "stop":
-            meta = self.host.stop(*args)  # the session's map closes: its process ends
+            # Its processes end (the mapper after the room's last phone, when it is shared).
+            meta = self.worker.stop(*args)
             with self._cond:
                 self._ended = "closed"
                 self._cond.notify_all()
-            if self.mapper_process is not None and not self.room_shared:
-                end_mapper(self.mapper_process)
             return meta
         raise ValueError(f"not an ordered method: {method}")
 
@@ -192,10 +193,14 @@ class ActorHost:
         """Status, meta, downloads, drain, snapshots: beside the ordered calls. ``share_map``:
         a phone joined the session's room (its map now serves past the session's end)."""
         if method == "share_map":
-            self.room_shared = True
+            self.worker.room_shared = True
             return True, None
-        ok, value = attempt(self.host, method, args, log)
+        ok, value = attempt(self.worker, "call", (method, *args), log)
         if ok and method == "status":
+            # Frames dropped here before the worker saw them: received by the session all the
+            # same (as the web process counts its local workers').
+            value["frames_received"] += self.worker.dropped
+            value["frames_dropped"] += self.worker.dropped
             value = value | {
                 "out_of_order_calls": self.out_of_order,
                 "foreign_frames": self.foreign_frames,
@@ -222,6 +227,7 @@ class ActorHost:
                 "owner": owner == self._owner,
                 "idle_s": time.monotonic() - self._last_active,
                 "ended": self._ended,
+                "lost": self._lost,
             }
 
     # ---- a shared room's map, past the session's end
@@ -233,74 +239,16 @@ class ActorHost:
         with self._turn:
             if self._ended is None:
                 try:
-                    self.host.stop(False)  # its pipe to the mapper closes: the mapper serves on
+                    self.worker.stop(False)  # the mapper serves on (room_shared)
                 except Exception:
                     log.exception("session %s: ending it failed", self.args.session_id)
                 with self._cond:
                     self._ended = "closed"
                     self._cond.notify_all()
-        return self.mapper_process is not None and self.mapper_process.poll() is None
+        mapper = self.worker.mapper_process
+        return mapper is not None and mapper.is_alive()
 
     def wait_for_map(self) -> None:
         """Until the room's map has ended (after its last phone), and reap its process."""
-        if self.mapper_process is not None:
-            self.mapper_process.wait()
-
-
-# ---- the session's mapper process ----------------------------------------------------------------
-
-# The mapper's command line: its end of the pipe by descriptor, then the session (for ``ps``).
-_MAPPER_MAIN = (
-    "import sys; from server.sessions.processes.actor_host import mapper_child; "
-    "mapper_child(int(sys.argv[1]))"
-)
-
-
-def start_mapper(args, room: RoomAddress | None = None) -> tuple[subprocess.Popen, MapperClient]:
-    """Start the session's mapper process, a child of this one (the process workers' mapper:
-    ``mapper_main``, one Open3D thread, its priority lowered), listening for the room's phones
-    at ``room`` when given; returns (the process, a ``MapperClient`` on it). It imports what
-    this process can (its ``sys.path``)."""
-    from server.sessions.processes.mapper import MapperClient
-
-    here, there = multiprocessing.Pipe(duplex=True)
-    try:
-        process = subprocess.Popen(
-            [
-                sys.executable,
-                "-c",
-                _MAPPER_MAIN,
-                str(there.fileno()),
-                f"session-{args.session_id}-map",
-            ],
-            pass_fds=(there.fileno(),),
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},
-        )
-    finally:
-        there.close()  # the child's now: its end of the pipe closes with it
-    here.send((args.config.mapping, args.session_id, room))  # waits in the pipe for the child
-    return process, MapperClient(here)
-
-
-def mapper_child(fd: int) -> None:
-    """The mapper process's start: the session's mapping configuration (and its room's
-    address) from the pipe, then ``mapper_main`` until the pipe closes and, for a shared room,
-    until its last phone has gone."""
-    from multiprocessing.connection import Connection
-
-    from server.sessions.processes.mapper import mapper_main
-
-    conn = Connection(fd)
-    config, session_id, room = conn.recv()
-    mapper_main(conn, config, 1, session_id, room=room)
-
-
-def end_mapper(process: subprocess.Popen, timeout_s: float = 10.0) -> None:
-    """Wait for a mapper process whose pipe has closed to end (at once, or after the call in
-    hand); kill it past ``timeout_s``."""
-    try:
-        process.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait(timeout_s)
+        if self.worker.mapper_process is not None:
+            self.worker.mapper_process.join()

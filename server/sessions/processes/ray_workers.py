@@ -7,13 +7,13 @@ Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
   it outlives the front-end that created it, and any front-end finds it by name
   (``RayWorkers.find``), so several front-ends behind a load balancer serve the same sessions
   and a restarted front-end finds its live sessions again. Actors are spread over the nodes
-  (``SPREAD``); each reserves ``SESSION_CPUS`` logical CPU (its tracking and flight threads and
-  its mapper process keep about one core busy at 15 fps), so a node with N CPUs hosts N
-  sessions; a session that finds no free CPU within ``START_TIMEOUT_S`` is refused with
-  ``server_full``.
-- **The map** is fused in a mapper process the actor starts as its child (on its node, ending
-  with it; actor_host.py), as the process workers fuse theirs beside the worker: never in a
-  thread beside tracking, where Open3D's integrate would hold the GIL.
+  (``SPREAD``); each reserves ``SESSION_CPUS`` logical CPU (its worker and mapper processes
+  keep about one core busy at 15 fps), so a node with N CPUs hosts N sessions; a session that
+  finds no free CPU within ``START_TIMEOUT_S`` is refused with ``server_full``.
+- **The session runs in processes of the actor's** (actor_host.py): a worker process tracking
+  and flying, a mapper process fusing, as the web process runs a local session, the actor's
+  children (on its node, ending with it), the actor only relaying: tracking never shares a GIL
+  with Ray's threads, nor with Open3D's integrate.
 - **A shared room runs on one node, with one map**, as under the process workers: the owner's
   mapper listens for the room's phones on an abstract Unix socket, which exists on its machine
   only (``RayWorker.room_map``, a ``NodeRoom`` naming the owner's node); a joining phone's actor
@@ -75,7 +75,7 @@ NAMESPACE = "dronesim"
 # Ray's logical CPUs reserved per session actor (its mapper process included): the cluster's
 # admission control
 SESSION_CPUS = 1
-SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's actor
+SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's worker
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0
 RELEASE_TIMEOUT_S = 60.0  # a shared room's owner ending its session, its map left serving
@@ -239,6 +239,9 @@ class RayWorker(ActorClient):
                     log.warning("session %s: polling its actor failed: %s", self.session_id, exc)
                     time.sleep(POLL_S)
                 continue
+            if reply.get("lost") and not self._stopped:  # its worker process died
+                self._end(f"{reply['lost']} (on its Ray actor)")
+                return self.kill()  # the actor (or, a shared room's, its wait for the map)
             self.last_active = time.monotonic() - reply["idle_s"]
             for item in reply["items"]:
                 self._deliver(item)

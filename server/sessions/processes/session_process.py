@@ -55,17 +55,18 @@ class WorkerLost(SessionError):
 # ---- the worker's side ------------------------------------------------------------------------
 
 
-def _worker_main(conn, args, mapper_conn, loops_conn=None) -> None:
+def _worker_main(conn, args, mapper_conn, loops_conn=None, writers_lock: bool = True) -> None:
     """Entry point of a worker process: host the session (its map in the mapping process at
     the other end of ``mapper_conn``, its loop closer in the loop process at the other end of
     ``loops_conn`` when it closes loops) and serve the pipe until told to stop or until the web
-    process goes away."""
+    process goes away. ``writers_lock``: hold the data dir's writers lock while it lives."""
     from server.sessions.processes.ipc import as_remote, prepare_child, reply, serve
     from server.sessions.store import hold_writers_lock
 
     # The web process stops each session with a final save, which must find its worker alive.
     prepare_child()
-    hold_writers_lock(args.data_dir)  # a restarted server cleans only after this process ends
+    if writers_lock:  # a restarted server cleans only after this process ends
+        hold_writers_lock(args.data_dir)
     from server.sessions.failures import SessionLog
     from server.sessions.processes.mapper import MapperClient
     from server.sessions.runtime.host import SessionHost
@@ -133,11 +134,19 @@ class ProcessWorker:
         on_lost: Callable[[str], None],
         start_timeout_s: float = 60.0,
         max_waiting_frames: int = 4,
+        context=None,
+        room_map: RoomAddress | None = None,
+        writers_lock: bool = True,
     ) -> None:
+        """context: where its processes come from (default the forkserver; a Ray actor's
+        ``fresh.FreshContext``); room_map: where the phones joining its room reach its map
+        (default a new address); writers_lock: its processes hold the data dir's writers lock
+        (``store.hold_writers_lock``), so that a restarted server waits for them (not a Ray
+        actor's: those outlive the front-end by design)."""
         from server.sessions.processes.loop_process import loops_main
         from server.sessions.processes.mapper import mapper_main
 
-        ctx = _context()
+        ctx = _context() if context is None else context
         self._conn, child = ctx.Pipe(duplex=True)
         # Its own map (which phones joining its room reach at ``room_map`` too), or, for a
         # phone that joined a room, none: it fuses into the room's.
@@ -148,7 +157,7 @@ class ProcessWorker:
         self.mapper_process = None
         to_mapper = mapper_end = None
         if args.room_map is None:
-            self.room_map = RoomAddress.new(args.session_id)
+            self.room_map = room_map or RoomAddress.new(args.session_id)
             to_mapper, mapper_end = ctx.Pipe(duplex=True)
         # The loop closer apart from tracking too: in the worker it would share the tracker's GIL
         # (server/sessions/processes/loop_process.py). Siblings, as a worker (a daemon) may not
@@ -175,13 +184,13 @@ class ProcessWorker:
                     args.config.mapping,
                     1,
                     args.session_id,
-                    args.data_dir,
+                    args.data_dir if writers_lock else None,
                     self.room_map,
                 ),
             )
         self.process = ctx.Process(
             target=_worker_main,
-            args=(child, args, to_mapper, to_loops),
+            args=(child, args, to_mapper, to_loops, writers_lock),
             daemon=True,
             name=f"session-{args.session_id}",
         )

@@ -158,7 +158,11 @@ class WorkerInfo(WireModel):
 
     kind: str = Field(description="process (a local worker process) or ray (a Ray actor)")
     threads: int = Field(description="native threads (OpenCV, BLAS) of its thread pools")
-    pid: int | None = Field(None, description="the worker's process id (on its node, for Ray)")
+    pid: int | None = Field(
+        None,
+        description="the worker's process id (for Ray, on the actor's node: a child of the "
+        "actor's process)",
+    )
     mapper_pid: int | None = Field(
         None,
         description="the session's mapper process id (for Ray, on the actor's node: a child "
@@ -166,8 +170,10 @@ class WorkerInfo(WireModel):
     )
     loops_pid: int | None = Field(
         None,
-        description="process workers of sessions that close loops online: the session's loop "
-        "process id",
+        description="sessions that close loops online: the session's loop process id",
+    )
+    actor_pid: int | None = Field(
+        None, description="Ray: the actor's process id, which relays to the worker"
     )
     node_id: str | None = Field(None, description="Ray: the node the actor runs on")
     node_ip: str | None = Field(None, description="Ray: that node's address")

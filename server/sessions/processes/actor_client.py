@@ -16,7 +16,9 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import Future
+from multiprocessing import AuthenticationError
 
+from server.sessions.processes.actor_stream import hang_up, open_stream
 from server.sessions.processes.session_process import WorkerLost
 from server.sessions.web.live import SessionTakenOver
 
@@ -57,9 +59,20 @@ class ActorClient:
         self._stopped = False  # this front-end stopped or killed it: its end is expected
         self._ended_elsewhere = False
         self._closing = False
+        # Frames and updates past Ray (actor_stream.py); without it (it could not connect)
+        # both go through Ray.
+        self._stream = None
+        address, authkey = identity["stream"]
+        try:
+            self._stream = open_stream(address, authkey, backend.owner)
+        except (OSError, EOFError, AuthenticationError) as exc:
+            log.warning("session %s: no stream to its actor (%s); all by Ray", session_id, exc)
+        loops = [(self._send_loop, "ray-out"), (self._poll_loop, "ray-poll")]
+        if self._stream is not None:
+            loops.append((self._read_stream, "ray-in"))
         self._threads = [
             threading.Thread(target=target, name=f"{name}-{session_id}", daemon=True)
-            for target, name in ((self._send_loop, "ray-out"), (self._poll_loop, "ray-poll"))
+            for target, name in loops
         ]
         for thread in self._threads:
             thread.start()
@@ -102,8 +115,17 @@ class ActorClient:
                 method, args, future = self._queue.popleft()
                 if method == "frame":
                     self._in_flight += 1
+            number = next(self._numbers)
+            if method == "frame" and self._stream is not None:
+                try:
+                    self._stream.send((number, args))
+                except (OSError, ValueError):  # the actor is gone: the poll says how
+                    pass
+                with self._cond:
+                    self._in_flight -= 1
+                continue
             try:
-                ref = self.actor.ordered.remote(owner, next(self._numbers), method, args)
+                ref = self.actor.ordered.remote(owner, number, method, args)
             except Exception as exc:  # Ray shut down under us
                 if future is not None:
                     future.set_exception(WorkerLost(f"the Ray connection failed: {exc}"))
@@ -126,6 +148,17 @@ class ActorClient:
         """The ray-poll thread: long-polls the actor's updates (``RayWorker``'s, with Ray)."""
         raise NotImplementedError
 
+    def _read_stream(self) -> None:
+        """The ray-in thread: the updates the actor pushes on the stream, until it closes."""
+        assert self._stream is not None
+        while True:
+            try:
+                items = self._stream.recv()
+            except (EOFError, OSError, TypeError):
+                return
+            for item in items:
+                self._deliver(item)
+
     # ------------------------------------------------------------------ updates and ends
     def _deliver(self, item) -> None:
         try:
@@ -138,6 +171,8 @@ class ActorClient:
             self._lost = self._lost or reason
             self._cond.notify_all()
         self.backend._workers.discard(self)
+        if self._stream is not None:
+            hang_up(self._stream)
 
     def _end(self, reason: str) -> None:
         """The actor died: on_lost once, unless this front-end ended it."""

@@ -39,6 +39,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from server.sessions.errors import SessionError
+from server.sessions.processes.actor_stream import StreamListener
 from server.sessions.processes.fresh import FreshContext
 from server.sessions.processes.ipc import attempt
 from server.sessions.processes.room_map import RoomAddress
@@ -68,7 +69,7 @@ class ActorHost:
     that created it (the first owner, until another front-end sends a hello); ``node_id``: the
     Ray node it runs on (its room's map is reached there only)."""
 
-    def __init__(self, args, owner: str, node_id: str = "") -> None:
+    def __init__(self, args, owner: str, node_id: str = "", node_ip: str = "127.0.0.1") -> None:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         self._cond = threading.Condition()
         self._turn = threading.Lock()  # one ordered call at a time
@@ -98,6 +99,9 @@ class ActorHost:
         self.room_map: NodeRoom | None = room
         self.info: dict = self.worker.describe() | {"actor_pid": os.getpid()}
         del self.info["kind"]  # the front-end's: ray
+        # Frames in and updates out past Ray (actor_stream.py); the poll carries the rest.
+        self.stream = StreamListener(node_ip, self._stream_frame, self._wake)
+        threading.Thread(target=self._push, name="stream-out", daemon=True).start()
 
     @property
     def room_shared(self) -> bool:
@@ -109,6 +113,35 @@ class ActorHost:
             self._lost = reason
             self._ended = "failed"
             self._cond.notify_all()
+
+    def _stream_frame(self, owner: str, number: int, args: tuple) -> None:
+        self.ordered(owner, number, "frame", args)  # a frame is answered by updates
+
+    def _wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def _push(self) -> None:
+        """The stream-out thread: the updates to the owner's stream, when it has one, in
+        batches, in order; what a failed send leaves goes by the poll."""
+        while True:
+            with self._cond:
+                while True:
+                    if self._ended is not None and not self._items:
+                        return
+                    conn = self.stream.connection(self._owner) if self._items else None
+                    if conn is not None:
+                        break
+                    self._cond.wait(1.0)
+                owner, items = self._owner, list(self._items)
+                self._items.clear()
+            try:
+                conn.send(items)
+            except (OSError, ValueError):
+                self.stream.forget(owner, conn)
+                with self._cond:
+                    if owner == self._owner:
+                        self._items.extendleft(reversed(items))
 
     def _publish(self, item) -> None:  # the worker's reader thread
         worker = getattr(self, "worker", None)
@@ -130,6 +163,7 @@ class ActorHost:
             "ended": self._ended,
             "room_map": self.room_map,
             "room_shared": self.room_shared,
+            "stream": (self.stream.address, self.stream.authkey),
         }
 
     def ordered(self, owner: str, number: int, method: str, args: tuple):
@@ -209,17 +243,22 @@ class ActorHost:
         return ok, value
 
     def updates(self, owner: str, timeout_s: float) -> dict:
-        """Long-poll: the updates waiting for ``owner`` (none unless it is the owner), once there
-        are any or after ``timeout_s``; with who owns the session and how long it has been idle."""
+        """Long-poll: the updates waiting for ``owner`` (none unless it is the owner, and none
+        while its stream takes them), once there are any or after ``timeout_s``; with who owns
+        the session, how long it has been idle and whether it ended."""
         deadline = time.monotonic() + timeout_s
+
+        def polled() -> bool:
+            return owner == self._owner and self.stream.connection(owner) is None
+
         with self._cond:
-            while self._ended is None and not (owner == self._owner and self._items):
+            while self._ended is None and not (self._items and polled()):
                 wait = deadline - time.monotonic()
                 if wait <= 0:
                     break
                 self._cond.wait(wait)
             items = []
-            if owner == self._owner:
+            if polled():
                 items = list(self._items)
                 self._items.clear()
             return {

@@ -101,10 +101,11 @@ class SessionActor:
 
     def __init__(self, args, owner: str) -> None:
         node_id = ray.get_runtime_context().get_node_id()
-        self.core = ActorHost(args, owner, node_id)
+        node_ip = ray.util.get_node_ip_address()
+        self.core = ActorHost(args, owner, node_id, node_ip)
         self.core.info |= {
             "node_id": node_id,
-            "node_ip": ray.util.get_node_ip_address(),
+            "node_ip": node_ip,
             "actor": actor_name(args.session_id),
             "cpus": SESSION_CPUS,
         }

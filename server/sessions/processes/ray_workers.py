@@ -75,7 +75,8 @@ NAMESPACE = "dronesim"
 # Ray's logical CPUs reserved per session actor (its mapper process included): the cluster's
 # admission control
 SESSION_CPUS = 1
-SESSION_THREADS = 2  # native threads (OpenCV, Open3D, BLAS) of a session's worker
+# Native threads (OpenCV, Open3D, BLAS) of a session's worker: one per CPU it reserved.
+SESSION_THREADS = SESSION_CPUS
 POLL_S = 1.0  # an updates long-poll's longest wait (also how soon a takeover or death is seen)
 START_TIMEOUT_S = 60.0
 RELEASE_TIMEOUT_S = 60.0  # a shared room's owner ending its session, its map left serving
@@ -329,6 +330,7 @@ def _connect(address: str) -> bool:
         if ray.is_initialized():
             return local
         include_dashboard = None  # Ray's default
+        system_config = None  # a cluster's own (set where its nodes start)
         if local:
             # One machine: Ray on the loopback only (its node address, and what it listens on).
             os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
@@ -336,12 +338,17 @@ def _connect(address: str) -> bool:
 
             ray_constants.ENABLE_RAY_CLUSTER = False
             include_dashboard = False
+            # Ray starts its workers at nice 15 (its default worker_niceness), below this
+            # front-end and anything else on the machine: a session's tracking then waits for
+            # them. The process workers run at the server's own priority; so do these.
+            system_config = {"worker_niceness": 0}
         ray.init(
             address=address,
             namespace=NAMESPACE,
             logging_level=logging.WARNING,
             log_to_driver=False,
             include_dashboard=include_dashboard,
+            _system_config=system_config,
         )
         _RAY_OURS = True
         return local

@@ -261,6 +261,8 @@ def test_sessions_on_a_two_node_cluster(cluster, room, tmp_path):
         status = session_status(front3.url, s1, t1)
         assert status["frames_processed"] >= 6 + 2 + 4 + 3 - 2, status
         assert status["out_of_order_calls"] == 0 and status["foreign_frames"] == 0, status
+        # Frames came by the front-ends' streams, not by Ray calls.
+        assert 3 <= status["streamed_frames"] <= status["frames_received"], status
 
         # Every Ray socket stayed on the loopback.
         addresses = _ray_addresses()
@@ -469,3 +471,25 @@ def test_a_shared_room_runs_on_its_owners_node_with_one_map(
         assert _gone(map_pid, a), "the room's map or its owner's actor outlived its phones"
     finally:
         front.stop()
+
+
+def test_a_local_ray_runs_the_sessions_at_the_servers_priority(monkeypatch):
+    """``serve --ray local`` starts Ray with worker_niceness 0: Ray's default, 15, put a
+    session's tracking below the front-end and anything else on the machine. Joining a cluster
+    leaves its nodes' own setting."""
+    from ray._private import ray_constants
+
+    from server.sessions.processes import ray_workers
+
+    calls = []
+    monkeypatch.setattr(ray_workers.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray_workers.ray, "init", lambda **kwargs: calls.append(kwargs))
+    monkeypatch.setattr(ray_constants, "ENABLE_RAY_CLUSTER", ray_constants.ENABLE_RAY_CLUSTER)
+    monkeypatch.setattr(ray_workers, "_RAY_USERS", 0)
+    monkeypatch.setattr(ray_workers, "_RAY_OURS", False)
+    assert ray_workers._connect("local") is True
+    assert ray_workers._connect("ray://head:10001") is False
+    local, cluster = calls
+    assert local["_system_config"] == {"worker_niceness": 0}
+    assert local["address"] == "local" and local["include_dashboard"] is False
+    assert cluster["_system_config"] is None

@@ -81,6 +81,7 @@ class ActorHost:
         self._last_active = time.monotonic()
         self.out_of_order = 0
         self.foreign_frames = 0  # frames from a front-end that was no longer the owner
+        self.streamed_frames = 0  # frames that came by a stream, not by a Ray call
         self.skipped_updates = 0
         self.args = args
         # Its own map, which the phones joining its room reach at ``room_map`` too; or, for a
@@ -115,6 +116,8 @@ class ActorHost:
             self._cond.notify_all()
 
     def _stream_frame(self, owner: str, number: int, args: tuple) -> None:
+        with self._cond:  # a reader thread per front-end
+            self.streamed_frames += 1
         self.ordered(owner, number, "frame", args)  # a frame is answered by updates
 
     def _wake(self) -> None:
@@ -238,6 +241,7 @@ class ActorHost:
             value = value | {
                 "out_of_order_calls": self.out_of_order,
                 "foreign_frames": self.foreign_frames,
+                "streamed_frames": self.streamed_frames,
                 "skipped_updates": self.skipped_updates,
             }
         return ok, value

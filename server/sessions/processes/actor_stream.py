@@ -53,6 +53,7 @@ class StreamListener:
         while not self._closed:
             try:
                 conn = self._listener.accept()  # the key's challenge, both ways
+                no_delay(conn)
                 owner = conn.recv()
             except Exception as exc:  # a caller without the key, or the listener closed
                 if not self._closed:
@@ -100,8 +101,17 @@ class StreamListener:
 def open_stream(address: tuple[str, int], authkey: bytes, owner: str) -> Connection:
     """The front-end's side: connect to an actor's stream as ``owner``."""
     conn = Client(address, family="AF_INET", authkey=authkey)
+    no_delay(conn)
     conn.send(owner)
     return conn
+
+
+def no_delay(conn: Connection) -> None:
+    """Send each message at once: with Nagle's algorithm a small message (a pose) behind one
+    not yet acknowledged waits for the peer's delayed ACK, up to 40 ms (measured: a pose's p95
+    60 against 27 ms with the process workers)."""
+    with socket.socket(fileno=os.dup(conn.fileno())) as sock:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
 def hang_up(conn: Connection) -> None:

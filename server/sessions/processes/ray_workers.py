@@ -18,28 +18,23 @@ Only imported when ``--ray`` is given (Ray is the optional extra ``[ray]``).
   mapper listens for the room's phones on an abstract Unix socket, which exists on its machine
   only (``RayWorker.room_map``, a ``NodeRoom`` naming the owner's node); a joining phone's actor
   is placed on that node (``NodeAffinitySchedulingStrategy``, not soft), starts no mapper and
-  fuses into the room's. Rather than the placement group the issue asked for: affinity keeps a
-  room on one node without reserving CPUs for phones that may never join. No free CPU on the
-  owner's node within ``START_TIMEOUT_S``: ``room_full``. Once a phone has joined
+  fuses into the room's (affinity, not a placement group: nothing is reserved for phones that
+  may never join). No free CPU there within ``START_TIMEOUT_S``: ``room_full``. Once one joined
   (``room_shared``), the owner's end leaves its actor up, its CPU reserved, while its mapper
   serves the phones on; it ends itself after the mapper, which ends after the last phone
   (``release``, ``linger``).
 - **Order**: the hello, frames, commands and the stop go through one ``ordered`` entry point,
-  submitted by one sender thread per session with a running number per front-end; the actor runs
-  them strictly by that number (and counts any it had to run out of turn in ``out_of_order``),
-  whatever order Ray delivers them in. Queries (status, downloads, drain, snapshots) run in a
-  concurrency group of their own, beside them.
-- **Newest wins across the network**: at most ``MAX_FRAMES_IN_FLIGHT`` frame calls are in flight
-  per session; beyond that only the newest frame waits (in the queue's one frame slot), and the
-  one it replaces is counted in ``dropped``.
-- **Updates** (poses, map chunks, drone states and events, refused frames) wait in the actor;
-  each front-end's poll thread long-polls ``updates`` (``POLL_S``). Only the front-end that sent
-  the latest hello (the *owner*) gets them; an earlier owner's poll learns that it was taken over
-  and its LiveSession ends its socket with ``session_taken_over``. Frames from a front-end that is
+  sent by one thread per session with a running number per front-end (frames on the actor's
+  stream, past Ray: actor_stream.py); the actor runs them strictly by that number, whatever way
+  and order they came. Queries run in a concurrency group of their own, beside them.
+- **Newest wins**: while a frame waits to be sent, a newer one replaces it (``dropped``).
+- **Updates** (poses, map chunks, drone states and events, refused frames) go to the front-end
+  that sent the latest hello (the *owner*), on its stream; its poll thread long-polls
+  ``updates`` (``POLL_S``) for the rest: ownership (an earlier owner's LiveSession ends its
+  socket with ``session_taken_over``), the end, a worker lost. Frames from a front-end that is
   no longer the owner are ignored (their numbering would clash with the new owner's).
-- **Ends**: an actor that dies on its own (``RayActorError``) -> ``on_lost``; one stopped or
-  deleted by another front-end is let go quietly (its LiveSession is closed; the meta on the
-  shared data dir says how it ended).
+- **Ends**: an actor or its worker that dies on its own -> ``on_lost``; one stopped or deleted
+  by another front-end is let go quietly (the meta on the shared data dir says how it ended).
 - **Snapshots** are written by the actor under the data_dir it was given, on the actor's node: on
   a real cluster data_dir must be shared storage (NFS, a ReadWriteMany volume), or each session's
   files stay on the node that ran it.

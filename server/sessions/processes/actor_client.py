@@ -113,16 +113,15 @@ class ActorClient:
                     waiting, self._queue = list(self._queue), deque()
                     break
                 method, args, future = self._queue.popleft()
-                if method == "frame":
+                stream = self._stream if method == "frame" else None
+                if method == "frame" and stream is None:  # a Ray call in flight until it ran
                     self._in_flight += 1
             number = next(self._numbers)
-            if method == "frame" and self._stream is not None:
+            if stream is not None:
                 try:
-                    self._stream.send((number, args))
+                    stream.send((number, args))
                 except (OSError, ValueError):  # the actor is gone: the poll says how
                     pass
-                with self._cond:
-                    self._in_flight -= 1
                 continue
             try:
                 ref = self.actor.ordered.remote(owner, number, method, args)

@@ -2,8 +2,8 @@
 Ray shell): runs the session exactly as the web process runs a local one, in a ``ProcessWorker``
 (server/sessions/processes/session_process.py: a worker process tracking and flying, a mapper
 process fusing, a loop process when it closes loops), relays the ordered calls to it strictly by
-each front-end's numbering, and keeps its updates for the owner's long-poll. No Ray here: Ray
-stays in ray_workers.py.
+each front-end's numbering, and pushes its updates to the owner's stream (actor_stream.py), or
+keeps them for the owner's poll when it has none. No Ray here: Ray stays in ray_workers.py.
 
 Why the session is not in the actor's own process: tracking there shared the GIL with Ray's
 task loop and threads (which, among others, take it every 10 ms to check for signals), and
@@ -147,9 +147,8 @@ class ActorHost:
                         self._items.extendleft(reversed(items))
 
     def _publish(self, item) -> None:  # the worker's reader thread
-        worker = getattr(self, "worker", None)
-        if isinstance(item, PoseUpdate) and worker is not None:
-            item.dropped += worker.dropped  # frames dropped here, before the worker saw them
+        if isinstance(item, PoseUpdate):  # poses come after the hello: self.worker is set
+            item.dropped += self.worker.dropped  # frames dropped here, before the worker saw
         with self._cond:
             self._items.append(item)
             if len(self._items) > _UPDATES_KEPT:

@@ -57,20 +57,17 @@ class FuseJobs:
         takes the place of the oldest waiting job that is not a keyframe. Returns (queued, the
         job it replaced or None)."""
         with self._cond:
+            evicted = None
             if len(self._items) >= self._size and job.keyframe:
-                for i, waiting in enumerate(self._items):
-                    if waiting is not None and not waiting.keyframe:
-                        del self._items[i]
-                        self._items.append(job)
-                        self._cond.notify_all()
-                        return True, waiting
-            if len(self._items) >= self._size:
-                self._cond.wait_for(lambda: len(self._items) < self._size, wait_s)
-                if len(self._items) >= self._size:
-                    return False, None
+                plain = (i for i, w in enumerate(self._items) if w is not None and not w.keyframe)
+                if (i := next(plain, None)) is not None:
+                    evicted = self._items[i]
+                    del self._items[i]  # by place: FuseJob's == would compare images
+            if not self._cond.wait_for(lambda: len(self._items) < self._size, wait_s):
+                return False, None
             self._items.append(job)
             self._cond.notify_all()
-            return True, None
+            return True, evicted
 
     def get(self, timeout_s: float) -> FuseJob | None:
         """The oldest job (None: the end); raises queue.Empty after ``timeout_s``."""

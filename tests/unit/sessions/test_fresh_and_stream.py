@@ -73,65 +73,62 @@ class Frames:
             time.sleep(0.01)
 
 
-def test_the_stream_carries_numbered_frames_in_and_updates_out():
+@pytest.fixture
+def stream():
+    """An actor's stream listener on the loopback, and the frames it handed on."""
     frames = Frames()
     listener = StreamListener("127.0.0.1", frames.frame, frames.connected.set)
-    try:
-        host, _ = listener.address
-        assert host == "127.0.0.1"
-        conn = open_stream(listener.address, listener.authkey, "front-a")
-        assert frames.connected.wait(10)
-        for number in (3, 4, 5):
-            conn.send((number, (b"frame %d" % number, 1.5)))
-        frames.wait(3)
-        assert frames.got == [("front-a", n, (b"frame %d" % n, 1.5)) for n in (3, 4, 5)]
-        # Updates go to that front-end's connection.
-        mine = listener.connection("front-a")
-        assert mine is not None and listener.connection("front-b") is None
-        mine.send(["pose 3", "pose 4"])
-        assert conn.recv() == ["pose 3", "pose 4"]
-        # The front-end hangs up: its updates go by the poll again.
-        hang_up(conn)
-        deadline = time.monotonic() + 10
-        while listener.connection("front-a") is not None:
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-    finally:
-        listener.close()
+    yield listener, frames
+    listener.close()
 
 
-def test_the_stream_refuses_a_caller_without_the_key():
-    frames = Frames()
-    listener = StreamListener("127.0.0.1", frames.frame, frames.connected.set)
-    try:
-        with pytest.raises(AuthenticationError):
-            open_stream(listener.address, b"not the key" * 3, "intruder")
-        assert listener.connection("intruder") is None and frames.got == []
-        # The listener goes on: the holder of the key still connects.
-        conn = open_stream(listener.address, listener.authkey, "front-a")
-        conn.send((0, (b"x", 0.0)))
-        frames.wait(1)
-        hang_up(conn)
-    finally:
-        listener.close()
+def test_the_stream_carries_numbered_frames_in_and_updates_out(stream):
+    listener, frames = stream
+    host, _ = listener.address
+    assert host == "127.0.0.1"
+    conn = open_stream(listener.address, listener.authkey, "front-a")
+    assert frames.connected.wait(10)
+    for number in (3, 4, 5):
+        conn.send((number, (b"frame %d" % number, 1.5)))
+    frames.wait(3)
+    assert frames.got == [("front-a", n, (b"frame %d" % n, 1.5)) for n in (3, 4, 5)]
+    # Updates go to that front-end's connection.
+    mine = listener.connection("front-a")
+    assert mine is not None and listener.connection("front-b") is None
+    mine.send(["pose 3", "pose 4"])
+    assert conn.recv() == ["pose 3", "pose 4"]
+    # The front-end hangs up: its updates go by the poll again.
+    hang_up(conn)
+    deadline = time.monotonic() + 10
+    while listener.connection("front-a") is not None:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
 
 
-def test_hanging_up_wakes_a_thread_blocked_reading():
-    frames = Frames()
-    listener = StreamListener("127.0.0.1", frames.frame, frames.connected.set)
-    try:
-        conn = open_stream(listener.address, listener.authkey, "front-a")
-        ended = threading.Event()
+def test_the_stream_refuses_a_caller_without_the_key(stream):
+    listener, frames = stream
+    with pytest.raises(AuthenticationError):
+        open_stream(listener.address, b"not the key" * 3, "intruder")
+    assert listener.connection("intruder") is None and frames.got == []
+    # The listener goes on: the holder of the key still connects.
+    conn = open_stream(listener.address, listener.authkey, "front-a")
+    conn.send((0, (b"x", 0.0)))
+    frames.wait(1)
+    hang_up(conn)
 
-        def read() -> None:
-            try:
-                conn.recv()
-            except (EOFError, OSError, TypeError):
-                ended.set()
 
-        threading.Thread(target=read, daemon=True).start()
-        time.sleep(0.2)  # blocked in recv
-        hang_up(conn)
-        assert ended.wait(5), "a reader blocked on the stream was not woken"
-    finally:
-        listener.close()
+def test_hanging_up_wakes_a_thread_blocked_reading(stream):
+    listener, _ = stream
+    conn = open_stream(listener.address, listener.authkey, "front-a")
+    ended = threading.Event()
+
+    def read() -> None:
+        try:
+            conn.recv()
+        except (EOFError, OSError, TypeError):
+            ended.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    time.sleep(0.2)  # blocked in recv
+    hang_up(conn)
+    assert ended.wait(5), "a reader blocked on the stream was not woken"

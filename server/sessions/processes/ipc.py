@@ -22,6 +22,7 @@ import logging
 import queue
 import signal
 import threading
+from collections import deque
 from collections.abc import Callable, Collection
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -196,17 +197,57 @@ def serve(
 # ---- the caller ---------------------------------------------------------------------------------
 
 
+class TurnLock:
+    """A lock taken in the order it was asked for. A plain ``threading.Lock`` is not: a thread
+    that releases it and asks again at once (the mapping thread, fusing frame after frame)
+    mostly wins over one that waits, and on a busy machine a download or a status query waited
+    behind dozens of fusions (seconds; tests/unit/sessions/test_ipc.py measures it). Here the
+    holder hands the lock to the longest waiter."""
+
+    def __init__(self) -> None:
+        self._guard = threading.Lock()
+        self._held = False
+        self._waiting: deque[threading.Lock] = deque()
+
+    def acquire(self, blocking: bool = True) -> bool:
+        with self._guard:
+            if not self._held:
+                self._held = True
+                return True
+            if not blocking:
+                return False
+            turn = threading.Lock()
+            turn.acquire()
+            self._waiting.append(turn)
+        turn.acquire()  # released by the holder that hands over: the lock is ours, still held
+        return True
+
+    def release(self) -> None:
+        with self._guard:
+            if self._waiting:
+                self._waiting.popleft().release()
+            else:
+                self._held = False
+
+    def __enter__(self) -> TurnLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
 class Proxy:
     """The caller's handle on a target served in another process at the other end of ``conn``,
-    one call at a time (``call_if_idle`` never waits for another). When that process is gone,
-    each call raises ``lost(message)``, the caller's own error for it; ``where`` names the
-    process."""
+    one call at a time, in the order the callers asked (``call_if_idle`` never waits for
+    another). When that process is gone, each call raises ``lost(message)``, the caller's own
+    error for it; ``where`` names the process."""
 
     def __init__(self, conn, lost: Callable[[str], Exception], where: str) -> None:
         self._conn = conn
         self._lost = lost
         self.where = where
-        self._lock = threading.Lock()
+        self._lock = TurnLock()
         self._ids = itertools.count(1)
 
     def call(self, method: str, *args):

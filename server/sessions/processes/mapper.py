@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import math
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +28,7 @@ from server.mapping.tsdf import MapError, TSDFMap
 from server.rooms.room import read_keyframe_images
 from server.sessions.errors import SessionError
 from server.sessions.failures import SessionLog
-from server.sessions.processes.ipc import Proxy, prepare_child, serve
+from server.sessions.processes.ipc import Proxy, TurnLock, prepare_child, serve
 from server.sessions.processes.priority import MAPPING_NICE
 from server.sessions.processes.room_map import RoomAddress, serve_room
 from server.sessions.store import hold_writers_lock
@@ -109,7 +108,9 @@ class Mapper:
         # room_map.py), by reader name: each phone is sent what its own frames show first.
         self.joined_previews: dict[str, MapPreview] = {}
         self._rebuild: _Rebuild | None = None
-        self._lock = threading.Lock()
+        # In turns: the room's phones fuse into this map from threads of their own, each frame
+        # after frame (ipc.TurnLock).
+        self._lock = TurnLock()
 
     def fuse(
         self,

@@ -92,8 +92,10 @@ class Page:
                 "errors",
                 "events",
                 "commands",
+                "mesh",
+                "fpv",
             )
-            brief = json.dumps({k: s.get(k) for k in keys}, default=str)[:2000]
+            brief = json.dumps({k: s.get(k) for k in keys}, default=str)[:3000]
             raise AssertionError(
                 f"timed out after {timeout_s} s waiting for {what or js}; page saw {brief}"
             ) from None

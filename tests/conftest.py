@@ -263,6 +263,7 @@ class Stream:
         self.dataset = dataset
         self.poses: list[dict] = []
         self.map_points = 0  # total_points of the last map chunk
+        self.surfaces: list[bool | None] = []  # each map chunk's surface
         self.conn: Connection | None = None
 
     async def open(self) -> Stream:
@@ -278,6 +279,7 @@ class Stream:
             self.conn.acknowledge(msg)
             if msg["type"] == "map_chunk":
                 self.map_points = msg["total_points"]
+                self.surfaces.append(msg.get("surface"))
             if msg["type"] not in UNASKED:
                 return msg
 

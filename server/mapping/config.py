@@ -22,7 +22,7 @@ class TSDFConfig:
     another resolution is re-blocked when loaded. block_count: blocks allocated up front (the
     hash map doubles when full; each block costs block_resolution^3 * 20 bytes, 10 KiB at 8).
     trunc_voxels: truncation distance in voxels. depth_max_m: depth beyond this is ignored.
-    min_weight: observations a voxel needs before it shows in extracted surfaces.
+    min_weight: a voxel shows in extracted surfaces once observed more often than this.
     carve_free_space: also record the space rays cross before the surface as seen, in a grid
     of its own (server/mapping/free_space.py), for the drone to tell free space from unknown.
     carve_every: carve on every n-th integration only (the first included): the space a moving

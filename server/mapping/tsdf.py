@@ -51,6 +51,7 @@ from server.mapping.voxel_blocks import (
     HOST,
     active_keys,
     grid_from_blocks,
+    has_surface,
     new_grid,
     read_all,
     read_blocks,
@@ -237,6 +238,11 @@ class TSDFMap:
             if self._grid.hashmap().size() == 0:
                 return o3d.geometry.TriangleMesh()
             return self._grid.extract_triangle_mesh(self.config.min_weight).cpu().to_legacy()
+
+    def has_surface(self) -> bool:
+        """Whether ``mesh()`` and the surface points would be other than empty (voxel_blocks)."""
+        with self._lock:
+            return has_surface(self._grid, self.config.min_weight)
 
     # --- occupancy for the drone ---------------------------------------------------------------
     def occupancy(

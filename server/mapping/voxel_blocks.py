@@ -149,3 +149,17 @@ def read_blocks(
     tsdf: Float32Array = grid.attribute("tsdf").numpy()[idx, ..., 0]
     weight: Float32Array = grid.attribute("weight").numpy()[idx, ..., 0]
     return keys, tsdf, weight
+
+
+def has_surface(grid: o3d.t.geometry.VoxelBlockGrid, min_weight: float) -> bool:
+    """Whether marching cubes (``extract_triangle_mesh(min_weight)``) finds a surface: voxels
+    observed more than ``min_weight`` times (Open3D skips those of weight <= it) on both sides
+    of one. Reads the whole grid: for a map that has none yet (its first frames), not every
+    frame of a grown one. Call with the grid's lock held."""
+    hashmap = grid.hashmap()
+    if hashmap.size() == 0:
+        return False
+    idx = hashmap.active_buf_indices().cpu().numpy().astype(np.int64)
+    seen = grid.attribute("weight").numpy()[idx, ..., 0] > min_weight
+    tsdf = grid.attribute("tsdf").numpy()[idx, ..., 0][seen]
+    return bool((tsdf < 0).any() and (tsdf > 0).any())

@@ -352,6 +352,7 @@ def make_map_chunk(
     chunk: int = 0,
     total_points: int | None = None,
     reset: bool | None = None,
+    surface: bool | None = None,
 ) -> dict:
     """points (N, 3) metres -> N*12 bytes float32 LE; colours (N, 3) uint8 RGB -> N*3 bytes."""
     pts = np.ascontiguousarray(points, dtype="<f4")
@@ -369,6 +370,7 @@ def make_map_chunk(
         colours=rgb.tobytes(),
         total_points=n if total_points is None else int(total_points),
         reset=reset,
+        surface=surface,
     )
 
 

@@ -100,13 +100,16 @@ class RoomUpdate:
 class MapUpdate:
     """New map preview points, sent as they are fused (after the frame's pose). ``reset``: the
     map was rebuilt (loop closure): the preview restarts with these points (a map_chunk with
-    reset true, even when there are none)."""
+    reset true, even when there are none). ``surface``: the map has a surface (its mesh and
+    surface points can be downloaded); an update without points says that it now has, or
+    reset."""
 
     seq: int
     points: np.ndarray  # (N, 3) float32 world metres
     colours: np.ndarray  # (N, 3) uint8 RGB
     total_points: int
     reset: bool = False
+    surface: bool = False
 
 
 @dataclass

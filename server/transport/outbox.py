@@ -20,8 +20,8 @@ from server.sessions import MapCorrected, MapUpdate, SessionFailed, SessionTaken
 
 def must_deliver(item: object) -> bool:
     """Updates the client's picture of the session is wrong without, not only late."""
-    if isinstance(item, MapUpdate):
-        return item.reset
+    if isinstance(item, MapUpdate):  # the restart of the map, or the news that it has a surface
+        return item.reset or (item.surface and len(item.points) == 0)
     return isinstance(item, MapCorrected | SessionFailed | SessionTakenOver)
 
 

@@ -187,12 +187,15 @@ def update_messages(
     chunk: int,
 ) -> tuple[list[dict], int]:
     """The messages one of a session's updates goes out as, to its owner or a viewer: a map
-    update as chunks of at most ``chunk_points`` points numbered from ``chunk`` on (a rebuilt
-    map's first with reset, even when it has no points); and the next chunk number."""
+    update as chunks of at most ``chunk_points`` points numbered from ``chunk`` on (one even
+    when it has no points: a rebuilt map's first, with reset, or the news of its surface); and
+    the next chunk number."""
     if isinstance(item, dict):
         return [item], chunk
     if isinstance(item, MapUpdate):
-        starts = range(0, max(len(item.points), 1 if item.reset else 0), chunk_points)
+        starts = range(
+            0, max(len(item.points), 1 if item.reset or item.surface else 0), chunk_points
+        )
         chunks = [
             proto.make_map_chunk(
                 item.points[i : i + chunk_points],
@@ -200,6 +203,7 @@ def update_messages(
                 chunk + k,
                 total_points=item.total_points,
                 reset=True if item.reset and k == 0 else None,
+                surface=item.surface,
             )
             for k, i in enumerate(starts)
         ]

@@ -103,6 +103,7 @@ def test_fpv_shows_the_map_points_and_says_the_map_is_loading_before_its_mesh(
     page.page.tap("#btn-stream")
     page.wait(f"{SPAWNED} && window.dronesim.seen.lastDrone", 90, "the drone to spawn")
     page.wait("window.dronesim.snapshot().fpv.points > 500", 30, "FPV to draw the map's points")
+    page.wait("window.dronesim.snapshot().mesh.failures >= 1", 30, "the mesh's request to fail")
     s = page.snapshot()
     assert not s["fpv"]["drawn"] and s["fpv"]["hint"] == "loading the map…", s["fpv"]
     hint = page.page.locator("#fpv-view .empty-hint")
@@ -111,7 +112,7 @@ def test_fpv_shows_the_map_points_and_says_the_map_is_loading_before_its_mesh(
     rgb = page.screenshot("fpv-points.png", ".fpv-canvas")
     drawn = np.abs(rgb.astype(int) - SKY).sum(axis=2) > 30
     assert drawn.mean() > 0.005, f"only {drawn.mean():.2%} of the FPV picture shows map points"
-    assert s["mesh"]["failures"] >= 1 and s["mesh"]["triangles"] == 0, s["mesh"]
+    assert s["mesh"]["triangles"] == 0, s["mesh"]
     errors = [e for e in page.errors if "mesh.ply" not in e and "ERR_FAILED" not in e]
     assert not errors, errors
 

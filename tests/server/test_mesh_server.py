@@ -3,6 +3,7 @@ loopback: a closed session made on disk with a known map and a known gravity."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import httpx
@@ -15,7 +16,7 @@ from server.mapping.mesh_files import R_GLTF_UPRIGHT, read_ply
 from server.mapping.tsdf import TSDFMap
 from server.mapping.upright import upright_rotation
 from server.sessions.store import hash_token
-from tests.conftest import auth
+from tests.conftest import Stream, auth
 from tests.support.glb import accessor, read_glb
 
 SID, TOKEN = "00112233445566aa", "mesh-test-token"
@@ -98,3 +99,34 @@ def test_a_session_without_gravity_is_made_upright_from_its_map(live_server, clo
     )
     assert len(triangles) == len(world_mesh.triangles)
     # (How well up is found from a map: tests/unit/mapping/test_upright.py.)
+
+
+def test_a_live_maps_chunks_say_when_its_mesh_can_be_downloaded(live_server, shared_data):
+    """map_chunk.surface is false while mesh.ply answers 409 and true from the chunk on after
+    which it answers with a mesh (the page asks for the mesh only then: no 409 in its console)."""
+    server = live_server()
+    sid, token = server.create_session()
+    s = Stream(server.ws_url, sid, token, open_dataset(shared_data / "synthetic_room0"))
+    mesh_url = f"{server.url}/api/sessions/{sid}/mesh.ply"
+
+    def get() -> httpx.Response:
+        return httpx.get(mesh_url, headers=auth(token), timeout=60)
+
+    async def go() -> tuple[int, httpx.Response]:
+        await s.open()
+        await s.send(0)
+        early = (await asyncio.to_thread(get)).status_code
+        seq = 1
+        while True not in s.surfaces and seq < 60:
+            await s.send(seq, index=2 * seq)
+            seq += 1
+        said = await asyncio.to_thread(get)  # the session still live
+        await s.close()
+        return early, said
+
+    early, said = asyncio.run(go())
+    assert early == 409
+    assert s.surfaces[0] is False and True in s.surfaces, s.surfaces
+    first = s.surfaces.index(True)
+    assert s.surfaces[first:] == [True] * (len(s.surfaces) - first), s.surfaces
+    assert said.status_code == 200 and len(read_ply(said.content).triangles) > 0

@@ -360,9 +360,9 @@ export class SessionClient extends SocketClient {
   }
 
   /** A session download (map.ply, mesh.ply, trajectory.tum) as a Blob, with the token as
-   * Authorization header. */
-  download(name) {
-    return downloadFile(this.baseUrl, this.saved ?? {}, name);
+   * Authorization header; `signal` may abort it. */
+  download(name, signal = undefined) {
+    return downloadFile(this.baseUrl, this.saved ?? {}, name, signal);
   }
 
   /** The fused map as a PLY file. */

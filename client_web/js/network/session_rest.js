@@ -64,11 +64,12 @@ export function sessionStatus(baseUrl, { id, token }) {
   return request(baseUrl, "GET", `/api/sessions/${id}`, token);
 }
 
-/** A session's file (map.ply, mesh.ply, trajectory.tum) -> {blob, filename}. */
-export async function downloadFile(baseUrl, { id, token }, name) {
+/** A session's file (map.ply, mesh.ply, trajectory.tum) -> {blob, filename}; `signal` (an
+ * AbortSignal) may give it up. */
+export async function downloadFile(baseUrl, { id, token }, name, signal = undefined) {
   if (!id) throw new Error("no session yet: start streaming first");
   const response = await fetch(`${baseUrl}/api/sessions/${id}/${name}`, {
-    headers: { Authorization: `Bearer ${token}` },
+    headers: { Authorization: `Bearer ${token}` }, signal,
   });
   if (!response.ok) {
     let why = response.statusText;

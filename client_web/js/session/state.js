@@ -85,7 +85,7 @@ export class SessionState extends EventTarget {
 
   /** The map and trajectory a reopened page downloaded (map_chunk messages only bring new points). */
   restore({ points, colours, positions }) {
-    this.#addPoints(points, colours, false);
+    this.#addPoints(points, colours, false, points.length > 0 ? true : null); // map.ply came: a surface
     this.#emit("trail", { positions });
   }
 
@@ -112,13 +112,15 @@ export class SessionState extends EventTarget {
     this.seen.chunks += 1;
     if (reset) this.seen.mapResets += 1;
     this.seen.chunkPoints += chunk.count;
-    this.#addPoints(points, colours, reset);
+    this.#addPoints(points, colours, reset, typeof chunk.surface === "boolean" ? chunk.surface : null);
   }
 
-  #addPoints(points, colours, reset) {
+  /** surface: whether the server's map has a surface to download (map_chunk.surface), null
+   * when not said. */
+  #addPoints(points, colours, reset, surface = null) {
     const total = (reset ? 0 : this.seen.mapPoints) + points.length / 3;
     this.seen.mapPoints = total;
-    this.#emit("map", { points, colours, reset, total });
+    this.#emit("map", { points, colours, reset, total, surface });
   }
 
   /** The server closed a loop: its keyframes moved, and the map is re-fused (the chunks that

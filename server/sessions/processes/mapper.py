@@ -48,7 +48,8 @@ class Fused:
     the drone's occupancy for the region changed since the last time (``TSDFMap.
     occupancy_update``: origin, occupied, observed in the flight frame), or None;
     ``occupancy_error`` says why the occupancy asked for could not be had (the frame is fused
-    all the same)."""
+    all the same). ``surface``: the map has a surface (``TSDFMap.has_surface``: its mesh and
+    surface points can be downloaded)."""
 
     points: np.ndarray
     colours: np.ndarray
@@ -56,6 +57,7 @@ class Fused:
     occupancy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     occupancy_error: str | None = None
     stats: dict = field(default_factory=dict)  # the map's ``stats()`` after this frame
+    surface: bool = False
 
 
 @dataclass
@@ -73,6 +75,7 @@ class Rebuilt:
     stats: dict
     keyframes: int
     cpu_ms: float
+    surface: bool = False  # as Fused's, of the new map
 
 
 @dataclass
@@ -108,6 +111,9 @@ class Mapper:
         # room_map.py), by reader name: each phone is sent what its own frames show first.
         self.joined_previews: dict[str, MapPreview] = {}
         self._rebuild: _Rebuild | None = None
+        # Whether the map has a surface yet: checked after each fusion until it has (a map's
+        # voxels only gain observations), then known for good.
+        self._surface = False
         # In turns: the room's phones fuse into this map from threads of their own, each frame
         # after frame (ipc.TurnLock).
         self._lock = TurnLock()
@@ -133,6 +139,7 @@ class Mapper:
             if rebuild is not None and rebuild_pose is not None:
                 self._rebuild_fuse(rebuild, colour, depth, K, rebuild_pose)
             self.map.integrate(colour, depth, K, T_world_camera)
+            self._surface = self._surface or self.map.has_surface()
             preview = self.preview if not reader else self.joined_previews[reader]
             points, colours = preview.new_points(
                 colour, depth, K, T_world_camera, self.preview_points
@@ -143,7 +150,8 @@ class Mapper:
                     grid = self.map.occupancy_update(*occupancy, reader=reader)
                 except Exception as exc:  # the drone's map misses this one; the TSDF has it
                     error = f"{type(exc).__name__}: {exc}"
-            return Fused(points, colours, preview.total, grid, error, self.map.stats())
+            stats = self.map.stats()
+            return Fused(points, colours, preview.total, grid, error, stats, self._surface)
 
     def add_reader(self, name: str) -> None:
         """A phone that joined the room fuses into this map as reader ``name`` (``fuse``)."""
@@ -188,6 +196,7 @@ class Mapper:
             rebuild = self._require_rebuild()
             self._rebuild = None
             self.map, self.preview = rebuild.map, rebuild.preview
+            self._surface = self.map.has_surface()
             grid, error = None, None
             if occupancy is not None:
                 try:  # the new map's first update is its whole grid
@@ -205,6 +214,7 @@ class Mapper:
                 self.map.stats(),
                 rebuild.keyframes,
                 rebuild.cpu_s * 1e3,
+                self._surface,
             )
 
     def rebuild_cancel(self) -> None:
@@ -248,8 +258,9 @@ class Mapper:
         """Start from a saved map (a room's ``map.npz``) instead of an empty one; its voxel
         size and block resolution must be this session's."""
         loaded = TSDFMap.load(path, self.map.config)
+        surface = loaded.has_surface()
         with self._lock:
-            self.map = loaded
+            self.map, self._surface = loaded, surface
 
     def stats(self, wait: bool = True) -> dict | None:
         """The map's figures (``TSDFMap.stats``); None instead of waiting when the map is busy

@@ -135,6 +135,7 @@ class SessionFusion:
         # Mapping thread only: frames fused so far, how many of them the drone's map has been
         # asked to include, and when it last was.
         self._fused = 0
+        self._surface_sent = False  # what the last MapUpdate said of the map's surface
         self._flight_map_at = -np.inf
 
     # ------------------------------------------------------------------ the tracking thread's
@@ -261,8 +262,13 @@ class SessionFusion:
         self.counts.changed()
         if fused.stats:
             self.counts.map_stats = fused.stats
-        if len(fused.points):
-            self.publish(MapUpdate(job.seq, fused.points, fused.colours, fused.total_points))
+        if len(fused.points) or fused.surface != self._surface_sent:
+            self._surface_sent = fused.surface
+            self.publish(
+                MapUpdate(
+                    job.seq, fused.points, fused.colours, fused.total_points, False, fused.surface
+                )
+            )
         if occupancy is not None:
             self._update_flight_map(f"frame {job.seq}", fused.occupancy, fused.occupancy_error)
         return True
@@ -288,8 +294,11 @@ class SessionFusion:
         """The rebuilt map replaced the old one: the preview restarts from it (a MapUpdate
         with reset), and the drone's map is its whole grid, the drone moving with the world
         (``Flight.map_replaced``)."""
+        self._surface_sent = rebuilt.surface
         self.publish(
-            MapUpdate(seq, rebuilt.points, rebuilt.colours, rebuilt.total_points, reset=True)
+            MapUpdate(
+                seq, rebuilt.points, rebuilt.colours, rebuilt.total_points, True, rebuilt.surface
+            )
         )
         if self.flight is None:
             return

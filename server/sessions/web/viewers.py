@@ -177,4 +177,5 @@ def merged_map(updates: list[MapUpdate]) -> MapUpdate | None:
         np.concatenate([u.points for u in updates]),
         np.concatenate([u.colours for u in updates]),
         updates[-1].total_points,
+        surface=updates[-1].surface,
     )

@@ -75,6 +75,19 @@ def test_extracted_points_lie_on_the_measured_surface(room, fused):
     assert fused.stats()["frames_integrated"] == len(FUSED)
 
 
+def test_a_map_has_a_surface_exactly_when_its_mesh_has_triangles(room):
+    """has_surface tells the page when mesh.ply stops answering 409: a voxel needs more than
+    min_weight observations (four frames here) before marching cubes shows it."""
+    tsdf = TSDFMap(small_config())
+    answers = []
+    for i in FUSED[:5]:
+        fuse(room, tsdf, [i])
+        answers.append((tsdf.has_surface(), tsdf.mesh().has_triangles()))
+        assert answers[-1][0] == answers[-1][1], answers
+    assert [has for has, _ in answers] == [False, False, False, True, True]
+    assert not TSDFMap(small_config()).has_surface()
+
+
 def test_point_cloud_and_mesh_ply_round_trip(fused, tmp_path):
     fused.write_point_cloud_ply(tmp_path / "map.ply")
     cloud = o3d.io.read_point_cloud(str(tmp_path / "map.ply"))

@@ -156,7 +156,7 @@ def test_map_corrected_decodes_to_matrices_and_refuses_bad_keyframes():
         P.validate(short, P.SERVER_TO_CLIENT)
 
 
-def test_a_rebuilt_maps_preview_starts_with_a_reset_chunk_even_when_empty():
+def test_a_rebuilt_maps_preview_and_a_new_surface_come_as_a_chunk_even_when_empty():
     from server.sessions.updates import MapUpdate
     from server.transport.websocket import update_messages
 
@@ -169,6 +169,11 @@ def test_a_rebuilt_maps_preview_starts_with_a_reset_chunk_even_when_empty():
     assert len(empty) == 1 and empty[0]["reset"] is True and empty[0]["count"] == 0
     plain, _ = update_messages(MapUpdate(9, points[:0], colours[:0], 0), 2, 0)
     assert plain == []
+    news, _ = update_messages(MapUpdate(9, points[:0], colours[:0], 7, surface=True), 2, 4)
+    assert len(news) == 1 and news[0]["surface"] is True and news[0]["count"] == 0
+    assert P.decode(P.encode(news[0]))["surface"] is True
+    both, _ = update_messages(MapUpdate(9, points, colours, 12, surface=True), 2, 0)
+    assert [c["surface"] for c in both] == [True, True, True]
 
 
 def test_the_updates_enums_are_the_protocols_and_go_out_as_their_values():

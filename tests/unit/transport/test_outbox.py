@@ -16,8 +16,10 @@ def pose(seq: int) -> PoseUpdate:
     return PoseUpdate(seq, seq / 15, np.eye(4), TrackingState.OK, 100, False, {}, 0, seq)
 
 
-def chunk(seq: int, reset: bool = False) -> MapUpdate:
-    return MapUpdate(seq, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), seq, reset)
+def chunk(seq: int, reset: bool = False, surface: bool = False) -> MapUpdate:
+    return MapUpdate(
+        seq, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), seq, reset, surface
+    )
 
 
 def state(t: float) -> DroneUpdate:
@@ -55,7 +57,8 @@ def test_a_stalled_client_loses_old_poses_and_chunks_but_not_the_correction_or_t
 
 def test_updates_that_must_arrive_are_kept_past_the_bound():
     outbox = Outbox(2)
-    ends = [SessionFailed("the map is gone"), chunk(5, reset=True), chunk(6, reset=True)]
+    # The news that the map has a surface (a chunk without points) is one of them.
+    ends = [SessionFailed("the map is gone"), chunk(5, reset=True), chunk(6, surface=True)]
     for item in ends:
         outbox.put(item)
     assert all(must_deliver(item) for item in ends) and not must_deliver(chunk(7))

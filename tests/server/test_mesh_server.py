@@ -112,10 +112,10 @@ def test_a_live_maps_chunks_say_when_its_mesh_can_be_downloaded(live_server, sha
     def get() -> httpx.Response:
         return httpx.get(mesh_url, headers=auth(token), timeout=60)
 
-    async def go() -> tuple[int, httpx.Response]:
+    async def go() -> tuple[httpx.Response, httpx.Response]:
         await s.open()
         await s.send(0)
-        early = (await asyncio.to_thread(get)).status_code
+        early = await asyncio.to_thread(get)
         seq = 1
         while True not in s.surfaces and seq < 60:
             await s.send(seq, index=2 * seq)
@@ -125,7 +125,8 @@ def test_a_live_maps_chunks_say_when_its_mesh_can_be_downloaded(live_server, sha
         return early, said
 
     early, said = asyncio.run(go())
-    assert early == 409
+    assert early.status_code == 409
+    assert early.json()["error"]["message"] == "the map has no surface yet", early.text
     assert s.surfaces[0] is False and True in s.surfaces, s.surfaces
     first = s.surfaces.index(True)
     assert s.surfaces[first:] == [True] * (len(s.surfaces) - first), s.surfaces

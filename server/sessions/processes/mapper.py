@@ -298,7 +298,10 @@ class Mapper:
         ]
         with tempfile.TemporaryDirectory() as tmp, self._lock:
             path = Path(tmp) / name
-            write(path)
+            try:
+                write(path)
+            except MapError:  # said without the server's temporary path
+                raise MapError("the map has no surface yet") from None
             return path.read_bytes()
 
     def close(self) -> None:

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from server.geometry.arrays import BoolArray, Float32Array, FloatArray, Int64Array
 from server.mapping.config import TSDFConfig
-from server.mapping.frame_input import FusionFrame
+from server.mapping.frame_input import FusionFrame, open3d_projection
 from server.mapping.occupancy import free_space_keys, pack_keys, unpack_keys
 from server.mapping.voxel_blocks import (
     BYTES_PER_FREE_VOXEL,
@@ -92,7 +92,7 @@ class FreeSpace:
         if keys.size == 0:
             return
         coords = o3c.Tensor(unpack_keys(keys).astype(np.int32), o3c.int32, HOST).to(self._device)
-        intrinsic = o3c.Tensor(frame.K.matrix, o3c.float64, HOST)
+        intrinsic = o3c.Tensor(open3d_projection(frame.K), o3c.float64, HOST)
         extrinsic = o3c.Tensor(np.linalg.inv(T_world_camera), o3c.float64, HOST)
         self._grid.integrate(
             coords,

@@ -9,14 +9,19 @@ from __future__ import annotations
 import numpy as np
 
 from server.geometry import Intrinsics, backproject
+from server.mapping.frame_input import intrinsics_at
 
 
 class MapPreview:
-    """Tracks which voxels (edge ``voxel_m``) were already sent to the client."""
+    """Tracks which voxels (edge ``voxel_m``) were already sent to the client. Each frame's depth
+    is sampled ``sample_width_px`` pixels across (every 4th pixel of 640, each of a phone's 160),
+    whatever its size."""
 
-    def __init__(self, voxel_m: float = 0.04, stride: int = 4, max_depth_m: float = 4.0) -> None:
+    def __init__(
+        self, voxel_m: float = 0.04, sample_width_px: int = 160, max_depth_m: float = 4.0
+    ) -> None:
         self.voxel_m = voxel_m
-        self.stride = stride
+        self.sample_width_px = sample_width_px
         self.max_depth_m = max_depth_m
         self._sent: set[int] = set()
         self._rng = np.random.default_rng(0)
@@ -31,9 +36,12 @@ class MapPreview:
         max_points: int,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Points (N, 3) float32 world metres and colours (N, 3) uint8 of voxels this frame shows
-        for the first time, at most ``max_points`` (the rest can come with later frames)."""
+        for the first time, at most ``max_points`` (the rest can come with later frames). K is
+        the camera's; depth and colour may each be at another size of the same aspect."""
+        h, w = depth.shape
         d = np.where(depth <= self.max_depth_m, depth, 0.0)
-        points, uv = backproject(d, K, self.stride)
+        stride = max(1, round(w / self.sample_width_px))
+        points, uv = backproject(d, intrinsics_at(K, w, h), stride)
         if len(points) == 0:
             return np.empty((0, 3), np.float32), np.empty((0, 3), np.uint8)
         world = points @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
@@ -47,5 +55,8 @@ class MapPreview:
             idx, new_keys = idx[pick], new_keys[pick]
         self._sent.update(new_keys.tolist())
         self.total += len(idx)
-        rgb = colour[uv[idx, 1].astype(int), uv[idx, 0].astype(int)]
+        ch, cw = colour.shape[:2]
+        u = np.minimum(((uv[idx, 0] + 0.5) * (cw / w)).astype(int), cw - 1)
+        v = np.minimum(((uv[idx, 1] + 0.5) * (ch / h)).astype(int), ch - 1)
+        rgb = colour[v, u]
         return world[idx].astype(np.float32), rgb.astype(np.uint8)

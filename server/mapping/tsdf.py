@@ -30,7 +30,7 @@ from server.geometry import Intrinsics
 from server.geometry.arrays import BoolArray, FloatArray, GreyImage, Int64Array, RealArray
 from server.mapping.change_readers import ChangeReaders
 from server.mapping.config import TSDFConfig
-from server.mapping.frame_input import fusion_frame
+from server.mapping.frame_input import fusion_frame, open3d_projection
 from server.mapping.free_space import FreeSpace
 from server.mapping.occupancy import (
     Cells,
@@ -144,7 +144,7 @@ class TSDFMap:
         except ValueError as exc:
             raise MapError(str(exc)) from exc
         units = frame.depth_units
-        intrinsic = o3c.Tensor(frame.K.matrix, o3c.float64, HOST)
+        intrinsic = o3c.Tensor(open3d_projection(frame.K), o3c.float64, HOST)
         # T_camera_world, as Open3D wants.
         extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64, HOST)
         depth_img = self._image(frame.depth_uint16, o3c.uint16)

@@ -22,6 +22,7 @@ import numpy as np
 from server.evaluation.trajectory import Trajectory
 from server.frame_step import FrameStep
 from server.geometry import Intrinsics
+from server.mapping.frame_input import at_depth_size
 from server.registration import Tracker, TrackingState, TrackResult
 from server.rooms.continuation import RoomTracker
 from server.sessions.config import SessionConfig
@@ -292,11 +293,19 @@ class SessionTracking:
                     ]
                 )
             if settled.fuse:
+                # A keyframe goes to the room and the loop closer as tracked; a plain frame only
+                # to the map, which fuses at the depth's own size (a phone's is 1/16 of its
+                # colour's): sent so, it crosses to the mapping process in a fraction.
+                fused_colour, fused_depth = (
+                    (colour, depth)
+                    if settled.new_keyframe
+                    else (at_depth_size(colour, frame.depth), frame.depth)
+                )
                 queued = self.fusion.queue(
                     FuseJob(
                         frame.seq,
-                        colour,
-                        depth,
+                        fused_colour,
+                        fused_depth,
                         result.T_world_camera,
                         settled.new_keyframe,
                         result.keyframe_id,

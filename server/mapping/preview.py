@@ -6,6 +6,8 @@ every time (over 100 ms for a room); a preview only needs to show where the map 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from server.geometry import Intrinsics, backproject
@@ -13,15 +15,15 @@ from server.mapping.frame_input import intrinsics_at
 
 
 class MapPreview:
-    """Tracks which voxels (edge ``voxel_m``) were already sent to the client. Each frame's depth
-    is sampled ``sample_width_px`` pixels across (every 4th pixel of 640, each of a phone's 160),
-    whatever its size."""
+    """Tracks which voxels (edge ``voxel_m``) were already sent to the client. A frame's depth is
+    sampled at every n-th pixel each way, n the least that samples at most ``max_samples``
+    pixels (every 4th of 640x480, each of ARCore's 160x72), whatever its size."""
 
     def __init__(
-        self, voxel_m: float = 0.04, sample_width_px: int = 160, max_depth_m: float = 4.0
+        self, voxel_m: float = 0.04, max_samples: int = 160 * 120, max_depth_m: float = 4.0
     ) -> None:
         self.voxel_m = voxel_m
-        self.sample_width_px = sample_width_px
+        self.max_samples = max_samples
         self.max_depth_m = max_depth_m
         self._sent: set[int] = set()
         self._rng = np.random.default_rng(0)
@@ -40,7 +42,7 @@ class MapPreview:
         the camera's; depth and colour may each be at another size of the same aspect."""
         h, w = depth.shape
         d = np.where(depth <= self.max_depth_m, depth, 0.0)
-        stride = max(1, round(w / self.sample_width_px))
+        stride = max(1, math.ceil(math.sqrt(w * h / self.max_samples)))
         points, uv = backproject(d, intrinsics_at(K, w, h), stride)
         if len(points) == 0:
             return np.empty((0, 3), np.float32), np.empty((0, 3), np.uint8)

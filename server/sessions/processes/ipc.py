@@ -219,7 +219,15 @@ class TurnLock:
             turn = threading.Lock()
             turn.acquire()
             self._waiting.append(turn)
-        turn.acquire()  # released by the holder that hands over: the lock is ours, still held
+        try:
+            turn.acquire()  # released by the holder that hands over: the lock is ours, still held
+        except BaseException:  # a signal's handler raised in the wait (the main thread's)
+            with self._guard:
+                if turn in self._waiting:  # not our turn yet: leave the queue
+                    self._waiting.remove(turn)
+                    raise
+            self.release()  # handed over meanwhile: pass it on, never left held by no one
+            raise
         return True
 
     def release(self) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import signal
 import threading
 import time
 
@@ -169,3 +170,39 @@ def test_a_turn_lock_goes_to_its_waiters_in_the_order_they_asked():
         t.join(5)
     assert order == [0, 1, 2, 3]
     assert lock.acquire(blocking=False)  # free again once the last waiter released it
+
+
+def test_a_wait_for_a_turn_that_a_signal_interrupts_leaves_the_lock_usable():
+    """A signal handler that raises (SIGTERM in a worker's main thread) while the main thread
+    waits for its turn: the lock must not be handed to a waiter that is gone."""
+
+    class Interrupted(Exception):
+        pass
+
+    def interrupt(*_):
+        raise Interrupted
+
+    lock = TurnLock()
+    held = threading.Event()
+    release = threading.Event()
+
+    def hold():
+        with lock:
+            held.set()
+            release.wait(5)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    held.wait(5)
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
+        with pytest.raises(Interrupted):
+            lock.acquire()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    release.set()
+    holder.join(5)
+    assert lock.acquire(blocking=False)  # free: no one is left waiting for it
+    lock.release()

@@ -31,14 +31,22 @@ def pixels_added(page, tmp_path, name: str, selector: str, group: str, hide: str
     screenshot with the rings, one without (scaled to nothing: the course messages keep
     setting the groups' visibility; both views redrawn in between)."""
 
+    view = "map" if group == "mapGroup" else "ar"
+
     def draw(visible: bool) -> np.ndarray:
+        # Then wait until the view has drawn since: its draws may be 800 ms apart where the page
+        # found the stream behind (views/render_budget.js); a fixed 150 ms once saw no change.
         page.page.evaluate(
             f"""() => {{
               const c = {COURSE}; c.{group}.scale.setScalar({1 if visible else 0});
               c.ar.dirty = true; c.map.dirty = true; {hide}
+              window.__changedAt = performance.now();
             }}"""
         )
-        page.page.evaluate("new Promise((r) => requestAnimationFrame(() => setTimeout(r, 150)))")
+        page.wait(
+            f"{COURSE}.{view}.lastRender > window.__changedAt", 10, f"the {view} view to draw"
+        )
+        page.page.evaluate("new Promise((r) => requestAnimationFrame(() => setTimeout(r, 50)))")
         return shot(
             page, tmp_path, f"{name}-{'with' if visible else 'without'}-rings.png", selector
         )

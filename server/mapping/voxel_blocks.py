@@ -154,12 +154,20 @@ def read_blocks(
 def has_surface(grid: o3d.t.geometry.VoxelBlockGrid, min_weight: float) -> bool:
     """Whether marching cubes (``extract_triangle_mesh(min_weight)``) finds a surface: voxels
     observed more than ``min_weight`` times (Open3D skips those of weight <= it) on both sides
-    of one. Reads the whole grid: for a map that has none yet (its first frames), not every
-    frame of a grown one. Call with the grid's lock held."""
+    of one. Reads the grid a thousand blocks at a time until it knows: all of a map that has
+    none yet (its first frames: small), the first blocks of one that has (a rebuilt room).
+    Call with the grid's lock held."""
     hashmap = grid.hashmap()
     if hashmap.size() == 0:
         return False
     idx = hashmap.active_buf_indices().cpu().numpy().astype(np.int64)
-    seen = grid.attribute("weight").numpy()[idx, ..., 0] > min_weight
-    tsdf = grid.attribute("tsdf").numpy()[idx, ..., 0][seen]
-    return bool((tsdf < 0).any() and (tsdf > 0).any())
+    weight, tsdf = grid.attribute("weight").numpy(), grid.attribute("tsdf").numpy()
+    inside = outside = False
+    for start in range(0, len(idx), 1024):
+        blocks = idx[start : start + 1024]
+        values = tsdf[blocks, ..., 0][weight[blocks, ..., 0] > min_weight]
+        inside = inside or bool((values < 0).any())
+        outside = outside or bool((values > 0).any())
+        if inside and outside:
+            return True
+    return False

@@ -9,12 +9,11 @@ Screenshots go to the test's tmp dir and to ``test-artifacts/web/``.
 from __future__ import annotations
 
 import shutil
-import time
 
 import numpy as np
 
-from tests.conftest import session_status
 from tests.support.browser import ARTIFACTS, DESKTOP, REPLAY_PATH, start_replay
+from tests.support.rest import map_caught_up, wait_for_status
 
 COURSE = "window.dronesim.course"
 
@@ -34,19 +33,13 @@ def pixels_added(page, tmp_path, name: str, selector: str, group: str, hide: str
     view = "map" if group == "mapGroup" else "ar"
 
     def draw(visible: bool) -> np.ndarray:
-        # Then wait until the view has drawn since: its draws may be 800 ms apart where the page
-        # found the stream behind (views/render_budget.js); a fixed 150 ms once saw no change.
-        page.page.evaluate(
-            f"""() => {{
-              const c = {COURSE}; c.{group}.scale.setScalar({1 if visible else 0});
-              c.ar.dirty = true; c.map.dirty = true; {hide}
-              window.__changedAt = performance.now();
-            }}"""
+        # A fixed 150 ms once saw no change: the view had not drawn yet (Page.redraw).
+        page.redraw(
+            f"const c = {COURSE}; c.{group}.scale.setScalar({1 if visible else 0});"
+            f" c.ar.dirty = true; c.map.dirty = true; {hide}",
+            f"{COURSE}.{view}",
+            f"the {view} view to draw",
         )
-        page.wait(
-            f"{COURSE}.{view}.lastRender > window.__changedAt", 10, f"the {view} view to draw"
-        )
-        page.page.evaluate("new Promise((r) => requestAnimationFrame(() => setTimeout(r, 50)))")
         return shot(
             page, tmp_path, f"{name}-{'with' if visible else 'without'}-rings.png", selector
         )
@@ -71,13 +64,19 @@ def test_a_course_in_the_demo_is_drawn_flown_by_the_autopilot_and_scored(
     sid, token = page.page.evaluate(
         "[window.dronesim.client.saved.id, window.dronesim.client.saved.token]"
     )
-    deadline = time.monotonic() + 30
-    while True:  # the drone's map holds every fused frame (test_drone_server)
-        status = session_status(server.url, sid, token)
-        if status["drone"]["map_frames"] == status["map"]["frames_integrated"] > 0:
-            break
-        assert time.monotonic() < deadline, status["drone"]
-        time.sleep(0.3)
+    # The map is final (every frame fused) and the drone's map holds all of it: the two
+    # courses below are laid on the same map. Equal counts alone held for a moment while
+    # frames still waited for the mapper, which then changed the second course.
+    wait_for_status(
+        server.url,
+        sid,
+        token,
+        lambda b: (
+            map_caught_up(b) and b["drone"]["map_frames"] == b["map"]["frames_integrated"] > 0
+        ),
+        "the drone's map to hold every frame",
+        30,
+    )
 
     # The Course panel: easy, seed 0, the pilot to fly it (no autopilot yet); Start course.
     page.page.click("#btn-course")

@@ -97,9 +97,11 @@ def open3d_projection(K: Intrinsics) -> RealArray:
     """K's matrix for Open3D's integration, which reads the depth pixel a voxel projects into by
     truncating its image coordinates: pixel u spans [u, u + 1) there, where ours is centred on u.
     Half a pixel added to the principal point makes that the nearest pixel. Without it every
-    voxel read depth half a pixel off: on synthetic_room0 with exact poses, fused surface points
-    lay 5.0 mm from the measured surface (median) instead of 4.9 at 640x480, and 6.6 instead
-    of 4.9 for depth at 160x120 (tests/unit/mapping/test_tsdf.py)."""
+    voxel read depth half a pixel off: on the synthetic_room0 frames that tests/unit/mapping/
+    test_tsdf.py fuses (exact poses), surface points lay 5.0 mm from the measured surface
+    (median) instead of 4.9 at 640x480, and 6.6 instead of 4.9 for depth at 160x120 (measured
+    once; the test holds the 160x120 map to the resampled one's). Only integration reads
+    pixels so: the block search unprojects pixels (``search_K``), whose centres are ours."""
     return np.array([[K.fx, 0, K.cx + 0.5], [0, K.fy, K.cy + 0.5], [0, 0, 1.0]])
 
 

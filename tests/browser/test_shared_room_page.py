@@ -105,12 +105,11 @@ def test_a_viewer_of_the_owner_draws_the_joined_phones_drone_and_camera(
 
     # On the map, in its colour: paint that is gone when the others are hidden.
     shown = _paint(viewer.screenshot("room-viewer-map.png", "#map-view"), 0xFF9A00).sum()
-    viewer.page.evaluate(
-        "(m => { m.others.group.visible = false; m.dirty = true;"
-        " window.__hiddenAt = performance.now() })(window.dronesim.map)"
+    viewer.redraw(
+        "const m = window.dronesim.map; m.others.group.visible = false; m.dirty = true",
+        "window.dronesim.map",
+        "the map to draw",
     )
-    viewer.wait("window.dronesim.map.lastRender > window.__hiddenAt", 10, "the map to draw")
-    viewer.page.evaluate("new Promise((r) => requestAnimationFrame(() => setTimeout(r, 50)))")
     hidden = _paint(viewer.screenshot("room-viewer-map-hidden.png", "#map-view"), 0xFF9A00).sum()
     assert shown > hidden + 20, (shown, hidden)
     assert not viewer.errors, viewer.errors

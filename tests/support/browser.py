@@ -100,6 +100,15 @@ class Page:
                 f"timed out after {timeout_s} s waiting for {what or js}; page saw {brief}"
             ) from None
 
+    def redraw(self, change: str, view: str, what: str) -> None:
+        """Run ``change`` (JS statements that change what ``view`` draws and mark it dirty) and
+        wait until ``view`` (a JS expression: a view with ``lastRender``) has drawn since, and
+        the page has composited it. Not a fixed wait: where the page finds the stream behind,
+        its views draw up to 800 ms apart (views/render_budget.js)."""
+        self.page.evaluate(f"() => {{ {change}; window.__changedAt = performance.now(); }}")
+        self.wait(f"{view}.lastRender > window.__changedAt", 10, what)
+        self.page.evaluate("new Promise((r) => requestAnimationFrame(() => setTimeout(r, 50)))")
+
     def screenshot(self, name: str, selector: str | None = None) -> np.ndarray:
         """Save a screenshot (of the page or one element) under test-artifacts/web; -> RGB."""
         ARTIFACTS.mkdir(parents=True, exist_ok=True)

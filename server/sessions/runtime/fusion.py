@@ -266,7 +266,7 @@ class SessionFusion:
             self._surface_sent = fused.surface
             self.publish(
                 MapUpdate(
-                    job.seq, fused.points, fused.colours, fused.total_points, False, fused.surface
+                    job.seq, fused.points, fused.colours, fused.total_points, surface=fused.surface
                 )
             )
         if occupancy is not None:
@@ -297,7 +297,12 @@ class SessionFusion:
         self._surface_sent = rebuilt.surface
         self.publish(
             MapUpdate(
-                seq, rebuilt.points, rebuilt.colours, rebuilt.total_points, True, rebuilt.surface
+                seq,
+                rebuilt.points,
+                rebuilt.colours,
+                rebuilt.total_points,
+                reset=True,
+                surface=rebuilt.surface,
             )
         )
         if self.flight is None:
